@@ -1,0 +1,241 @@
+"""Geometric FastSLAM: the report's loop (§4.2, §5, §6), step by step, on particle arrays.
+
+``FastSLAM.step(odometry, scan)`` per scan:
+
+1. extract line segments from the scan (clusters → split-and-merge → TLS fits), robot frame;
+2. propagate every particle through the slip-aware odometry model;
+3. improved proposal: align the scan to each particle's own map, sample around the result;
+4. ML association of every observed segment with its particle's map elements;
+5. weight each particle by the association quality, minus contradictions (seen-through walls);
+6. update matched elements (refit from moments), add the rest as new elements;
+7. now and then: clean the maps (bad and redundant elements);
+8. resample when the effective sample size drops;
+9. now and then: build the cross-particle global map and refresh the particles' maps (§5);
+10. at loop closure: inject particles at geometric pose hypotheses (§6).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from robot_agent.slam import consensus as consensus_mod
+from robot_agent.slam import relocalize as reloc_mod
+from robot_agent.slam.association import AssociationConfig, associate, match_log_likelihood, observe
+from robot_agent.slam.extraction import ExtractionConfig, ScanSegments, extract_segments
+from robot_agent.slam.motion import MotionConfig, odometry_increment, predict, sample_gaussian, walk_slip
+from robot_agent.slam.particles import ParticleSet, SegmentMaps
+from robot_agent.slam.proposal import ProposalConfig, align
+from robot_agent.slam.resampling import effective_sample_size, systematic_resample
+from robot_agent.slam.trajectory import Trajectory
+from robot_agent.slam.update import (
+    CleaningConfig,
+    TrustConfig,
+    UpdateConfig,
+    add_new,
+    apply_misses,
+    clean,
+    merge_matches,
+    trusted_mask,
+    visibility,
+)
+from shared.geometry import compose, wrap_angle
+
+
+@dataclass(frozen=True)
+class WeightConfig:
+    gain: float = 0.5  # likelihood temperature: < 1 smooths the weights (scan points correlate)
+    log_p_new: float = -4.0  # log-likelihood of an observation that matches nothing (new element)
+    through_penalty: float = 0.5  # per trusted element the scan sees through
+    max_through_penalty: float = 10.0
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    ess_threshold: float = 0.5  # resample when ESS < this × P
+    min_travel_m: float = 0.1  # process a scan only after this much motion ...
+    min_turn_rad: float = np.radians(5.0)  # ... or this much turning (between, odometry bridges)
+    local_radius_m: float = 25.0  # map elements farther than this from the robot are not touched
+    clean_every: int = 5  # steps between map cleanings
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    particles: int = 30
+    extraction: ExtractionConfig = field(default_factory=ExtractionConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    association: AssociationConfig = field(default_factory=AssociationConfig)
+    proposal: ProposalConfig = field(default_factory=ProposalConfig)
+    update: UpdateConfig = field(default_factory=UpdateConfig)
+    weights: WeightConfig = field(default_factory=WeightConfig)
+    trust: TrustConfig = field(default_factory=TrustConfig)
+    cleaning: CleaningConfig = field(default_factory=CleaningConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    consensus: consensus_mod.ConsensusConfig = field(default_factory=consensus_mod.ConsensusConfig)
+    relocalization: reloc_mod.RelocalizationConfig = field(default_factory=reloc_mod.RelocalizationConfig)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    stamp_s: float
+    pose: np.ndarray  # (3,) best particle's pose in the map frame
+    processed: bool  # False when the scan was bridged by odometry (too little motion)
+    ess: float
+    n_segments: int
+
+
+class FastSLAM:
+    """The filter. ``rng`` is the only source of randomness; time comes with the scans."""
+
+    def __init__(self, cfg: SlamConfig, rng: np.random.Generator, start: np.ndarray | None = None):
+        self.cfg = cfg
+        self.rng = rng
+        self.particles = ParticleSet.create(cfg.particles, start)
+        self.trajectory = Trajectory()
+        self.step_index = 0
+        self._last_odo: np.ndarray | None = None
+        self.last_segments: ScanSegments | None = None
+        self.global_map: consensus_mod.GlobalMap | None = None
+        self.stats = {"resamples": 0, "injections": 0, "relocalizations": 0}
+
+    # -- the loop ---------------------------------------------------------------------------
+
+    def step(
+        self,
+        stamp_s: float,
+        odometry: np.ndarray,
+        ranges_m: np.ndarray,
+        angles_rad: np.ndarray,
+        laser_offset: np.ndarray,
+        range_max_m: float = np.inf,
+    ) -> Estimate:
+        cfg = self.cfg
+        ps = self.particles
+        odometry = np.asarray(odometry, dtype=float)
+        if self._last_odo is not None:
+            u = odometry_increment(self._last_odo, odometry)
+            moved = np.hypot(u[0], u[1]) >= cfg.filter.min_travel_m or abs(u[2]) >= cfg.filter.min_turn_rad
+            if not moved:  # bridge with odometry; the trajectory is refined at the next step
+                self.trajectory.bridge(stamp_s, u)
+                best = ps.best()
+                return Estimate(
+                    stamp_s, compose(ps.poses[best], u), False, effective_sample_size(ps.log_weights), 0
+                )
+        else:
+            u = np.zeros(3)
+        self.step_index += 1
+        k = self.step_index
+
+        # 1. segments, in the robot frame
+        segs = extract_segments(ranges_m, angles_rad, cfg.extraction, range_max_m).transformed(laser_offset)
+        self.last_segments = segs
+        facing = wrap_angle(segs.alpha + np.pi)  # normal pointing back to the sensor
+
+        # 2. motion (slip-aware), 3. proposal
+        mean, cov = predict(ps.poses, ps.slip, u, cfg.motion)
+        ps.slip = walk_slip(self.rng, ps.slip, float(np.hypot(u[0], u[1])), cfg.motion)
+        cols = self._local_columns(mean)
+        local = ps.maps.columns(cols)
+        prior_term = np.zeros(ps.n)
+        if cfg.proposal.enabled and len(cols) and len(segs):
+            prop = align(
+                mean,
+                cov,
+                segs.moments,
+                segs.endpoints,
+                facing,
+                segs.cov,
+                local,
+                cfg.association,
+                cfg.proposal,
+            )
+            ps.poses = sample_gaussian(self.rng, prop.mean, prop.cov)
+            d = prop.mean - mean
+            d[:, 2] = wrap_angle(d[:, 2])
+            prior_term = -0.5 * np.einsum("pi,pij,pj->p", d, np.linalg.inv(cov), d)
+        else:
+            ps.poses = sample_gaussian(self.rng, mean, cov)
+
+        # 4. association at the sampled poses, 5. weights
+        obs = observe(ps.poses, segs.moments, segs.endpoints, facing, segs.cov, cfg.association.point_sigma_m)
+        assoc = associate(obs, local, cfg.association)
+        ll = match_log_likelihood(assoc, obs, cfg.association, cfg.weights.log_p_new).sum(axis=1)
+        laser_poses = compose(ps.poses, laser_offset)
+        usable = min(cfg.extraction.max_usable_range_m, range_max_m)
+        through, in_view = visibility(local, laser_poses, ranges_m, angles_rad, usable, cfg.update)
+        trusted = trusted_mask(local, k, cfg.trust)
+        contradictions = np.sum((through >= 2) & trusted, axis=1)
+        penalty = np.minimum(cfg.weights.through_penalty * contradictions, cfg.weights.max_through_penalty)
+        ps.log_weights = ps.log_weights + cfg.weights.gain * (ll + prior_term) - penalty
+        ps.normalize()
+
+        # 6. update / add, misses
+        matched_cols = np.zeros(local.valid.shape, bool)
+        p_idx, o_idx = np.nonzero(assoc.matched)
+        matched_cols[p_idx, assoc.index[p_idx, o_idx]] = True
+        merge_matches(local, obs, assoc, k, cfg.update)
+        apply_misses(local, through, in_view, matched_cols, cfg.update)
+        # 7. cleaning
+        if k % cfg.filter.clean_every == 0:
+            clean(local, k, cfg.cleaning)
+        ps.maps.put_columns(cols, local)
+        add_new(ps.maps, obs, assoc, k, cfg.update)
+
+        self.trajectory.record(stamp_s, ps.poses)
+        # 8. resampling
+        ess = effective_sample_size(ps.log_weights)
+        if ess < cfg.filter.ess_threshold * ps.n:
+            idx = systematic_resample(self.rng, ps.log_weights)
+            self.particles = ps = ps.take(idx)
+            ps.log_weights = np.full(ps.n, -np.log(ps.n))
+            self.trajectory.reparent(idx)
+            self.stats["resamples"] += 1
+        # 9. cross-particle global map (report §5), 10. relocalization (report §6)
+        if cfg.consensus.enabled and k % cfg.consensus.every == 0:
+            self.global_map = consensus_mod.build_global_map(ps, k, cfg.trust, cfg.consensus)
+            consensus_mod.refresh_particles(ps, self.global_map, k, cfg.consensus)
+        if cfg.relocalization.enabled and self.global_map is not None and len(segs):
+            self._maybe_relocalize(segs, facing, k)
+        self._last_odo = odometry
+        best = ps.best()
+        return Estimate(stamp_s, ps.poses[best].copy(), True, ess, len(segs))
+
+    # -- helpers ------------------------------------------------------------------------------
+
+    def _local_columns(self, poses: np.ndarray) -> np.ndarray:
+        """Columns with an element within ``local_radius_m`` of any particle (cheap bound:
+        distance to the segment's midpoint minus its half length)."""
+        maps = self.particles.maps
+        used = maps.used_columns()
+        if len(used) == 0:
+            return used
+        seg = maps.seg[:, used]
+        mid = 0.5 * (seg[:, :, 0] + seg[:, :, 1])
+        half = 0.5 * np.hypot(*(seg[:, :, 1] - seg[:, :, 0]).transpose(2, 0, 1))
+        centre = poses[:, :2].mean(axis=0)
+        spread = np.max(np.hypot(*(poses[:, :2] - centre).T))
+        d = np.hypot(*(mid - centre).transpose(2, 0, 1)) - half
+        near = np.any(maps.valid[:, used] & (d < self.cfg.filter.local_radius_m + spread), axis=0)
+        return used[near]
+
+    def _maybe_relocalize(self, segs: ScanSegments, facing: np.ndarray, k: int) -> None:
+        ps = self.particles
+        result = reloc_mod.relocalize(
+            ps, self.global_map, segs, facing, k, self.cfg.relocalization, self.cfg.association
+        )
+        if result is None:
+            return
+        self.stats["relocalizations"] += 1
+        targets, sources = reloc_mod.inject(ps, result)
+        self.stats["injections"] += len(targets)
+        self.trajectory.inherit(targets, sources)
+
+    # -- outputs ------------------------------------------------------------------------------
+
+    def best_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """``stamps (S,)`` and poses ``(S,3)`` of the best particle's whole history, one per scan."""
+        return self.trajectory.backtrack(self.particles.best())
+
+    def best_map(self) -> SegmentMaps:
+        return self.particles.maps.take(np.array([self.particles.best()]))

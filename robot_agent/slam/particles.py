@@ -1,0 +1,151 @@
+"""Particles as arrays: poses, log-weights, slip states and per-particle segment maps.
+
+Maps are *column aligned*: column ``j`` of every particle's map is the same map element
+(one identity, descended from one observation), valid in the particles that have it. A new
+observation that no particle could associate gets one fresh column for all of them; resampling
+gathers rows and keeps columns; the cross-particle global map (report §5) is a reduction over
+the particle axis of each column. Shapes: ``P`` particles, ``M`` columns (capacity).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from robot_agent.slam.lines import fit_lines, project_to_line, segment_endpoints
+
+INITIAL_CAPACITY = 256
+
+
+@dataclass
+class SegmentMaps:
+    """Per-particle segment maps, padded to a common capacity, with a validity mask.
+
+    Every array has the particle axis first and the element (column) axis second.
+    """
+
+    valid: np.ndarray  # (P,M) bool
+    seg: np.ndarray  # (P,M,2,2) endpoints on the fitted line, map frame [m]
+    moments: np.ndarray  # (P,M,6) sufficient statistics of every point merged in (lines.py)
+    alpha: np.ndarray  # (P,M) line normal angle [rad] (fit of `moments`)
+    rho: np.ndarray  # (P,M) line distance to the origin [m]
+    facing: np.ndarray  # (P,M) direction of the free side's normal [rad]: the side the sensor saw
+    hits: np.ndarray  # (P,M) number of observations merged
+    born: np.ndarray  # (P,M) step at which the element was created
+    last_seen: np.ndarray  # (P,M) step of the last merge
+    misses: np.ndarray  # (P,M) decayed count of "should have been seen but was not / seen through"
+    quality: np.ndarray  # (P,M) running mean of match quality in [0, 1]
+
+    @classmethod
+    def empty(cls, n_particles: int, capacity: int = INITIAL_CAPACITY) -> SegmentMaps:
+        p, m = n_particles, capacity
+        return cls(
+            valid=np.zeros((p, m), bool),
+            seg=np.zeros((p, m, 2, 2)),
+            moments=np.zeros((p, m, 6)),
+            alpha=np.zeros((p, m)),
+            rho=np.zeros((p, m)),
+            facing=np.zeros((p, m)),
+            hits=np.zeros((p, m), np.int32),
+            born=np.zeros((p, m), np.int32),
+            last_seen=np.zeros((p, m), np.int32),
+            misses=np.zeros((p, m), np.float32),
+            quality=np.zeros((p, m), np.float32),
+        )
+
+    @property
+    def n_particles(self) -> int:
+        return self.valid.shape[0]
+
+    @property
+    def capacity(self) -> int:
+        return self.valid.shape[1]
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def take(self, idx: np.ndarray) -> SegmentMaps:
+        """Rows ``idx (P',)`` of every array (resampling, injection)."""
+        return SegmentMaps(**{k: v[idx] for k, v in self.arrays().items()})
+
+    def columns(self, cols: np.ndarray) -> SegmentMaps:
+        """A local view-copy of columns ``cols (C,)`` (all particles)."""
+        return SegmentMaps(**{k: v[:, cols] for k, v in self.arrays().items()})
+
+    def put_columns(self, cols: np.ndarray, local: SegmentMaps) -> None:
+        """Write a local copy made by :meth:`columns` back."""
+        for k, v in self.arrays().items():
+            v[:, cols] = getattr(local, k)
+
+    def free_columns(self, k: int) -> np.ndarray:
+        """``k`` columns valid in no particle, growing the capacity (doubling) if needed."""
+        free = np.flatnonzero(~self.valid.any(axis=0))
+        if len(free) < k:
+            self._grow(max(self.capacity, k - len(free)))
+            free = np.flatnonzero(~self.valid.any(axis=0))
+        return free[:k]
+
+    def _grow(self, extra: int) -> None:
+        for k, v in self.arrays().items():
+            pad = np.zeros((v.shape[0], extra, *v.shape[2:]), v.dtype)
+            setattr(self, k, np.concatenate([v, pad], axis=1))
+
+    def used_columns(self) -> np.ndarray:
+        return np.flatnonzero(self.valid.any(axis=0))
+
+    def refit(self, rows: np.ndarray | slice, cols: np.ndarray | slice, extra_points=None) -> None:
+        """Refit lines of ``[rows, cols]`` from their moments and re-project the extents.
+
+        The extent is the union of the old endpoints' and ``extra_points (..., K, 2)``'s
+        projections on the new line.
+        """
+        alpha, rho, _ = fit_lines(self.moments[rows, cols])
+        ends = self.seg[rows, cols]
+        pts = ends if extra_points is None else np.concatenate([ends, extra_points], axis=-2)
+        t, _ = project_to_line(pts, alpha[..., None], rho[..., None])
+        self.alpha[rows, cols], self.rho[rows, cols] = alpha, rho
+        self.seg[rows, cols] = segment_endpoints(alpha, rho, t.min(axis=-1), t.max(axis=-1))
+
+
+@dataclass
+class ParticleSet:
+    """The filter state. ``poses (P,3)`` robot poses in the map frame, ``log_weights (P,)``
+    normalized so that ``logsumexp == 0``, ``slip (P,2)`` each particle's belief of the
+    systematic odometry error (distance scale error, heading drift [rad/m]), ``maps``."""
+
+    poses: np.ndarray
+    log_weights: np.ndarray
+    slip: np.ndarray
+    maps: SegmentMaps
+
+    @classmethod
+    def create(cls, n_particles: int, start: np.ndarray | None = None) -> ParticleSet:
+        poses = (
+            np.zeros((n_particles, 3))
+            if start is None
+            else np.tile(np.asarray(start, float), (n_particles, 1))
+        )
+        return cls(
+            poses=poses,
+            log_weights=np.full(n_particles, -np.log(n_particles)),
+            slip=np.zeros((n_particles, 2)),
+            maps=SegmentMaps.empty(n_particles),
+        )
+
+    @property
+    def n(self) -> int:
+        return len(self.poses)
+
+    def take(self, idx: np.ndarray) -> ParticleSet:
+        return ParticleSet(
+            self.poses[idx].copy(), self.log_weights[idx].copy(), self.slip[idx].copy(), self.maps.take(idx)
+        )
+
+    def best(self) -> int:
+        return int(np.argmax(self.log_weights))
+
+    def normalize(self) -> None:
+        lw = self.log_weights
+        mx = lw.max()
+        self.log_weights = lw - (mx + np.log(np.sum(np.exp(lw - mx))))

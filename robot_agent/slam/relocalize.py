@@ -1,0 +1,106 @@
+"""Relocalization at loop closure (report §6): inject particles where the geometry says the
+robot may be.
+
+When the robot is back among old, reliable elements of the global map, the drift accumulated
+in between can put the true pose outside what the particles cover. Pose hypotheses are computed
+from the latest scan's segments against the reliable elements near the estimate (pairs of
+non-parallel segments: corners and near-corners, shared/matching.py), scored by how much of the
+scan they explain, and the best few that explain clearly more than the current estimate are
+injected as particles (report: "in practice, one each"), replacing the weakest ones. They carry
+the best particle's map and get an even chance: later scans keep them or kill them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from robot_agent.slam.consensus import GlobalMap
+from robot_agent.slam.extraction import ScanSegments
+from robot_agent.slam.particles import ParticleSet
+from shared.geometry import point_segment_distance, relative
+from shared.matching import MatchingConfig, cluster_poses, overlap_scores, pose_hypotheses
+
+
+@dataclass(frozen=True)
+class RelocalizationConfig:
+    enabled: bool = True
+    every: int = 5  # steps between attempts while among old elements
+    old_age_steps: int = 200  # an element this old (in steps) marks a revisited place
+    min_hits: int = 5  # reliability of the elements used (report: age and update count)
+    min_trust: float = 0.4
+    search_radius_m: float = 10.0  # elements within this distance of the estimate take part
+    min_old_elements: int = 3  # this many old reliable elements nearby make a loop closure
+    min_jump_m: float = 0.15  # closer hypotheses are already covered by the proposal
+    min_jump_rad: float = np.radians(2.0)
+    max_jump_m: float = 6.0  # drift between loop closures stays below this
+    max_jump_rad: float = np.radians(30.0)
+    min_score_m: float = 4.0  # a hypothesis must explain at least this much scan length ...
+    score_gain_m: float = 1.5  # ... and this much more than the current estimate
+    inject: int = 2  # particles replaced per relocalization
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+
+
+@dataclass(frozen=True)
+class Relocalization:
+    poses: np.ndarray  # (H,3) hypotheses to inject, best first
+    scores: np.ndarray  # (H,) explained length [m]
+    current_score: float
+
+
+def relocalize(
+    ps: ParticleSet,
+    gm: GlobalMap,
+    segs: ScanSegments,
+    facing: np.ndarray,
+    step: int,
+    cfg: RelocalizationConfig,
+    _assoc_cfg=None,
+) -> Relocalization | None:
+    """Hypotheses clearly better than the current estimate, or None."""
+    if step % cfg.every or len(gm) == 0:
+        return None
+    pose = ps.poses[ps.best()]
+    reliable = (gm.hits >= cfg.min_hits) & (gm.trust >= cfg.min_trust)
+    near = reliable & (point_segment_distance(pose[:2], gm.seg) <= cfg.search_radius_m)
+    old = near & (step - gm.born >= cfg.old_age_steps)
+    if old.sum() < cfg.min_old_elements:
+        return None
+    mc = cfg.matching
+    map_ends, map_facing = gm.seg[near], gm.facing[near]
+    hyp = pose_hypotheses(segs.endpoints, facing, map_ends, map_facing, mc)
+    if len(hyp) == 0:
+        return None
+    d = relative(pose, hyp)
+    dist, dang = np.hypot(d[:, 0], d[:, 1]), np.abs(d[:, 2])
+    far_enough = (dist >= cfg.min_jump_m) | (dang >= cfg.min_jump_rad)
+    plausible = (dist <= cfg.max_jump_m) & (dang <= cfg.max_jump_rad)
+    hyp = hyp[far_enough & plausible]
+    if len(hyp) == 0:
+        return None
+    scores = overlap_scores(np.vstack([pose, hyp]), segs.endpoints, facing, map_ends, map_facing, mc)
+    current, scores = float(scores[0]), scores[1:]
+    good = (scores >= cfg.min_score_m) & (scores >= current + cfg.score_gain_m)
+    if not np.any(good):
+        return None
+    hyp, scores = hyp[good], scores[good]
+    keep = cluster_poses(hyp, scores, 0.2, np.radians(3.0))[: cfg.inject]
+    return Relocalization(hyp[keep], scores[keep], current)
+
+
+def inject(ps: ParticleSet, reloc: Relocalization) -> tuple[np.ndarray, np.ndarray]:
+    """Replace the weakest particles by the hypotheses, with the best particle's map and an
+    even weight. Returns ``(targets, sources)`` particle indices."""
+    best = ps.best()
+    order = np.argsort(ps.log_weights)
+    targets = order[order != best][: len(reloc.poses)]
+    sources = np.full(len(targets), best)
+    src = ps.take(sources)
+    ps.poses[targets] = reloc.poses[: len(targets)]
+    ps.slip[targets] = src.slip
+    for k, v in ps.maps.arrays().items():
+        v[targets] = getattr(src.maps, k)
+    ps.log_weights[targets] = ps.log_weights[best]
+    ps.normalize()
+    return targets, sources

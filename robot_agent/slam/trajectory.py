@@ -1,0 +1,66 @@
+"""Every particle's full trajectory without copying it at each resampling: an ancestry tree.
+
+Each processed step stores the propagated poses ``(P,3)`` and each particle's parent index in
+the previous step; the best particle's trajectory is read back by walking the parents. Scans
+skipped for too little motion are stored as an odometry increment from the last processed step,
+so the output has one pose for every scan, with the scan's own timestamp.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from shared.geometry import compose
+
+
+class Trajectory:
+    def __init__(self) -> None:
+        self._poses: list[np.ndarray] = []  # per step k: (P,3) poses of the propagated set
+        self._parents: list[np.ndarray] = []  # per step k: (P,) parent index in step k-1
+        self._pending: np.ndarray | None = None  # current particle -> index in the last record
+        self._scan_stamps: list[float] = []
+        self._scan_anchor: list[int] = []  # processed step each scan hangs from
+        self._scan_rel: list[np.ndarray] = []  # (3,) odometry from that step's pose
+
+    def __len__(self) -> int:
+        return len(self._scan_stamps)
+
+    def record(self, stamp_s: float, poses: np.ndarray) -> None:
+        """A processed scan: the particles' poses ``(P,3)`` (before any resampling)."""
+        p = len(poses)
+        self._parents.append(self._pending if self._pending is not None else np.arange(p))
+        self._poses.append(poses.copy())
+        self._pending = np.arange(p)
+        self._scan_stamps.append(stamp_s)
+        self._scan_anchor.append(len(self._poses) - 1)
+        self._scan_rel.append(np.zeros(3))
+
+    def bridge(self, stamp_s: float, odometry_from_last: np.ndarray) -> None:
+        """A scan not processed: its pose is the last step's composed with odometry."""
+        if not self._poses:
+            raise ValueError("bridge() before the first processed scan")
+        self._scan_stamps.append(stamp_s)
+        self._scan_anchor.append(len(self._poses) - 1)
+        self._scan_rel.append(np.asarray(odometry_from_last, dtype=float).copy())
+
+    def reparent(self, idx: np.ndarray) -> None:
+        """After resampling: new particle ``j`` is old particle ``idx[j]``."""
+        self._pending = self._pending[idx]
+
+    def inherit(self, targets: np.ndarray, sources: np.ndarray) -> None:
+        """Particles ``targets`` now continue the history of particles ``sources``."""
+        self._pending[targets] = self._pending[sources]
+
+    def backtrack(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
+        """``stamps (S,)`` and poses ``(S,3)`` for every scan along ``particle``'s ancestry."""
+        k_steps = len(self._poses)
+        if k_steps == 0:
+            return np.zeros(0), np.zeros((0, 3))
+        line = np.empty((k_steps, 3))
+        i = int(self._pending[particle])
+        for k in range(k_steps - 1, -1, -1):
+            line[k] = self._poses[k][i]
+            i = int(self._parents[k][i])
+        anchors = np.asarray(self._scan_anchor)
+        poses = compose(line[anchors], np.asarray(self._scan_rel))
+        return np.asarray(self._scan_stamps), poses

@@ -1,0 +1,242 @@
+"""Map update (report §4.2 "update element f with the information of e, else add e"), negative
+evidence (elements the laser sees through), element weights (report §5) and map cleaning.
+
+All functions work on a local copy of the map columns near the robot (``SegmentMaps`` of shape
+``(P,C)``) and modify it in place.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from robot_agent.slam.association import Association, Observations
+from robot_agent.slam.lines import fit_lines, project_to_line, segment_endpoints
+from robot_agent.slam.particles import SegmentMaps
+from shared.geometry import wrap_angle
+
+
+@dataclass(frozen=True)
+class UpdateConfig:
+    max_points: float = 2000.0  # moments are scaled down past this many points: old evidence fades
+    quality_rate: float = 0.2  # EMA rate of an element's match quality
+    initial_quality: float = 0.5
+    miss_decay_on_hit: float = 0.5  # misses are multiplied by this on each match
+    through_margin_m: float = 0.25  # a beam longer than the element by this much saw through it
+    through_margin_rel: float = 0.05  # ... plus this share of the range
+    min_incidence_rad: float = np.radians(25.0)  # grazing beams are not evidence
+    through_miss: float = 1.0  # misses added when seen through
+    unmatched_miss: float = 0.25  # misses added when fully in view and unmatched
+
+
+def merge_matches(
+    maps: SegmentMaps, obs: Observations, assoc: Association, step: int, cfg: UpdateConfig
+) -> None:
+    """Merge every matched observation into its element: add moments, refit the line, extend."""
+    p_idx, o_idx = np.nonzero(assoc.matched)
+    if len(p_idx) == 0:
+        return
+    c_idx = assoc.index[p_idx, o_idx]
+    np.add.at(maps.moments, (p_idx, c_idx), obs.moments[p_idx, o_idx])
+    # fade old evidence: keep at most max_points (same centroid and scatter shape)
+    n = maps.moments[p_idx, c_idx, 0]
+    scale = np.minimum(1.0, cfg.max_points / np.maximum(n, 1.0))
+    maps.moments[p_idx, c_idx] *= scale[:, None]
+    alpha, rho, _ = fit_lines(maps.moments[p_idx, c_idx])
+    maps.alpha[p_idx, c_idx], maps.rho[p_idx, c_idx] = alpha, rho
+    # extents: union of the old extent and every merged observation on the refitted line
+    a, r = maps.alpha[p_idx, c_idx], maps.rho[p_idx, c_idx]
+    t_old, _ = project_to_line(maps.seg[p_idx, c_idx], a[:, None], r[:, None])
+    t_obs, _ = project_to_line(obs.ends[p_idx, o_idx], a[:, None], r[:, None])
+    lo = np.full(maps.valid.shape, np.inf)
+    hi = np.full(maps.valid.shape, -np.inf)
+    np.minimum.at(lo, (p_idx, c_idx), np.minimum(t_old.min(-1), t_obs.min(-1)))
+    np.maximum.at(hi, (p_idx, c_idx), np.maximum(t_old.max(-1), t_obs.max(-1)))
+    maps.seg[p_idx, c_idx] = segment_endpoints(a, r, lo[p_idx, c_idx], hi[p_idx, c_idx])
+    q = np.exp(-0.5 * assoc.cost[p_idx, o_idx]).astype(np.float32)
+    maps.quality[p_idx, c_idx] += cfg.quality_rate * (q - maps.quality[p_idx, c_idx])
+    np.add.at(maps.hits, (p_idx, c_idx), 1)
+    maps.last_seen[p_idx, c_idx] = step
+    maps.misses[p_idx, c_idx] *= cfg.miss_decay_on_hit
+
+
+def add_new(
+    maps: SegmentMaps, obs: Observations, assoc: Association, step: int, cfg: UpdateConfig
+) -> np.ndarray:
+    """Add every observation left unmatched in some particle as a new element.
+
+    One fresh column per such observation, shared by all particles that did not match it
+    (column alignment, see particles.py). Returns the columns used ``(O_new,)``.
+    """
+    unmatched = ~assoc.matched  # (P,O)
+    new_obs = np.flatnonzero(unmatched.any(axis=0))
+    if len(new_obs) == 0:
+        return new_obs
+    cols = maps.free_columns(len(new_obs))
+    rows = unmatched[:, new_obs]  # (P,K)
+    p_idx, k_idx = np.nonzero(rows)
+    c_idx, o_idx = cols[k_idx], new_obs[k_idx]
+    maps.valid[p_idx, c_idx] = True
+    maps.moments[p_idx, c_idx] = obs.moments[p_idx, o_idx]
+    maps.alpha[p_idx, c_idx] = obs.alpha[p_idx, o_idx]
+    maps.rho[p_idx, c_idx] = obs.rho[p_idx, o_idx]
+    maps.facing[p_idx, c_idx] = obs.facing[p_idx, o_idx]
+    maps.seg[p_idx, c_idx] = obs.ends[p_idx, o_idx]
+    maps.hits[p_idx, c_idx] = 1
+    maps.born[p_idx, c_idx] = step
+    maps.last_seen[p_idx, c_idx] = step
+    maps.misses[p_idx, c_idx] = 0.0
+    maps.quality[p_idx, c_idx] = cfg.initial_quality
+    return cols
+
+
+# --- negative evidence ------------------------------------------------------------------------
+
+# Points sampled along each element for the visibility test, as fractions of its extent.
+VISIBILITY_SAMPLES = np.array([0.15, 0.5, 0.85])
+
+
+def visibility(
+    maps: SegmentMaps,
+    laser_poses: np.ndarray,
+    ranges_m: np.ndarray,
+    angles_rad: np.ndarray,
+    usable_range_m: float,
+    cfg: UpdateConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """What the scan says about each element from each particle's laser pose ``(P,3)``.
+
+    Returns ``through (P,C)`` — number of sample points the beams passed through (the element
+    should have stopped them) — and ``in_view (P,C)`` — all sample points inside the field of
+    view and range, with the beam ending at the element (it was visible and unoccluded).
+    """
+    t = VISIBILITY_SAMPLES[None, None, :, None]
+    pts = maps.seg[:, :, None, 0, :] * (1 - t) + maps.seg[:, :, None, 1, :] * t  # (P,C,3,2)
+    rel = pts - laser_poses[:, None, None, :2]
+    dist = np.hypot(rel[..., 0], rel[..., 1])
+    bearing = wrap_angle(np.arctan2(rel[..., 1], rel[..., 0]) - laser_poses[:, None, None, 2])
+    a0, da = angles_rad[0], (angles_rad[-1] - angles_rad[0]) / max(len(angles_rad) - 1, 1)
+    beam = np.rint((bearing - a0) / da).astype(int)
+    inside = (beam >= 0) & (beam < len(angles_rad)) & (dist < usable_range_m) & (dist > 0.1)
+    measured = ranges_m[np.clip(beam, 0, len(angles_rad) - 1)]
+    has_return = np.isfinite(measured) & (measured < usable_range_m)
+    # incidence: angle between the beam and the element's normal
+    normal = np.stack([np.cos(maps.alpha), np.sin(maps.alpha)], axis=-1)[:, :, None, :]
+    cos_inc = np.abs(np.sum(normal * rel, axis=-1)) / np.maximum(dist, 1e-9)
+    steep = cos_inc > np.sin(cfg.min_incidence_rad)
+    margin = cfg.through_margin_m + cfg.through_margin_rel * dist
+    seen_through = inside & steep & ((measured > dist + margin) | ~has_return) & maps.valid[..., None]
+    ends_here = inside & has_return & (np.abs(measured - dist) <= margin)
+    return seen_through.sum(axis=-1), np.all(ends_here, axis=-1) & maps.valid
+
+
+def apply_misses(
+    maps: SegmentMaps, through: np.ndarray, in_view: np.ndarray, matched_cols: np.ndarray, cfg: UpdateConfig
+) -> None:
+    """Count misses: seen through (strong), or fully in view yet not matched this scan (weak)."""
+    maps.misses += (cfg.through_miss * (through >= 2)).astype(np.float32)
+    maps.misses += (cfg.unmatched_miss * (in_view & ~matched_cols)).astype(np.float32)
+
+
+# --- element weights and cleaning ---------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TrustConfig:
+    hits_scale: float = 5.0  # hits for trust to reach 63 %
+    age_scale_steps: float = 50.0  # age (scans) for trust to reach 63 %: older elements preferred
+    miss_scale: float = 2.0  # misses that divide trust by e
+    trusted_min: float = 0.3  # trust at or above which an element is "trusted" (published)
+    trusted_min_hits: int = 3
+
+
+def element_trust(maps: SegmentMaps, step: int, cfg: TrustConfig) -> np.ndarray:
+    """Element weights ``(P,M)`` in [0, 1] (report §5): match quality, preference for older and
+    more often confirmed elements, penalty for misses. 0 where invalid."""
+    age = np.maximum(step - maps.born, 0).astype(float)
+    w = (
+        maps.quality
+        * (1.0 - np.exp(-maps.hits / cfg.hits_scale))
+        * (1.0 - np.exp(-(age + 1.0) / cfg.age_scale_steps))
+        * np.exp(-maps.misses / cfg.miss_scale)
+    )
+    return np.where(maps.valid, w, 0.0)
+
+
+def trusted_mask(maps: SegmentMaps, step: int, cfg: TrustConfig) -> np.ndarray:
+    return (element_trust(maps, step, cfg) >= cfg.trusted_min) & (maps.hits >= cfg.trusted_min_hits)
+
+
+@dataclass(frozen=True)
+class CleaningConfig:
+    max_misses: float = 3.0  # remove an element seen through / missed this often
+    young_steps: int = 60  # an element still this young with ...
+    young_min_hits: int = 2  # ... fewer hits, and out of view, was a one-off: remove it
+    min_length_m: float = 0.2
+    redundant_angle_rad: float = np.radians(4.0)
+    redundant_perp_m: float = 0.08
+    redundant_overlap_m: float = 0.05  # must overlap (or touch within this) to be merged
+
+
+def clean(maps: SegmentMaps, step: int, cfg: CleaningConfig) -> None:
+    """Remove bad elements and merge redundant ones (collinear, overlapping) — in place."""
+    length = np.hypot(*(maps.seg[..., 1, :] - maps.seg[..., 0, :]).transpose(2, 0, 1))
+    age = step - maps.born
+    bad = (maps.misses >= cfg.max_misses) | (length < cfg.min_length_m)
+    bad |= (age > cfg.young_steps) & (maps.hits < cfg.young_min_hits)
+    maps.valid &= ~bad
+    _merge_redundant(maps, cfg)
+
+
+def _merge_redundant(maps: SegmentMaps, cfg: CleaningConfig) -> None:
+    """Merge element j into i (i older) when they face the same way, lie on one line and
+    overlap: one refitted element instead of two (report §4.2 "redundant elements")."""
+    c = maps.capacity
+    if c < 2:
+        return
+    da = np.abs(wrap_angle(maps.facing[:, :, None] - maps.facing[:, None, :]))
+    mid = 0.5 * (maps.seg[..., 0, :] + maps.seg[..., 1, :])
+    _, perp = project_to_line(
+        mid[:, None, :, :], maps.alpha[:, :, None], maps.rho[:, :, None]
+    )  # j's mid on i
+    t_i, _ = project_to_line(
+        maps.seg[:, :, None, :, :], maps.alpha[:, :, None, None], maps.rho[:, :, None, None]
+    )
+    t_j, _ = project_to_line(
+        maps.seg[:, None, :, :, :], maps.alpha[:, :, None, None], maps.rho[:, :, None, None]
+    )
+    overlap = np.minimum(t_i.max(-1), t_j.max(-1)) - np.maximum(t_i.min(-1), t_j.min(-1))
+    older = (maps.born[:, :, None] < maps.born[:, None, :]) | (
+        (maps.born[:, :, None] == maps.born[:, None, :]) & (np.arange(c)[:, None] < np.arange(c)[None, :])
+    )
+    pair = (
+        maps.valid[:, :, None]
+        & maps.valid[:, None, :]
+        & older
+        & (da < cfg.redundant_angle_rad)
+        & (np.abs(perp) < cfg.redundant_perp_m)
+        & (overlap > -cfg.redundant_overlap_m)
+    )
+    # j is absorbed by its oldest partner i that is not itself absorbed this round
+    absorbed = pair.any(axis=1)
+    pair &= ~absorbed[:, :, None]
+    p_idx, j_idx = np.nonzero(pair.any(axis=1))
+    if len(p_idx) == 0:
+        return
+    i_idx = np.argmax(pair[p_idx, :, j_idx], axis=1)
+    np.add.at(maps.moments, (p_idx, i_idx), maps.moments[p_idx, j_idx])
+    np.add.at(maps.hits, (p_idx, i_idx), maps.hits[p_idx, j_idx])
+    ends_j = maps.seg[p_idx, j_idx]
+    maps.valid[p_idx, j_idx] = False
+    alpha, rho, _ = fit_lines(maps.moments[p_idx, i_idx])
+    pts = np.concatenate([maps.seg[p_idx, i_idx], ends_j], axis=1)
+    t, _ = project_to_line(pts, alpha[:, None], rho[:, None])
+    # several j may join one i: extents by scatter-min/max so none is lost
+    lo = np.full(maps.valid.shape, np.inf)
+    hi = np.full(maps.valid.shape, -np.inf)
+    np.minimum.at(lo, (p_idx, i_idx), t.min(-1))
+    np.maximum.at(hi, (p_idx, i_idx), t.max(-1))
+    maps.alpha[p_idx, i_idx], maps.rho[p_idx, i_idx] = alpha, rho
+    maps.seg[p_idx, i_idx] = segment_endpoints(alpha, rho, lo[p_idx, i_idx], hi[p_idx, i_idx])
+    maps.last_seen[p_idx, i_idx] = np.maximum(maps.last_seen[p_idx, i_idx], maps.last_seen[p_idx, j_idx])

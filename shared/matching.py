@@ -1,0 +1,156 @@
+"""Pose hypotheses from segment and corner correspondences, scored by overlap (pure numpy).
+
+Used by relocalization on the agent (report §6: "geometrically identify the likely positions by
+using the geometric properties of the global map") and by cross-robot alignment on the server.
+
+Segments are described by their endpoints ``(N,2,2)`` and their *facing* angle — the normal
+pointing to the side the sensor saw — so a wall's two faces never match. A pair of non-parallel
+segments fixes a pose: the rotation from the facings, the translation from the two lines
+(``f_a·t = c_a - c_o``, with ``c = f·p`` for any point ``p`` of the line, two equations).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from shared.geometry import apply_segments, wrap_angle
+
+# Hypotheses × observed × map pairs scored at once; bounds the temporaries (~100 MB).
+SCORE_CHUNK_ELEMENTS = 1_000_000
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    min_pair_angle_rad: float = np.radians(30.0)  # pairs closer to parallel fix no pose
+    pair_angle_tol_rad: float = np.radians(4.0)  # relative angle of the two pairs must agree
+    max_pair_gap_m: float = 1.5  # a map pair's segments must be this close (corners, near-corners)
+    max_obs_pairs: int = 60  # from the longest observed segments
+    min_length_m: float = 0.5  # segments shorter than this take no part in hypotheses
+    score_perp_m: float = 0.12  # a transformed segment lies on an element within this offset ...
+    score_angle_rad: float = np.radians(5.0)  # ... and this facing difference ...
+    score_overlap_m: float = 0.0  # ... overlapping it by at least this much
+
+
+def _facing_vectors(facing: np.ndarray) -> np.ndarray:
+    return np.stack([np.cos(facing), np.sin(facing)], axis=-1)
+
+
+def _segment_gap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest endpoint-to-endpoint distance between segments ``a (...,2,2)`` and ``b``."""
+    d = a[..., :, None, :] - b[..., None, :, :]
+    return np.min(np.hypot(d[..., 0], d[..., 1]), axis=(-1, -2))
+
+
+def _pairs(ends: np.ndarray, facing: np.ndarray, cfg: MatchingConfig, max_gap: float | None) -> tuple:
+    n = len(ends)
+    i, j = np.triu_indices(n, 1)
+    rel = wrap_angle(facing[j] - facing[i])
+    ok = np.abs(np.sin(rel)) >= np.sin(cfg.min_pair_angle_rad)
+    if max_gap is not None:
+        ok &= _segment_gap(ends[i], ends[j]) <= max_gap
+    return i[ok], j[ok], rel[ok]
+
+
+def pose_hypotheses(
+    obs_ends: np.ndarray,
+    obs_facing: np.ndarray,
+    map_ends: np.ndarray,
+    map_facing: np.ndarray,
+    cfg: MatchingConfig,
+) -> np.ndarray:
+    """Poses ``(H,3)`` that would put a pair of observed segments onto a pair of map segments.
+
+    ``obs_*`` in the sensor's (robot's) frame, ``map_*`` in the map frame; the pose maps the
+    former into the latter.
+    """
+    lo = np.hypot(*(obs_ends[:, 1] - obs_ends[:, 0]).T)
+    lm = np.hypot(*(map_ends[:, 1] - map_ends[:, 0]).T)
+    ko = np.flatnonzero(lo >= cfg.min_length_m)
+    ko = ko[np.argsort(-lo[ko])]
+    km = np.flatnonzero(lm >= cfg.min_length_m)
+    if len(ko) < 2 or len(km) < 2:
+        return np.zeros((0, 3))
+    oi, oj, orel = _pairs(obs_ends[ko], obs_facing[ko], cfg, None)
+    oi, oj, orel = oi[: cfg.max_obs_pairs], oj[: cfg.max_obs_pairs], orel[: cfg.max_obs_pairs]
+    mi, mj, mrel = _pairs(map_ends[km], map_facing[km], cfg, cfg.max_pair_gap_m)
+    if len(oi) == 0 or len(mi) == 0:
+        return np.zeros((0, 3))
+    # both orders of a map pair: (i, j) and (j, i)
+    mi, mj, mrel = np.concatenate([mi, mj]), np.concatenate([mj, mi]), np.concatenate([mrel, -mrel])
+    agree = np.abs(wrap_angle(orel[:, None] - mrel[None, :])) <= cfg.pair_angle_tol_rad
+    a, b = np.nonzero(agree)
+    o1, o2, m1, m2 = ko[oi[a]], ko[oj[a]], km[mi[b]], km[mj[b]]
+    theta = wrap_angle(map_facing[m1] - obs_facing[o1])
+    # rotated observed lines must coincide with the map lines: f_m·t = c_m - f_m·(R p_o)
+    f1, f2 = _facing_vectors(map_facing[m1]), _facing_vectors(map_facing[m2])
+    c, s = np.cos(theta), np.sin(theta)
+
+    def rot(p):
+        return np.stack([c * p[:, 0] - s * p[:, 1], s * p[:, 0] + c * p[:, 1]], axis=-1)
+
+    rhs1 = np.sum(f1 * map_ends[m1, 0], axis=1) - np.sum(f1 * rot(obs_ends[o1, 0]), axis=1)
+    rhs2 = np.sum(f2 * map_ends[m2, 0], axis=1) - np.sum(f2 * rot(obs_ends[o2, 0]), axis=1)
+    det = f1[:, 0] * f2[:, 1] - f1[:, 1] * f2[:, 0]
+    tx = (rhs1 * f2[:, 1] - rhs2 * f1[:, 1]) / det
+    ty = (f1[:, 0] * rhs2 - f2[:, 0] * rhs1) / det
+    return np.column_stack([tx, ty, theta])
+
+
+def overlap_scores(
+    poses: np.ndarray,
+    obs_ends: np.ndarray,
+    obs_facing: np.ndarray,
+    map_ends: np.ndarray,
+    map_facing: np.ndarray,
+    cfg: MatchingConfig,
+) -> np.ndarray:
+    """Observed length ``(H,)`` [m] that lies on map segments when moved by each pose ``(H,3)``.
+
+    An observed segment counts with the part of its length that overlaps a map segment it lies
+    on (offset ≤ ``score_perp_m``, facing within ``score_angle_rad``); the best map segment per
+    observed segment counts once.
+    """
+    if len(poses) == 0 or len(obs_ends) == 0 or len(map_ends) == 0:
+        return np.zeros(len(poses))
+    chunk = max(1, SCORE_CHUNK_ELEMENTS // (len(obs_ends) * len(map_ends)))
+    if len(poses) > chunk:
+        return np.concatenate(
+            [
+                overlap_scores(poses[s : s + chunk], obs_ends, obs_facing, map_ends, map_facing, cfg)
+                for s in range(0, len(poses), chunk)
+            ]
+        )
+    moved = apply_segments(poses, obs_ends)  # (H,O,2,2)
+    facing = wrap_angle(obs_facing[None, :] + poses[:, 2:3])  # (H,O)
+    fm = _facing_vectors(map_facing)  # (M,2)
+    dm = np.stack([-fm[:, 1], fm[:, 0]], axis=-1)  # direction along each map segment
+    a = map_ends[:, 0]  # (M,2)
+    rel = moved[:, :, None, :, :] - a[None, None, :, None, :]  # (H,O,M,2,2)
+    perp = np.sum(rel * fm[None, None, :, None, :], axis=-1)  # (H,O,M,2)
+    t = np.sum(rel * dm[None, None, :, None, :], axis=-1)
+    tm = np.sum((map_ends[:, 1] - a) * dm, axis=-1)  # (M,)
+    t_lo = np.maximum(np.minimum(t[..., 0], t[..., 1]), np.minimum(0.0, tm))
+    t_hi = np.minimum(np.maximum(t[..., 0], t[..., 1]), np.maximum(0.0, tm))
+    overlap = t_hi - t_lo
+    dang = np.abs(wrap_angle(facing[:, :, None] - map_facing[None, None, :]))
+    ok = (np.max(np.abs(perp), axis=-1) <= cfg.score_perp_m) & (dang <= cfg.score_angle_rad)
+    ok &= overlap > cfg.score_overlap_m
+    return np.sum(np.max(np.where(ok, overlap, 0.0), axis=2), axis=1)
+
+
+def cluster_poses(poses: np.ndarray, scores: np.ndarray, radius_m: float, radius_rad: float) -> np.ndarray:
+    """Indices of the best pose of each cluster (greedy non-maximum suppression), best first."""
+    order = np.argsort(-scores)
+    keep: list[int] = []
+    for i in order:
+        if all(
+            np.hypot(*(poses[i, :2] - poses[k, :2])) > radius_m
+            or abs(wrap_angle(poses[i, 2] - poses[k, 2])) > radius_rad
+            for k in keep
+        ):
+            keep.append(int(i))
+        if len(keep) >= 16:
+            break
+    return np.asarray(keep, dtype=int)
