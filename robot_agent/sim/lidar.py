@@ -77,7 +77,7 @@ def cast_rays(
     walls = np.asarray(walls, dtype=float).reshape(-1, 2, 2)
     if len(walls) == 0 or n_scans == 0 or n_beams == 0:
         return ranges
-    near, near_count = _walls_in_range(origins, walls, range_max_m)
+    near, near_count = walls_in_range(origins, walls, range_max_m)
     padded = _pad_walls(walls)
     max_near = max(int(near_count.max()), 1)
     beams_per_chunk = int(np.clip(max_pairs_per_chunk // max_near, 1, n_beams))
@@ -116,7 +116,7 @@ def _first_hits(origins, cos_dir, sin_dir, seg, range_max_m) -> np.ndarray:
     return np.minimum(np.where(hit, t, np.inf).min(axis=-1), range_max_m)
 
 
-def _walls_in_range(origins: np.ndarray, walls: np.ndarray, range_max_m: float):
+def walls_in_range(origins: np.ndarray, walls: np.ndarray, range_max_m: float):
     """Broad phase: per scan, the indices of walls within ``range_max_m`` of the origin, packed
     to the left of an (S, W) index array; slots past ``count[s]`` point at the padding wall
     (index W, see :func:`_pad_walls`)."""

@@ -3,6 +3,7 @@ route follower (pure pursuit that stops and turns in place at sharp corners)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,9 +65,26 @@ def integrate_pose(pose: np.ndarray, v_mps, w_radps, dt_s: float) -> np.ndarray:
 def limit_velocity(v_cmd: float, w_cmd: float, v: float, w: float, cfg: RobotConfig) -> tuple[float, float]:
     """The velocity reached after one control step from ``(v, w)`` towards a command."""
     dv, dw = cfg.max_acc_mps2 * cfg.dt_s, cfg.max_ang_acc_radps2 * cfg.dt_s
-    v_new = float(np.clip(np.clip(v_cmd, v - dv, v + dv), 0.0, cfg.max_v_mps))
-    w_new = float(np.clip(np.clip(w_cmd, w - dw, w + dw), -cfg.max_w_radps, cfg.max_w_radps))
+    v_new = _clip(_clip(float(v_cmd), v - dv, v + dv), 0.0, cfg.max_v_mps)
+    w_new = _clip(_clip(float(w_cmd), w - dw, w + dw), -cfg.max_w_radps, cfg.max_w_radps)
     return v_new, w_new
+
+
+def _clip(x: float, lo: float, hi: float) -> float:
+    return lo if x < lo else hi if x > hi else x
+
+
+def _wrap(angle_rad: float) -> float:
+    return (angle_rad + math.pi) % (2 * math.pi) - math.pi
+
+
+def _step_pose(pose: np.ndarray, v: float, w: float, dt_s: float) -> np.ndarray:
+    """Scalar :func:`integrate_pose` for the control loop (numpy call overhead dominates there)."""
+    dtheta = w * dt_s
+    half = dtheta / 2
+    chord = v * dt_s * (math.sin(half) / half if half != 0.0 else 1.0)
+    x, y, th = float(pose[0]), float(pose[1]), float(pose[2])
+    return np.array([x + chord * math.cos(th + half), y + chord * math.sin(th + half), _wrap(th + dtheta)])
 
 
 class RouteFollower:
@@ -89,6 +107,8 @@ class RouteFollower:
         heading = np.arctan2(self._d[:, 1], self._d[:, 0])
         turn = np.abs(wrap_angle(heading - np.roll(heading, 1)))  # at waypoint k
         self._sharp_s = self._cum[:-1][turn > cfg.sharp_turn_rad]  # arc positions of sharp corners
+        self._sharp_2laps = np.concatenate([self._sharp_s, self._sharp_s + self.length_m])
+        self._inv_len2 = 1.0 / self._len**2
         self.cfg = cfg
         self.progress_m = self._project(np.asarray(start_xy, float), window=None)
 
@@ -105,8 +125,11 @@ class RouteFollower:
     def _project(self, xy: np.ndarray, window: tuple[float, float] | None) -> float:
         """Arc length of the nearest route point, among those within ``window`` (behind, ahead)
         of the current progress when given."""
-        t = np.clip(np.sum((xy - self._a) * self._d, axis=1) / self._len**2, 0.0, 1.0)
-        dist = np.hypot(*(self._a + t[:, None] * self._d - xy).T)
+        rel = xy - self._a
+        t = (rel[:, 0] * self._d[:, 0] + rel[:, 1] * self._d[:, 1]) * self._inv_len2
+        t = np.minimum(np.maximum(t, 0.0), 1.0)
+        ex, ey = rel[:, 0] - t * self._d[:, 0], rel[:, 1] - t * self._d[:, 1]
+        dist = ex * ex + ey * ey  # squared: only compared
         s = self._cum[:-1] + t * self._len
         if window is None:
             return float(s[np.argmin(dist)])
@@ -121,11 +144,13 @@ class RouteFollower:
     def _next_sharp_corner(self) -> float:
         """Arc length (unwrapped, ahead of progress) of the next sharp corner not yet reached."""
         if len(self._sharp_s) == 0:
-            return np.inf
-        lap = np.floor(self.progress_m / self.length_m) * self.length_m
-        ahead = np.concatenate([self._sharp_s, self._sharp_s + self.length_m]) + lap
-        ahead = ahead[ahead > self.progress_m + self.cfg.corner_tol_m]
-        return float(ahead[0])
+            return math.inf
+        lap = math.floor(self.progress_m / self.length_m) * self.length_m
+        passed = self.progress_m + self.cfg.corner_tol_m - lap  # corners this close count as reached
+        k = int(np.searchsorted(self._sharp_2laps, passed, side="right"))
+        if k < len(self._sharp_2laps):
+            return float(self._sharp_2laps[k]) + lap
+        return float(self._sharp_s[0]) + 2 * self.length_m + lap
 
     def command(self, pose: np.ndarray) -> tuple[float, float]:
         """Velocity command ``(v, w)`` for the robot at ``pose (3,)``."""
@@ -134,14 +159,14 @@ class RouteFollower:
         corner = self._next_sharp_corner()
         target = self.point_at(min(self.progress_m + cfg.lookahead_m, corner))
         to_target = target - pose[:2]
-        dist = float(np.hypot(*to_target))
-        alpha = float(wrap_angle(np.arctan2(to_target[1], to_target[0]) - pose[2]))
+        dist = math.hypot(to_target[0], to_target[1])
+        alpha = _wrap(math.atan2(to_target[1], to_target[0]) - float(pose[2]))
         if abs(alpha) > cfg.turn_in_place_rad:
-            return 0.0, float(np.clip(cfg.turn_gain_per_s * alpha, -cfg.max_w_radps, cfg.max_w_radps))
+            return 0.0, _clip(cfg.turn_gain_per_s * alpha, -cfg.max_w_radps, cfg.max_w_radps)
         # brake to stop at a sharp corner: v <= sqrt(2 a d)
         to_corner = max(corner - self.progress_m, 0.0)
-        v = min(cfg.max_v_mps, np.sqrt(2.0 * cfg.max_acc_mps2 * to_corner) + cfg.max_acc_mps2 * cfg.dt_s)
-        curvature = 2.0 * np.sin(alpha) / max(dist, 1e-6)  # pure pursuit
+        v = min(cfg.max_v_mps, math.sqrt(2.0 * cfg.max_acc_mps2 * to_corner) + cfg.max_acc_mps2 * cfg.dt_s)
+        curvature = 2.0 * math.sin(alpha) / max(dist, 1e-6)  # pure pursuit
         if abs(curvature) * v > cfg.max_w_radps:
             v = cfg.max_w_radps / abs(curvature)
         return float(v), float(curvature * v)
@@ -164,6 +189,6 @@ def drive_route(
     for k in range(1, n):
         v_cmd, w_cmd = follower.command(poses[k - 1])
         v, w = limit_velocity(v_cmd, w_cmd, v, w, cfg)
-        poses[k] = integrate_pose(poses[k - 1], v, w, cfg.dt_s)
+        poses[k] = _step_pose(poses[k - 1], v, w, cfg.dt_s)
         vel[k] = v, w
     return poses, vel

@@ -20,7 +20,7 @@ from robot_agent.sim.odometry import (
     integrate_odometry,
     noisy_increments,
 )
-from robot_agent.sim.robot import RobotConfig, RouteFollower, drive_route, integrate_pose, limit_velocity
+from robot_agent.sim.robot import RobotConfig, RouteFollower, _step_pose, drive_route, limit_velocity
 from robot_agent.sim.world import World
 from robot_agent.sources.base import Scan
 from shared.geometry import compose, point_segment_distance, relative
@@ -178,7 +178,7 @@ class LiveSim:
         """Advance one control step."""
         cmd = self._follower.command(self._pose) if self._command is None else self._command
         self._v, self._w = limit_velocity(*cmd, self._v, self._w, self.cfg.robot)
-        new = integrate_pose(self._pose, self._v, self._w, self.cfg.robot.dt_s)
+        new = _step_pose(self._pose, self._v, self._w, self.cfg.robot.dt_s)
         if len(self.world.walls):
             xy = np.stack([new[:2], self._pose[:2]])[:, None, :]
             new_clear, old_clear = point_segment_distance(xy, self.world.walls[None]).min(axis=1)
