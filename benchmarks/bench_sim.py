@@ -20,7 +20,14 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from robot_agent.sim import BUILTIN_WORLDS, LidarConfig, SimConfig, builtin_world, simulate_scans  # noqa: E402
+from robot_agent.sim import (  # noqa: E402
+    BUILTIN_WORLDS,
+    LidarConfig,
+    SimConfig,
+    beam_angles,
+    builtin_world,
+    simulate_scans,
+)
 from robot_agent.sim.lidar import MAX_PAIRS_PER_CHUNK, walls_in_range  # noqa: E402
 from robot_agent.sim.robot import drive_route  # noqa: E402
 
@@ -47,7 +54,8 @@ def bench_world(name: str, n_scans: int, beams: int) -> dict:
         t0 = time.perf_counter()
         ranges = simulate_scans(rng, poses, world.walls, cfg.lidar)
         best = min(best, time.perf_counter() - t0)
-    _, near = walls_in_range(poses[:, :2], world.walls, cfg.lidar.range_max_m)
+    directions = poses[:, 2:3] + beam_angles(cfg.lidar)
+    _, near = walls_in_range(poses[:, :2], world.walls, cfg.lidar.range_max_m, directions)
     return {
         "world": name,
         "walls": len(world.walls),

@@ -77,20 +77,17 @@ def walls_from_geometries(geometries) -> np.ndarray:
     Zero-length segments are dropped.
     """
     parts = shapely.get_parts(np.asarray(list(geometries), dtype=object))
-    is_poly = shapely.get_type_id(parts) == _POLYGON_TYPE_ID
+    is_poly = shapely.get_type_id(parts) == shapely.GeometryType.POLYGON
     rings = shapely.get_parts(shapely.boundary(parts[is_poly]))
     lines = np.concatenate([rings, parts[~is_poly]])
-    lines = lines[np.isin(shapely.get_type_id(lines), _LINE_TYPE_IDS) & ~shapely.is_empty(lines)]
+    line_types = (shapely.GeometryType.LINESTRING, shapely.GeometryType.LINEARRING)
+    lines = lines[np.isin(shapely.get_type_id(lines), line_types) & ~shapely.is_empty(lines)]
     if len(lines) == 0:
         return np.zeros((0, 2, 2))
     coords, index = shapely.get_coordinates(lines, return_index=True)
     same_line = index[:-1] == index[1:]  # consecutive vertices of one line form a segment
     segments = np.stack([coords[:-1][same_line], coords[1:][same_line]], axis=1)
     return segments[np.any(segments[:, 0] != segments[:, 1], axis=1)]
-
-
-_POLYGON_TYPE_ID = 3
-_LINE_TYPE_IDS = (1, 2)  # LineString, LinearRing
 
 
 def start_on_route(route: np.ndarray, back_m: float = 1.0) -> np.ndarray:

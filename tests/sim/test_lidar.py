@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from shapely.geometry import LineString, Point
 
-from robot_agent.sim.lidar import LidarConfig, beam_angles, cast_rays, simulate_scans
+from robot_agent.sim import lidar
+from robot_agent.sim.lidar import LidarConfig, beam_angles, cast_rays, simulate_scans, walls_in_range
 
 BOX_4x3 = np.array(
     [
@@ -61,17 +63,18 @@ def test_no_hit_gives_range_max():
     np.testing.assert_array_equal(cast_rays(np.zeros((3, 2)), np.zeros((3, 5)), no_walls, 7.0), 7.0)
 
 
-def random_scene(rng, n_walls=60, n_scans=25, n_beams=181):
+def random_scene(rng, n_walls=60, n_scans=25, n_beams=181, fov=np.pi):
     a = rng.uniform(0, 20, (n_walls, 2))
     walls = np.stack([a, a + rng.normal(0, 3, (n_walls, 2))], axis=1)
     origins = rng.uniform(0, 20, (n_scans, 2))
-    directions = rng.uniform(-np.pi, np.pi, (n_scans, 1)) + np.linspace(-np.pi / 2, np.pi / 2, n_beams)
+    directions = rng.uniform(-np.pi, np.pi, (n_scans, 1)) + np.linspace(-fov / 2, fov / 2, n_beams)
     return origins, directions, walls
 
 
 @pytest.mark.parametrize("range_max", [30.0, 4.0])
-def test_chunked_equals_unchunked_and_brute_force(range_max):
-    origins, directions, walls = random_scene(np.random.default_rng(3))
+@pytest.mark.parametrize("fov", [np.pi, 0.4, 1.5 * np.pi, 2 * np.pi])
+def test_chunked_equals_unchunked_and_brute_force(range_max, fov):
+    origins, directions, walls = random_scene(np.random.default_rng(3), fov=fov)
     whole = cast_rays(origins, directions, walls, range_max, max_pairs_per_chunk=10**9)
     for chunk in (1, 100, 5_000):
         chunked = cast_rays(origins, directions, walls, range_max, max_pairs_per_chunk=chunk)
@@ -79,6 +82,21 @@ def test_chunked_equals_unchunked_and_brute_force(range_max):
     reference = brute_force(origins, directions, walls, range_max)
     np.testing.assert_allclose(whole, reference, rtol=0, atol=1e-9)
     assert np.mean(whole < range_max) > 0.2  # the scene is not empty: the check compares hits
+
+
+def test_broad_phase_blocks_and_counts(monkeypatch):
+    origins, directions, walls = random_scene(np.random.default_rng(5), n_scans=40, n_beams=31)
+    whole = cast_rays(origins, directions, walls, 6.0)
+    monkeypatch.setattr(lidar, "BROAD_PHASE_SCANS_PER_BLOCK", 7)  # 40 scans in 6 blocks
+    np.testing.assert_array_equal(cast_rays(origins, directions, walls, 6.0), whole)
+    near, count = walls_in_range(origins, walls, 6.0)
+    for s in (0, 17, 39):
+        dist = np.array([LineString(w).distance(Point(origins[s])) for w in walls])
+        np.testing.assert_array_equal(np.sort(near[s, : count[s]]), np.nonzero(dist <= 6.0)[0])
+        assert np.all(near[s, count[s]:] == len(walls))  # padding slots
+    assert 0 < count.mean() < len(walls)  # the cull does something
+    _, count_fov = walls_in_range(origins, walls, 6.0, directions)
+    assert np.all(count_fov <= count) and count_fov.sum() < count.sum()  # walls behind dropped
 
 
 def test_beam_angles_include_both_ends():
