@@ -72,7 +72,7 @@ def _finish(name: str, polygons: list[Polygon], routes: list) -> World:
 # --- office ------------------------------------------------------------------------------------
 # 30 m × 20 m building. A ring corridor (2 m between wall centre lines, centre line the rectangle
 # (4.5, 4.5)–(25.5, 15.5), 64 m around) with a cross corridor at x = 15 (so corridors form two
-# loops and a figure eight); 12 outer rooms between ring and shell, 8 inner rooms in two blocks.
+# loops and a figure eight); 14 outer rooms between ring and shell, 8 inner rooms in two blocks.
 
 _OFFICE_SOUTH_DOORS_X = (4.5, 9.0, 15.0, 21.0, 25.5)
 _OFFICE_SIDE_DOORS_Y = (6.75, 13.25)
@@ -117,7 +117,6 @@ def office() -> World:
         [(4.5, 10), (4.5, 15.5), (15, 15.5), (15, 4.5), (4.5, 4.5), (4.5, 6.75), (1.75, 6.75), (4.5, 6.75)],
     ]
     return _finish("office", shell + walls + furniture, routes)
-
 
 
 # --- warehouse ---------------------------------------------------------------------------------
