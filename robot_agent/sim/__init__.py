@@ -1,6 +1,13 @@
 """Simulated worlds, lidar, differential-drive robot and odometry (see DESIGN.md, ``sim/``)."""
 
-from robot_agent.sim.lidar import MAX_PAIRS_PER_CHUNK, LidarConfig, beam_angles, cast_rays, simulate_scans
+from robot_agent.sim.lidar import (
+    MAX_PAIRS_PER_CHUNK,
+    LidarConfig,
+    beam_angles,
+    cast_rays,
+    simulate_scans,
+    walls_in_range,
+)
 from robot_agent.sim.odometry import (
     OdometryBias,
     OdometryNoise,
@@ -61,4 +68,5 @@ __all__ = [
     "to_geojson",
     "walls_from_geometries",
     "walls_geometry",
+    "walls_in_range",
 ]
