@@ -56,7 +56,7 @@ class FilterConfig:
     ess_threshold: float = 0.5  # resample when ESS < this × P
     min_travel_m: float = 0.1  # process a scan only after this much motion ...
     min_turn_rad: float = np.radians(5.0)  # ... or this much turning (between, odometry bridges)
-    local_radius_m: float = 25.0  # map elements farther than this from the robot are not touched
+    local_margin_m: float = 3.0  # elements farther than the scan's reach plus this are not touched
     clean_every: int = 5  # steps between map cleanings
 
 
@@ -135,7 +135,8 @@ class FastSLAM:
         # 2. motion (slip-aware), 3. proposal
         mean, cov = predict(ps.poses, ps.slip, u, cfg.motion)
         ps.slip = walk_slip(self.rng, ps.slip, float(np.hypot(u[0], u[1])), cfg.motion)
-        cols = self._local_columns(mean)
+        reach = float(np.max(np.hypot(*segs.endpoints.reshape(-1, 2).T), initial=0.0))
+        cols = self._local_columns(mean, reach + cfg.filter.local_margin_m)
         local = ps.maps.columns(cols)
         prior_term = np.zeros(ps.n)
         if cfg.proposal.enabled and len(cols) and len(segs):
@@ -178,7 +179,10 @@ class FastSLAM:
         apply_misses(local, through, in_view, matched_cols, cfg.update)
         # 7. cleaning
         if k % cfg.filter.clean_every == 0:
-            clean(local, k, cfg.cleaning)
+            recent = np.flatnonzero(
+                np.any(local.valid & (local.last_seen > k - cfg.filter.clean_every), axis=0)
+            )
+            clean(local, k, cfg.cleaning, recent)
         ps.maps.put_columns(cols, local)
         add_new(ps.maps, obs, assoc, k, cfg.update)
 
@@ -203,9 +207,9 @@ class FastSLAM:
 
     # -- helpers ------------------------------------------------------------------------------
 
-    def _local_columns(self, poses: np.ndarray) -> np.ndarray:
-        """Columns with an element within ``local_radius_m`` of any particle (cheap bound:
-        distance to the segment's midpoint minus its half length)."""
+    def _local_columns(self, poses: np.ndarray, radius_m: float) -> np.ndarray:
+        """Columns with an element within ``radius_m`` of the particles (cheap bound: distance to
+        the segment's midpoint minus its half length)."""
         maps = self.particles.maps
         used = maps.used_columns()
         if len(used) == 0:
@@ -216,7 +220,7 @@ class FastSLAM:
         centre = poses[:, :2].mean(axis=0)
         spread = np.max(np.hypot(*(poses[:, :2] - centre).T))
         d = np.hypot(*(mid - centre).transpose(2, 0, 1)) - half
-        near = np.any(maps.valid[:, used] & (d < self.cfg.filter.local_radius_m + spread), axis=0)
+        near = np.any(maps.valid[:, used] & (d < radius_m + spread), axis=0)
         return used[near]
 
     def _maybe_relocalize(self, segs: ScanSegments, facing: np.ndarray, k: int) -> None:

@@ -179,52 +179,55 @@ class CleaningConfig:
     redundant_overlap_m: float = 0.05  # must overlap (or touch within this) to be merged
 
 
-def clean(maps: SegmentMaps, step: int, cfg: CleaningConfig) -> None:
-    """Remove bad elements and merge redundant ones (collinear, overlapping) — in place."""
+def clean(maps: SegmentMaps, step: int, cfg: CleaningConfig, recent: np.ndarray | None = None) -> None:
+    """Remove bad elements and merge redundant ones (collinear, overlapping) — in place.
+
+    ``recent (R,)`` limits the redundancy test to pairs with a recently touched column (only a
+    new or extended element can have become redundant): ``(P,R,C)`` instead of ``(P,C,C)``.
+    """
     length = np.hypot(*(maps.seg[..., 1, :] - maps.seg[..., 0, :]).transpose(2, 0, 1))
     age = step - maps.born
     bad = (maps.misses >= cfg.max_misses) | (length < cfg.min_length_m)
     bad |= (age > cfg.young_steps) & (maps.hits < cfg.young_min_hits)
     maps.valid &= ~bad
-    _merge_redundant(maps, cfg)
+    _merge_redundant(maps, cfg, np.arange(maps.capacity) if recent is None else recent)
 
 
-def _merge_redundant(maps: SegmentMaps, cfg: CleaningConfig) -> None:
+def _merge_redundant(maps: SegmentMaps, cfg: CleaningConfig, recent: np.ndarray) -> None:
     """Merge element j into i (i older) when they face the same way, lie on one line and
-    overlap: one refitted element instead of two (report §4.2 "redundant elements")."""
+    overlap: one refitted element instead of two (report §4.2 "redundant elements").
+    Pairs ``(i, j)`` with ``i`` any column and ``j`` in ``recent``."""
     c = maps.capacity
-    if c < 2:
+    if c < 2 or len(recent) == 0:
         return
-    da = np.abs(wrap_angle(maps.facing[:, :, None] - maps.facing[:, None, :]))
-    mid = 0.5 * (maps.seg[..., 0, :] + maps.seg[..., 1, :])
-    _, perp = project_to_line(
-        mid[:, None, :, :], maps.alpha[:, :, None], maps.rho[:, :, None]
-    )  # j's mid on i
-    t_i, _ = project_to_line(
-        maps.seg[:, :, None, :, :], maps.alpha[:, :, None, None], maps.rho[:, :, None, None]
-    )
-    t_j, _ = project_to_line(
-        maps.seg[:, None, :, :, :], maps.alpha[:, :, None, None], maps.rho[:, :, None, None]
-    )
+    fj, sj = maps.facing[:, recent], maps.seg[:, recent]  # (P,R), (P,R,2,2)
+    da = np.abs(wrap_angle(maps.facing[:, :, None] - fj[:, None, :]))  # (P,C,R)
+    mid = 0.5 * (sj[..., 0, :] + sj[..., 1, :])
+    a_i, r_i = maps.alpha[:, :, None], maps.rho[:, :, None]
+    _, perp = project_to_line(mid[:, None, :, :], a_i, r_i)  # j's midpoint on i's line
+    t_i, _ = project_to_line(maps.seg[:, :, None, :, :], a_i[..., None], r_i[..., None])
+    t_j, _ = project_to_line(sj[:, None, :, :, :], a_i[..., None], r_i[..., None])
     overlap = np.minimum(t_i.max(-1), t_j.max(-1)) - np.maximum(t_i.min(-1), t_j.min(-1))
-    older = (maps.born[:, :, None] < maps.born[:, None, :]) | (
-        (maps.born[:, :, None] == maps.born[:, None, :]) & (np.arange(c)[:, None] < np.arange(c)[None, :])
-    )
+    born_i, born_j = maps.born[:, :, None], maps.born[:, recent][:, None, :]
+    col_i, col_j = np.arange(c)[:, None], recent[None, :]
+    older = (born_i < born_j) | ((born_i == born_j) & (col_i < col_j))
     pair = (
         maps.valid[:, :, None]
-        & maps.valid[:, None, :]
+        & maps.valid[:, recent][:, None, :]
         & older
         & (da < cfg.redundant_angle_rad)
         & (np.abs(perp) < cfg.redundant_perp_m)
         & (overlap > -cfg.redundant_overlap_m)
     )
-    # j is absorbed by its oldest partner i that is not itself absorbed this round
-    absorbed = pair.any(axis=1)
+    # a column absorbed this round absorbs nothing itself
+    absorbed = np.zeros(maps.valid.shape, bool)
+    absorbed[:, recent] = pair.any(axis=1)
     pair &= ~absorbed[:, :, None]
-    p_idx, j_idx = np.nonzero(pair.any(axis=1))
+    p_idx, r_idx = np.nonzero(pair.any(axis=1))
     if len(p_idx) == 0:
         return
-    i_idx = np.argmax(pair[p_idx, :, j_idx], axis=1)
+    i_idx = np.argmax(pair[p_idx, :, r_idx], axis=1)
+    j_idx = recent[r_idx]
     np.add.at(maps.moments, (p_idx, i_idx), maps.moments[p_idx, j_idx])
     np.add.at(maps.hits, (p_idx, i_idx), maps.hits[p_idx, j_idx])
     ends_j = maps.seg[p_idx, j_idx]
