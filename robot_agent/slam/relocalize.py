@@ -68,7 +68,9 @@ def relocalize(
     if old.sum() < cfg.min_old_elements:
         return None
     mc = cfg.matching
-    map_ends, map_facing = gm.seg[near], gm.facing[near]
+    # the loop closes against the OLD part of the map: recent elements were mapped with the
+    # drifted pose and would let the current estimate explain the scan as well as the truth
+    map_ends, map_facing = gm.seg[old], gm.facing[old]
     hyp = pose_hypotheses(segs.endpoints, facing, map_ends, map_facing, mc)
     if len(hyp) == 0:
         return None
