@@ -1,0 +1,91 @@
+"""`fleet-slam replay`: offline SLAM over a CARMEN log, with the outputs of DESIGN.md."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from robot_agent.replay import replay
+from robot_agent.slam.config import apply_overrides
+from robot_agent.slam.consensus import build_global_map
+from robot_agent.slam.fastslam import SlamConfig
+from robot_agent.sources import read_log
+from shared.metrics import read_relations, relations_error, write_poses, write_tum
+from shared.viz import PathLayer, Picture, SegmentLayer, save_geojson, save_picture, segments_geojson
+
+
+def robot_name_of(path: str | Path) -> str:
+    name = Path(path).name
+    for suffix in (".gz", ".clf", ".log"):
+        name = name.removesuffix(suffix)
+    return name or "robot"
+
+
+def replay_to_dir(
+    log_path: str,
+    out_dir: str | Path,
+    relations_path: str | None = None,
+    particles: int | None = None,
+    seed: int = 0,
+    overrides: list[str] | None = None,
+    limit: int | None = None,
+    progress: bool | None = None,
+) -> dict:
+    cfg = apply_overrides(SlamConfig(), overrides or [])
+    if particles is not None:
+        if particles < 1:
+            raise ValueError(f"--particles must be at least 1, got {particles}")
+        cfg = apply_overrides(cfg, [f"particles={particles}"])
+    log = read_log(log_path, progress=progress)
+    rel = read_relations(relations_path) if relations_path else None
+    res = replay(log, cfg, seed=seed, progress=progress, limit=limit)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    name = robot_name_of(log_path)
+    write_poses(out / f"{name}.poses.txt", res.stamps_s, res.poses)
+    write_tum(out / f"{name}.tum", res.stamps_s, res.poses)
+
+    slam = res.slam
+    gm = build_global_map(slam.particles, slam.step_index, cfg.trust, cfg.consensus)
+    keep = gm.trusted(cfg.consensus.publish_min_trust, cfg.consensus.publish_min_hits)
+    props = [
+        {"trust": round(float(t), 3), "hits": int(h), "support": round(float(s), 3)}
+        for t, h, s in zip(gm.trust[keep], gm.hits[keep], gm.support[keep], strict=True)
+    ]
+    save_geojson(out / "map.geojson", segments_geojson(gm.seg[keep], props))
+    pic = Picture(
+        [SegmentLayer(gm.seg[keep], "#222222", 0.05, "mapped segments")],
+        [PathLayer(res.poses[:, :2], "#D55E00", 0.03, name)],
+        title=f"{name}: {int(keep.sum())} segments, {res.scans} scans",
+    )
+    save_picture(out / "map", pic)
+
+    duration = float(np.max(log.stamps_s[: res.scans]) - np.min(log.stamps_s[: res.scans]))
+    metrics = {
+        "log": str(log_path),
+        "robot": name,
+        "scans": res.scans,
+        "processed_scans": slam.step_index,
+        "particles": cfg.particles,
+        "seed": seed,
+        "wall_time_s": res.wall_s,
+        "log_duration_s": duration,
+        "real_time_factor": duration / res.wall_s if res.wall_s > 0 else None,
+        "peak_rss_mb": res.peak_rss_bytes / 2**20,
+        "map_segments": int(keep.sum()),
+        "filter": dict(slam.stats),
+    }
+    if rel is not None:
+        in_range = rel.t2_s <= res.stamps_s.max() + 1e-6
+        if not np.all(in_range):
+            from shared.metrics import Relations
+
+            rel = Relations(rel.t1_s[in_range], rel.t2_s[in_range], rel.delta[in_range])
+        odom_t = log.odom_stamps_s if len(log.odom_stamps_s) > 1 else log.stamps_s
+        odom_p = log.odom_poses if len(log.odom_stamps_s) > 1 else log.odometry
+        err = relations_error(res.stamps_s, res.poses, rel, odom_t, odom_p)
+        metrics["relations"] = err.summary()
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return metrics
