@@ -82,8 +82,9 @@ def cast_rays(
     for b0 in range(0, n_scans, BROAD_PHASE_SCANS_PER_BLOCK):
         b1 = min(b0 + BROAD_PHASE_SCANS_PER_BLOCK, n_scans)
         near, count = walls_in_range(origins[b0:b1], walls, range_max_m, directions_rad[b0:b1])
-        ranges[b0:b1] = _cast_block(origins[b0:b1], directions_rad[b0:b1], padded, near, count,
-                                    range_max_m, max_pairs_per_chunk)
+        ranges[b0:b1] = _cast_block(
+            origins[b0:b1], directions_rad[b0:b1], padded, near, count, range_max_m, max_pairs_per_chunk
+        )
     return ranges
 
 

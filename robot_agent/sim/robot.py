@@ -56,8 +56,11 @@ def integrate_pose(pose: np.ndarray, v_mps, w_radps, dt_s: float) -> np.ndarray:
     chord = np.asarray(v_mps) * dt_s * np.sinc(dtheta / (2 * np.pi))  # np.sinc(x) = sin(pi x)/(pi x)
     mid = pose[..., 2] + dtheta / 2
     return np.stack(
-        np.broadcast_arrays(pose[..., 0] + chord * np.cos(mid), pose[..., 1] + chord * np.sin(mid),
-                            wrap_angle(pose[..., 2] + dtheta)),
+        np.broadcast_arrays(
+            pose[..., 0] + chord * np.cos(mid),
+            pose[..., 1] + chord * np.sin(mid),
+            wrap_angle(pose[..., 2] + dtheta),
+        ),
         axis=-1,
     )
 

@@ -83,14 +83,21 @@ class SimRun:
     def scans(self) -> Iterator[Scan]:
         """The run as a scan source."""
         for k in range(len(self.stamps_s)):
-            yield Scan(float(self.stamps_s[k]), self.ranges_m[k], self.angles_rad, self.odometry[k],
-                       self.laser_offset, self.range_max_m)
+            yield Scan(
+                float(self.stamps_s[k]),
+                self.ranges_m[k],
+                self.angles_rad,
+                self.odometry[k],
+                self.laser_offset,
+                self.range_max_m,
+            )
 
 
 def _check_robot(world: World, robot_index: int) -> None:
     if not 0 <= robot_index < world.num_robots:
-        raise ValueError(f"robot_index {robot_index} out of range: world {world.name!r} has "
-                         f"{world.num_robots} routes")
+        raise ValueError(
+            f"robot_index {robot_index} out of range: world {world.name!r} has {world.num_robots} routes"
+        )
 
 
 def simulate_robot(
@@ -118,9 +125,16 @@ def simulate_robot(
     offset = np.asarray(cfg.laser_offset, dtype=float)
     ranges = simulate_scans(rng, truth_dense[at_scan], world.walls, cfg.lidar, offset)
     return SimRun(
-        stamps_s=odom_stamps[at_scan], truth=truth_dense[at_scan], odometry=odom_dense[at_scan],
-        ranges_m=ranges, angles_rad=beam_angles(cfg.lidar), range_max_m=cfg.lidar.range_max_m,
-        laser_offset=offset, odom_stamps_s=odom_stamps, odom_poses=odom_dense, truth_dense=truth_dense,
+        stamps_s=odom_stamps[at_scan],
+        truth=truth_dense[at_scan],
+        odometry=odom_dense[at_scan],
+        ranges_m=ranges,
+        angles_rad=beam_angles(cfg.lidar),
+        range_max_m=cfg.lidar.range_max_m,
+        laser_offset=offset,
+        odom_stamps_s=odom_stamps,
+        odom_poses=odom_dense,
+        truth_dense=truth_dense,
         bias=bias,
     )
 
@@ -134,8 +148,14 @@ class LiveSim:
     and :attr:`bumped` is set until the next accepted move.
     """
 
-    def __init__(self, world: World, robot_index: int = 0, seed: int = 0,
-                 cfg: SimConfig = SimConfig(), start: np.ndarray | None = None):
+    def __init__(
+        self,
+        world: World,
+        robot_index: int = 0,
+        seed: int = 0,
+        cfg: SimConfig = SimConfig(),
+        start: np.ndarray | None = None,
+    ):
         _check_robot(world, robot_index)
         self.world, self.cfg = world, cfg
         self._rng = np.random.default_rng([seed, robot_index])
@@ -195,8 +215,9 @@ class LiveSim:
     def scan(self) -> Scan:
         """A scan taken now (without advancing time)."""
         ranges = simulate_scans(self._rng, self._pose[None], self.world.walls, self.cfg.lidar, self._offset)
-        return Scan(self.stamp_s, ranges[0], self._angles, self._odom.copy(), self._offset,
-                    self.cfg.lidar.range_max_m)
+        return Scan(
+            self.stamp_s, ranges[0], self._angles, self._odom.copy(), self._offset, self.cfg.lidar.range_max_m
+        )
 
     def scans(self, duration_s: float | None = None) -> Iterator[Scan]:
         """A scan now, then one every scan period, for ``duration_s`` (forever when ``None``)."""

@@ -122,8 +122,9 @@ def make_world(
         bounds = np.concatenate([flat.min(axis=0), flat.max(axis=0)])
     else:
         bounds = np.zeros(4)
-    return World(name=name, walls=walls, obstacles=tuple(obstacles), routes=routes, starts=starts,
-                 bounds=bounds)
+    return World(
+        name=name, walls=walls, obstacles=tuple(obstacles), routes=routes, starts=starts, bounds=bounds
+    )
 
 
 def route_line(route: np.ndarray) -> LineString:
@@ -241,8 +242,9 @@ def from_geojson(data: dict, default_name: str = "geojson") -> World:
     if orphans:
         raise WorldError(f"start poses for robots {orphans} have no route")
     route_list = [routes[k] for k in range(len(routes))]
-    start_arr = np.array([starts[k] if k in starts else start_on_route(routes[k])
-                          for k in range(len(routes))])
+    start_arr = np.array(
+        [starts[k] if k in starts else start_on_route(routes[k]) for k in range(len(routes))]
+    )
     name = data.get("name", default_name)
     return make_world(str(name), walls, obstacles, route_list, start_arr.reshape(-1, 3))
 

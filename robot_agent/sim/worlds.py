@@ -23,8 +23,9 @@ DOOR_GAP_M = 1.3  # door gap between wall centre lines; the clear opening is gap
 
 def _thick(lines: list[LineString], thickness_m: float) -> list[Polygon]:
     """Centre lines → wall polygons; square caps close L and T junctions."""
-    walls = shapely.buffer(np.asarray(lines, dtype=object), thickness_m / 2, cap_style="square",
-                           join_style="mitre")
+    walls = shapely.buffer(
+        np.asarray(lines, dtype=object), thickness_m / 2, cap_style="square", join_style="mitre"
+    )
     return list(shapely.get_parts(shapely.union_all(walls)))
 
 
@@ -37,8 +38,11 @@ def _wall_with_doors(a, b, doors=(), gap_m: float = DOOR_GAP_M) -> list[LineStri
         cuts += [d - gap_m / 2, d + gap_m / 2]
     cuts.append(length)
     unit = (b - a) / length
-    return [LineString([a + unit * s0, a + unit * s1]) for s0, s1 in zip(cuts[::2], cuts[1::2], strict=True)
-            if s1 - s0 > 1e-9]
+    return [
+        LineString([a + unit * s0, a + unit * s1])
+        for s0, s1 in zip(cuts[::2], cuts[1::2], strict=True)
+        if s1 - s0 > 1e-9
+    ]
 
 
 def _hwall(y, x0, x1, doors_x=()) -> list[LineString]:
@@ -59,8 +63,12 @@ def _octagon(cx: float, cy: float, r: float) -> Polygon:
 
 
 def _oriented_box(cx, cy, length, width, angle_rad) -> Polygon:
-    return affinity.rotate(box(cx - length / 2, cy - width / 2, cx + length / 2, cy + width / 2),
-                           angle_rad, origin=(cx, cy), use_radians=True)
+    return affinity.rotate(
+        box(cx - length / 2, cy - width / 2, cx + length / 2, cy + width / 2),
+        angle_rad,
+        origin=(cx, cy),
+        use_radians=True,
+    )
 
 
 def _finish(name: str, polygons: list[Polygon], routes: list) -> World:
@@ -88,11 +96,15 @@ def office() -> World:
         *_vwall(3.5, 3.5, 16.5, _OFFICE_SIDE_DOORS_Y),
         *_vwall(26.5, 3.5, 16.5, _OFFICE_SIDE_DOORS_Y),
         *(seg for x in (6, 12, 18, 24) for seg in (*_vwall(x, 0, 3.5), *_vwall(x, 16.5, 20))),
-        *_hwall(10, 0, 3.5), *_hwall(10, 26.5, 30),  # west / east room bands split in two
-        *_hwall(5.5, 5.5, 14, _OFFICE_INNER_DOORS_X[:2]), *_hwall(5.5, 16, 24.5, _OFFICE_INNER_DOORS_X[2:]),
-        *_hwall(14.5, 5.5, 14, _OFFICE_INNER_DOORS_X[:2]), *_hwall(14.5, 16, 24.5, _OFFICE_INNER_DOORS_X[2:]),
+        *_hwall(10, 0, 3.5),
+        *_hwall(10, 26.5, 30),  # west / east room bands split in two
+        *_hwall(5.5, 5.5, 14, _OFFICE_INNER_DOORS_X[:2]),
+        *_hwall(5.5, 16, 24.5, _OFFICE_INNER_DOORS_X[2:]),
+        *_hwall(14.5, 5.5, 14, _OFFICE_INNER_DOORS_X[:2]),
+        *_hwall(14.5, 16, 24.5, _OFFICE_INNER_DOORS_X[2:]),
         *(_vwall(x, 5.5, 14.5)[0] for x in (5.5, 9.75, 14, 16, 20.25, 24.5)),
-        *_hwall(10, 5.5, 14), *_hwall(10, 16, 24.5),
+        *_hwall(10, 5.5, 14),
+        *_hwall(10, 16, 24.5),
     ]
     walls = _thick(inner, WALL_THICKNESS_M)
     furniture = []
@@ -105,14 +117,47 @@ def office() -> World:
         furniture += [box(x0 + 0.4, 9.0, x0 + 1.2, 9.7), box(x0 + 0.4, 10.3, x0 + 1.2, 11.0)]
     routes = [
         # ring counter-clockwise, into south room 3 and north room 2
-        [(10, 4.5), (15, 4.5), (15, 1.75), (15, 4.5), (25.5, 4.5), (25.5, 15.5), (9, 15.5), (9, 18.25),
-         (9, 15.5), (4.5, 15.5), (4.5, 4.5)],
+        [
+            (10, 4.5),
+            (15, 4.5),
+            (15, 1.75),
+            (15, 4.5),
+            (25.5, 4.5),
+            (25.5, 15.5),
+            (9, 15.5),
+            (9, 18.25),
+            (9, 15.5),
+            (4.5, 15.5),
+            (4.5, 4.5),
+        ],
         # figure eight through the cross corridor, into the north-east inner room
-        [(15, 4.5), (25.5, 4.5), (25.5, 15.5), (22.375, 15.5), (22.375, 12.25), (22.375, 15.5),
-         (15, 15.5), (15, 4.5), (4.5, 4.5), (4.5, 15.5), (15, 15.5)],
+        [
+            (15, 4.5),
+            (25.5, 4.5),
+            (25.5, 15.5),
+            (22.375, 15.5),
+            (22.375, 12.25),
+            (22.375, 15.5),
+            (15, 15.5),
+            (15, 4.5),
+            (4.5, 4.5),
+            (4.5, 15.5),
+            (15, 15.5),
+        ],
         # ring clockwise, into the upper east room and the south-west inner room
-        [(8, 15.5), (25.5, 15.5), (25.5, 13.25), (28.25, 13.25), (25.5, 13.25), (25.5, 4.5),
-         (7.625, 4.5), (7.625, 7.75), (7.625, 4.5), (4.5, 4.5), (4.5, 15.5)],
+        [
+            (8, 15.5),
+            (25.5, 15.5),
+            (25.5, 13.25),
+            (28.25, 13.25),
+            (25.5, 13.25),
+            (25.5, 4.5),
+            (7.625, 4.5),
+            (7.625, 7.75),
+            (7.625, 4.5),
+            (4.5, 4.5),
+            (4.5, 15.5),
+        ],
         # west loop clockwise, into the lower west room
         [(4.5, 10), (4.5, 15.5), (15, 15.5), (15, 4.5), (4.5, 4.5), (4.5, 6.75), (1.75, 6.75), (4.5, 6.75)],
     ]
@@ -134,22 +179,61 @@ def warehouse() -> World:
     shell = _thick([_rect_lines(0, 0, 40, 25)], OUTER_WALL_THICKNESS_M)
     pitch = _SHELF_DEPTH_M + _AISLE_WIDTH_M
     y0 = (25 - (_SHELF_ROWS * _SHELF_DEPTH_M + (_SHELF_ROWS - 1) * _AISLE_WIDTH_M)) / 2
-    shelves = [box(_SHELF_X_M[0], y0 + i * pitch, _SHELF_X_M[1], y0 + i * pitch + _SHELF_DEPTH_M)
-               for i in range(_SHELF_ROWS)]
+    shelves = [
+        box(_SHELF_X_M[0], y0 + i * pitch, _SHELF_X_M[1], y0 + i * pitch + _SHELF_DEPTH_M)
+        for i in range(_SHELF_ROWS)
+    ]
     pillars = [box(x - 0.2, y, x + 0.2, y + 0.4) for x in (10, 20, 30) for y in (0.0, 24.6)]
-    pallets = [box(0.4, 3.0, 1.6, 4.0), box(0.4, 4.3, 1.6, 5.3), box(0.4, 14.0, 1.6, 15.0),
-               box(38.4, 9.0, 39.6, 10.0), box(38.4, 20.0, 39.6, 21.2)]
+    pallets = [
+        box(0.4, 3.0, 1.6, 4.0),
+        box(0.4, 4.3, 1.6, 5.3),
+        box(0.4, 14.0, 1.6, 15.0),
+        box(38.4, 9.0, 39.6, 10.0),
+        box(38.4, 20.0, 39.6, 21.2),
+    ]
     a = [y0 + _SHELF_DEPTH_M + _AISLE_WIDTH_M / 2 + i * pitch for i in range(_SHELF_ROWS - 1)]
     west, east, low, high = 3.0, 37.0, y0 / 2 + 0.1, 25 - y0 / 2 - 0.1  # end and side aisles
     routes = [
-        [(west, a[0]), (east, a[0]), (east, a[1]), (west, a[1]), (west, a[2]), (east, a[2]), (east, a[4]),
-         (west, a[4])],
-        [(east, a[3]), (west, a[3]), (west, high), (east, high), (east, a[4]), (west, a[4]), (west, a[2]),
-         (east, a[2])],
-        [(west, low), (east, low), (east, a[2]), (west, a[2]), (west, a[1]), (east, a[1]), (east, a[0]),
-         (west, a[0])],
-        [(east, a[4]), (west, a[4]), (west, a[3]), (east, a[3]), (east, a[0]), (west, a[0]), (west, low),
-         (east, low)],
+        [
+            (west, a[0]),
+            (east, a[0]),
+            (east, a[1]),
+            (west, a[1]),
+            (west, a[2]),
+            (east, a[2]),
+            (east, a[4]),
+            (west, a[4]),
+        ],
+        [
+            (east, a[3]),
+            (west, a[3]),
+            (west, high),
+            (east, high),
+            (east, a[4]),
+            (west, a[4]),
+            (west, a[2]),
+            (east, a[2]),
+        ],
+        [
+            (west, low),
+            (east, low),
+            (east, a[2]),
+            (west, a[2]),
+            (west, a[1]),
+            (east, a[1]),
+            (east, a[0]),
+            (west, a[0]),
+        ],
+        [
+            (east, a[4]),
+            (west, a[4]),
+            (west, a[3]),
+            (east, a[3]),
+            (east, a[0]),
+            (west, a[0]),
+            (west, low),
+            (east, low),
+        ],
     ]
     return _finish("warehouse", shell + shelves + pillars + pallets, routes)
 
@@ -176,7 +260,8 @@ def _campus_buildings() -> list[Polygon]:
         box(15, 15, 38, 33).difference(box(28, 24, 38.5, 33.5)),  # L
         box(52, 18, 73, 33),
         *[box(x - 0.25, 15.5, x + 0.25, 16.0) for x in np.arange(53.0, 73.0, 3.0)],  # portico
-        box(87, 15, 95, 33), box(98, 15, 105, 26),  # twin blocks
+        box(87, 15, 95, 33),
+        box(98, 15, 105, 26),  # twin blocks
         box(15, 47, 38, 65).difference(box(22, 54, 31, 65.5)),  # U, courtyard open to the north
         _oriented_box(62.5, 56.0, 16.0, 10.0, np.deg2rad(15.0)),
         notch,
@@ -204,8 +289,11 @@ def _campus_clutter(paths: MultiLineString, buildings: list[Polygon]) -> list[Po
             for (cx, cy), kind in zip(centres, kinds, strict=True):
                 if kind == 0:
                     continue
-                shape = (_oriented_box(cx, cy, 1.6, 0.45, angle) if kind == 2
-                         else _octagon(cx, cy, _TREE_RADIUS_M * rng.uniform(0.8, 1.3)))
+                shape = (
+                    _oriented_box(cx, cy, 1.6, 0.45, angle)
+                    if kind == 2
+                    else _octagon(cx, cy, _TREE_RADIUS_M * rng.uniform(0.8, 1.3))
+                )
                 if not shape.intersects(blocked) and shape.within(site):
                     clutter.append(shape)
     return clutter

@@ -125,8 +125,13 @@ class ScanSegments:
         pose = np.asarray(pose, dtype=float).reshape(3)
         alpha, rho, cov = transform_lines(pose, self.alpha, self.rho, self.cov)
         return replace(
-            self, alpha=alpha, rho=rho, cov=cov, moments=transform_moments(pose, self.moments),
-            endpoints=transform_points(pose, self.endpoints), points=transform_points(pose, self.points),
+            self,
+            alpha=alpha,
+            rho=rho,
+            cov=cov,
+            moments=transform_moments(pose, self.moments),
+            endpoints=transform_points(pose, self.endpoints),
+            points=transform_points(pose, self.points),
         )
 
 
@@ -211,9 +216,7 @@ def _piece_index(starts: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndar
     return ends, np.repeat(np.arange(starts.size), ends - starts)
 
 
-def _split(
-    pts: np.ndarray, threshold: np.ndarray, starts: np.ndarray, cfg: ExtractionConfig
-) -> np.ndarray:
+def _split(pts: np.ndarray, threshold: np.ndarray, starts: np.ndarray, cfg: ExtractionConfig) -> np.ndarray:
     """Iterative end-point fit: piece starts ``(S',)`` refining the cluster starts ``(C,)``.
 
     Each round splits every piece that has a point farther than its ``threshold (K,)`` from
@@ -241,7 +244,10 @@ def _split(
 
 
 def _merge(
-    pts: np.ndarray, threshold: np.ndarray, starts: np.ndarray, cluster: np.ndarray,
+    pts: np.ndarray,
+    threshold: np.ndarray,
+    starts: np.ndarray,
+    cluster: np.ndarray,
     cfg: ExtractionConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Merge adjacent collinear pieces of one cluster; returns starts and cluster ``(S',)``.
@@ -321,9 +327,7 @@ def _refine_boundaries(
     return starts
 
 
-def _assemble(
-    pts: np.ndarray, beam: np.ndarray, starts: np.ndarray, cfg: ExtractionConfig
-) -> ScanSegments:
+def _assemble(pts: np.ndarray, beam: np.ndarray, starts: np.ndarray, cfg: ExtractionConfig) -> ScanSegments:
     """Fit, bound and filter the pieces; label the points with the kept segments."""
     n_points = pts.shape[0]
     ends, piece = _piece_index(starts, n_points)

@@ -70,8 +70,20 @@ _PROGRESS_EVERY_LINES = 2000
 _FLASER_TAIL = ("x", "y", "theta", "odom_x", "odom_y", "odom_theta", "ipc_timestamp")
 _ODOM_NAMES = ("x", "y", "theta", "tv", "rv", "accel", "ipc_timestamp")
 _RL1_HEAD = ("start_angle", "fov", "angular_res", "max_range", "accuracy")
-_RL1_TAIL = ("laser_x", "laser_y", "laser_theta", "robot_x", "robot_y", "robot_theta", "tv",
-             "rv", "forward_safety", "side_safety", "turn_axis", "ipc_timestamp")
+_RL1_TAIL = (
+    "laser_x",
+    "laser_y",
+    "laser_theta",
+    "robot_x",
+    "robot_y",
+    "robot_theta",
+    "tv",
+    "rv",
+    "forward_safety",
+    "side_safety",
+    "turn_axis",
+    "ipc_timestamp",
+)
 
 
 class LogFormatError(ValueError):
@@ -106,8 +118,7 @@ def infer_range_max_m(ranges_m: np.ndarray) -> float:
     if finite.size == 0:
         return DEFAULT_RANGE_MAX_M
     top = float(finite.max())
-    if np.count_nonzero(finite == top) >= max(SENTINEL_MIN_COUNT,
-                                              SENTINEL_MIN_FRACTION * finite.size):
+    if np.count_nonzero(finite == top) >= max(SENTINEL_MIN_COUNT, SENTINEL_MIN_FRACTION * finite.size):
         return min(top, DEFAULT_RANGE_MAX_M)
     return DEFAULT_RANGE_MAX_M
 
@@ -137,16 +148,26 @@ class LaserLog:
 
     def __post_init__(self) -> None:
         dims: dict[str, int] = {}
-        for name, layout in (("stamps_s", "S"), ("ranges_m", "SB"), ("angles_rad", "B"),
-                             ("odometry", "S3"), ("laser_offset", "3"),
-                             ("odom_stamps_s", "M"), ("odom_poses", "M3")):
+        for name, layout in (
+            ("stamps_s", "S"),
+            ("ranges_m", "SB"),
+            ("angles_rad", "B"),
+            ("odometry", "S3"),
+            ("laser_offset", "3"),
+            ("odom_stamps_s", "M"),
+            ("odom_poses", "M3"),
+        ):
             array = np.array(getattr(self, name), dtype=float)
-            expected = tuple(int(d) if d.isdigit() else dims.setdefault(d, n)
-                             for d, n in zip(layout, array.shape, strict=False))
+            expected = tuple(
+                int(d) if d.isdigit() else dims.setdefault(d, n)
+                for d, n in zip(layout, array.shape, strict=False)
+            )
             if array.ndim != len(layout) or array.shape != expected:
                 known = ", ".join(f"{k}={v}" for k, v in dims.items())
-                raise ValueError(f"{name} has shape {array.shape}, expected "
-                                 f"({', '.join(layout)}) with {known or 'no sizes yet'}")
+                raise ValueError(
+                    f"{name} has shape {array.shape}, expected "
+                    f"({', '.join(layout)}) with {known or 'no sizes yet'}"
+                )
             array.flags.writeable = False
             object.__setattr__(self, name, array)
         range_max_m = float(self.range_max_m)
@@ -155,9 +176,18 @@ class LaserLog:
         object.__setattr__(self, "range_max_m", range_max_m)
 
     @classmethod
-    def from_arrays(cls, stamps_s, ranges_m, angles_rad, odometry, laser_offset=(0.0, 0.0, 0.0),
-                    range_max_m: float | None = None, odom_stamps_s=None, odom_poses=None,
-                    params: dict[str, str] | None = None) -> LaserLog:
+    def from_arrays(
+        cls,
+        stamps_s,
+        ranges_m,
+        angles_rad,
+        odometry,
+        laser_offset=(0.0, 0.0, 0.0),
+        range_max_m: float | None = None,
+        odom_stamps_s=None,
+        odom_poses=None,
+        params: dict[str, str] | None = None,
+    ) -> LaserLog:
         """Build a log from arrays (shapes as in the class docstring; ValueError if not).
 
         ``range_max_m=None`` applies the FLASER rule of :func:`infer_range_max_m`; ``kind``
@@ -165,13 +195,17 @@ class LaserLog:
         """
         ranges_m = np.asarray(ranges_m, dtype=float)
         return cls(
-            stamps_s=stamps_s, ranges_m=ranges_m, angles_rad=angles_rad, odometry=odometry,
+            stamps_s=stamps_s,
+            ranges_m=ranges_m,
+            angles_rad=angles_rad,
+            odometry=odometry,
             laser_offset=laser_offset,
             range_max_m=infer_range_max_m(ranges_m) if range_max_m is None else range_max_m,
             odom_stamps_s=np.zeros(0) if odom_stamps_s is None else odom_stamps_s,
             odom_poses=np.zeros((0, 3)) if odom_poses is None else odom_poses,
             params=dict(params or {}),
-            kind="FLASER" if is_flaser_geometry(angles_rad) else "ROBOTLASER1")
+            kind="FLASER" if is_flaser_geometry(angles_rad) else "ROBOTLASER1",
+        )
 
     def __len__(self) -> int:
         return self.stamps_s.shape[0]
@@ -184,9 +218,14 @@ class LaserLog:
     def scans(self) -> Iterator[Scan]:
         """The scans in file order, each sharing this log's read-only arrays."""
         for i in range(len(self)):
-            yield Scan(stamp_s=float(self.stamps_s[i]), ranges_m=self.ranges_m[i],
-                       angles_rad=self.angles_rad, odometry=self.odometry[i],
-                       laser_offset=self.laser_offset, range_max_m=self.range_max_m)
+            yield Scan(
+                stamp_s=float(self.stamps_s[i]),
+                ranges_m=self.ranges_m[i],
+                angles_rad=self.angles_rad,
+                odometry=self.odometry[i],
+                laser_offset=self.laser_offset,
+                range_max_m=self.range_max_m,
+            )
 
 
 def read_log(path: str | os.PathLike[str], progress: bool | None = None) -> LaserLog:
@@ -210,10 +249,13 @@ def read_log(path: str | os.PathLike[str], progress: bool | None = None) -> Lase
                     if line_no % _PROGRESS_EVERY_LINES == 0:
                         advance(raw.tell())
             except (gzip.BadGzipFile, EOFError, zlib.error) as err:
-                raise LogFormatError(path, reader.line_no + 1, "gzip", "stream",
-                                     f"unreadable compressed data ({err})") from err
+                raise LogFormatError(
+                    path, reader.line_no + 1, "gzip", "stream", f"unreadable compressed data ({err})"
+                ) from err
             advance(raw.tell())
     return reader.finish()
+
+
 class _Reader:
     """Collects one log's lines into lists; :meth:`finish` stacks them into a LaserLog."""
 
@@ -229,8 +271,13 @@ class _Reader:
         self.params: dict[str, str] = {}
         self.param_lines: dict[str, int] = {}
         self.skipped: Counter[str] = Counter()
-        self.handlers = {"FLASER": self._flaser, "ROBOTLASER1": self._robotlaser,
-                         "ODOM": self._odom, "PARAM": self._param, "SYNC": lambda parts: None}
+        self.handlers = {
+            "FLASER": self._flaser,
+            "ROBOTLASER1": self._robotlaser,
+            "ODOM": self._odom,
+            "PARAM": self._param,
+            "SYNC": lambda parts: None,
+        }
 
     def error(self, message_type: str, field: str, problem: str) -> LogFormatError:
         return LogFormatError(self.path, self.line_no, message_type, field, problem)
@@ -246,8 +293,7 @@ class _Reader:
         else:
             handler(parts)
 
-    def floats(self, parts: list[str], a: int, b: int, names: _Names,
-               finite_from: int = 0) -> np.ndarray:
+    def floats(self, parts: list[str], a: int, b: int, names: _Names, finite_from: int = 0) -> np.ndarray:
         """``parts[a:b]`` as floats, finite from index ``finite_from``; names[i] is parts[a+i]."""
         try:
             values = np.array(parts[a:b], dtype=float)
@@ -256,8 +302,7 @@ class _Reader:
                 try:
                     float(text)
                 except ValueError:
-                    raise self.error(parts[0], names[i],
-                                     f"cannot parse {text!r} as a number") from None
+                    raise self.error(parts[0], names[i], f"cannot parse {text!r} as a number") from None
             values = np.array([float(text) for text in parts[a:b]])  # numpy stricter than float
         finite = np.isfinite(values[finite_from:])
         if not finite.all():
@@ -272,8 +317,7 @@ class _Reader:
         try:
             n = int(parts[index])
         except ValueError:
-            raise self.error(parts[0], field,
-                             f"cannot parse {parts[index]!r} as an integer") from None
+            raise self.error(parts[0], field, f"cannot parse {parts[index]!r} as an integer") from None
         if not 0 <= n <= MAX_BEAMS:
             raise self.error(parts[0], field, f"beam count {n} outside [0, {MAX_BEAMS}]")
         return n
@@ -281,21 +325,31 @@ class _Reader:
     def expect_fields(self, parts: list[str], expected: int, field: str, why: str) -> None:
         if len(parts) != expected:
             few_or_many = "few" if len(parts) < expected else "many"
-            raise self.error(parts[0], field, f"too {few_or_many} fields: {why}, so the line "
-                             f"needs {expected} fields; found {len(parts)}")
+            raise self.error(
+                parts[0],
+                field,
+                f"too {few_or_many} fields: {why}, so the line needs {expected} fields; found {len(parts)}",
+            )
 
     def _flaser(self, parts: list[str]) -> None:
         n = self.count(parts, 1, "num_readings")
         self.expect_fields(parts, n + 11, "num_readings", f"it declares {n} beams")
         values = self.floats(parts, 2, n + 9, _Names(n, _FLASER_TAIL), finite_from=n)
-        self._add_scan(parts[0], values[:n], values[n + 3 : n + 6], values[n : n + 3],
-                       values[n + 6], lambda: flaser_angles(n))
+        self._add_scan(
+            parts[0],
+            values[:n],
+            values[n + 3 : n + 6],
+            values[n : n + 3],
+            values[n + 6],
+            lambda: flaser_angles(n),
+        )
 
     def _robotlaser(self, parts: list[str]) -> None:
         n = self.count(parts, 8, "num_readings")
         n_rem = self.count(parts, 9 + n, "num_remissions")
-        self.expect_fields(parts, n + n_rem + 24, "num_remissions",
-                           f"it declares {n} beams and {n_rem} remissions")
+        self.expect_fields(
+            parts, n + n_rem + 24, "num_remissions", f"it declares {n} beams and {n_rem} remissions"
+        )
         start, _, res, max_range_m, _ = self.floats(parts, 2, 7, _Names(0, _RL1_HEAD))
         if not max_range_m > 0:
             raise self.error(parts[0], "max_range", f"{parts[5]!r} is not a positive range")
@@ -303,18 +357,26 @@ class _Reader:
         tail = self.floats(parts, n + n_rem + 10, n + n_rem + 22, _Names(0, _RL1_TAIL))
         if self.range_max_m is None:
             self.range_max_m = float(max_range_m)
-        self._add_scan(parts[0], ranges, tail[3:6], tail[0:3], tail[11],
-                       lambda: start + np.arange(n) * res)
+        self._add_scan(parts[0], ranges, tail[3:6], tail[0:3], tail[11], lambda: start + np.arange(n) * res)
 
-    def _add_scan(self, kind: str, ranges: np.ndarray, odom: np.ndarray, laser: np.ndarray,
-                  stamp: float, angles: Callable[[], np.ndarray]) -> None:
+    def _add_scan(
+        self,
+        kind: str,
+        ranges: np.ndarray,
+        odom: np.ndarray,
+        laser: np.ndarray,
+        stamp: float,
+        angles: Callable[[], np.ndarray],
+    ) -> None:
         if self.first is None:
             self.kind = kind
-            self.first = (self.line_no, relative(odom, laser), angles(),
-                          bool(np.array_equal(odom, laser)))
+            self.first = (self.line_no, relative(odom, laser), angles(), bool(np.array_equal(odom, laser)))
         elif ranges.size != self.rows[0].size:
-            raise self.error(kind, "num_readings", f"beam count changed from "
-                             f"{self.rows[0].size} (line {self.first[0]}) to {ranges.size}")
+            raise self.error(
+                kind,
+                "num_readings",
+                f"beam count changed from {self.rows[0].size} (line {self.first[0]}) to {ranges.size}",
+            )
         self.rows.append(ranges)
         self.odometry.append(odom)
         self.stamps.append(float(stamp))
@@ -336,15 +398,18 @@ class _Reader:
             return float(self.params[name])
         except ValueError:
             self.line_no = self.param_lines[name]
-            raise self.error("PARAM", name,
-                             f"cannot parse {self.params[name]!r} as a number") from None
+            raise self.error("PARAM", name, f"cannot parse {self.params[name]!r} as a number") from None
 
     def laser_offset(self) -> np.ndarray:
         _, offset, _, identical = self.first
         if self.kind == "ROBOTLASER1" or not identical:
             return offset
-        return np.array([self.param_float(f"robot_frontlaser_{key}", 0.0)
-                         for key in ("offset", "side_offset", "angular_offset")])
+        return np.array(
+            [
+                self.param_float(f"robot_frontlaser_{key}", 0.0)
+                for key in ("offset", "side_offset", "angular_offset")
+            ]
+        )
 
     def finish(self) -> LaserLog:
         if self.first is None:
@@ -352,15 +417,22 @@ class _Reader:
         ranges = np.stack(self.rows)
         named = [name for name in RANGE_MAX_PARAMS if name in self.params]
         if self.range_max_m is None:
-            self.range_max_m = (self.param_float(named[0], 0.0) if named
-                                else infer_range_max_m(ranges))
+            self.range_max_m = self.param_float(named[0], 0.0) if named else infer_range_max_m(ranges)
         odom = np.array(self.odom_rows).reshape(-1, 4)
         return LaserLog(
-            stamps_s=np.array(self.stamps), ranges_m=ranges, angles_rad=self.first[2],
-            odometry=np.stack(self.odometry), laser_offset=self.laser_offset(),
-            range_max_m=self.range_max_m, odom_stamps_s=odom[:, 0], odom_poses=odom[:, 1:],
-            params=dict(self.params), path=self.path, kind=self.kind,
-            skipped=dict(self.skipped))
+            stamps_s=np.array(self.stamps),
+            ranges_m=ranges,
+            angles_rad=self.first[2],
+            odometry=np.stack(self.odometry),
+            laser_offset=self.laser_offset(),
+            range_max_m=self.range_max_m,
+            odom_stamps_s=odom[:, 0],
+            odom_poses=odom[:, 1:],
+            params=dict(self.params),
+            path=self.path,
+            kind=self.kind,
+            skipped=dict(self.skipped),
+        )
 
 
 _LASERS = ("FLASER", "ROBOTLASER1")

@@ -38,15 +38,15 @@ forward_safety_dist side_safty_dist turn_axis
 """
 
 
-def write_log(path: str | os.PathLike[str], log_or_arrays: LaserLog | Mapping[str, Any],
-              host: str = "nohost") -> None:
+def write_log(
+    path: str | os.PathLike[str], log_or_arrays: LaserLog | Mapping[str, Any], host: str = "nohost"
+) -> None:
     """Write ``log_or_arrays`` (a LaserLog, or the keyword arguments of
     :meth:`LaserLog.from_arrays`) to ``path``, gzip-compressed when it ends with ``.gz``.
 
     Raises ValueError when ROBOTLASER1 is needed but the angles are not evenly spaced.
     """
-    log = (log_or_arrays if isinstance(log_or_arrays, LaserLog)
-           else LaserLog.from_arrays(**log_or_arrays))
+    log = log_or_arrays if isinstance(log_or_arrays, LaserLog) else LaserLog.from_arrays(**log_or_arrays)
     flaser = is_flaser_geometry(log.angles_rad)
     laser_lines = _flaser_lines(log) if flaser else _robotlaser_lines(log)
     t0 = float(min(log.stamps_s.min(initial=np.inf), log.odom_stamps_s.min(initial=np.inf)))
@@ -65,8 +65,7 @@ def _params(log: LaserLog, flaser: bool) -> dict[str, str]:
     params = {k: v for k, v in log.params.items() if k not in RANGE_MAX_PARAMS}
     if flaser:
         # The reader takes these only when laser and odometry poses coincide in the lines.
-        for key, value in zip(("offset", "side_offset", "angular_offset"), log.laser_offset,
-                              strict=True):
+        for key, value in zip(("offset", "side_offset", "angular_offset"), log.laser_offset, strict=True):
             params[f"robot_frontlaser_{key}"] = f"{value:.17g}"
         params[RANGE_MAX_PARAMS[0]] = f"{log.range_max_m:.17g}"
     return params
@@ -96,19 +95,20 @@ def _robotlaser_lines(log: LaserLog) -> Iterator[tuple[float, str]]:
     res = float(angles[-1] - angles[0]) / (n - 1) if n > 1 else 0.0
     deviation = np.abs(angles - (angles[0] + np.arange(n) * res)) if n else np.zeros(0)
     if np.any(deviation > ANGLE_SPACING_TOL_RAD):
-        raise ValueError(f"angles_rad are not evenly spaced (off by up to "
-                         f"{deviation.max():.3g} rad); ROBOTLASER1 cannot store them")
+        raise ValueError(
+            f"angles_rad are not evenly spaced (off by up to "
+            f"{deviation.max():.3g} rad); ROBOTLASER1 cannot store them"
+        )
     start = float(angles[0]) if n else 0.0
-    head = (f"ROBOTLASER1 0 {start:.17g} {res * max(n - 1, 0):.17g} {res:.17g} "
-            f"{log.range_max_m:.17g} 0.0 0 {n}")
+    head = (
+        f"ROBOTLASER1 0 {start:.17g} {res * max(n - 1, 0):.17g} {res:.17g} {log.range_max_m:.17g} 0.0 0 {n}"
+    )
     lasers = _poses_text(compose(log.odometry, log.laser_offset))
     robots = _poses_text(log.odometry)
     for i, ranges in enumerate(_ranges_text(log.ranges_m)):
-        yield (float(log.stamps_s[i]),
-               f"{head} {ranges} 0 {lasers[i]} {robots[i]} 0.0 0.0 0.0 0.0 0.0")
+        yield (float(log.stamps_s[i]), f"{head} {ranges} 0 {lasers[i]} {robots[i]} 0.0 0.0 0.0 0.0 0.0")
 
 
 def _odom_lines(log: LaserLog) -> Iterator[tuple[float, str]]:
-    for stamp, pose in zip(log.odom_stamps_s.tolist(), _poses_text(log.odom_poses),
-                           strict=True):
+    for stamp, pose in zip(log.odom_stamps_s.tolist(), _poses_text(log.odom_poses), strict=True):
         yield stamp, f"ODOM {pose} 0.000000 0.000000 0.000000"
