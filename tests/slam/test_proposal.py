@@ -1,0 +1,161 @@
+"""Improved proposal: point-to-line alignment of the scan segments to each particle's map."""
+
+import numpy as np
+import pytest
+
+from robot_agent.slam.association import AssociationConfig
+from robot_agent.slam.lines import fit_lines, line_covariance, moments_of
+from robot_agent.slam.particles import SegmentMaps
+from robot_agent.slam.proposal import ProposalConfig, align
+from shared.geometry import apply_points, inverse, wrap_angle
+
+POINTS_PER_M = 20
+TRUE_POSE = np.array([2.5, 2.0, 0.4])
+PRIOR_OFFSETS = np.array([[0.15, -0.1, np.radians(3.0)], [-0.1, -0.12, np.radians(-2.0)]])
+PRIOR_SIGMA_XY_M = 0.15
+PRIOR_SIGMA_THETA_RAD = np.radians(3.0)
+
+# a room corner (map frame): floor wall y = 0, wall x = 0 perpendicular to it, third wall x = 6;
+# facing = the normal toward the room's inside, the side the sensor sees
+CORNER_ROOM = [
+    (((0.0, 0.0), (6.0, 0.0)), np.pi / 2),
+    (((0.0, 5.0), (0.0, 0.0)), 0.0),
+    (((6.0, 0.0), (6.0, 5.0)), np.pi),
+]
+# one wall along 30° through (0, -1): the robot at TRUE_POSE is 1.35 m on its normal's side
+DIR_30 = np.array([np.cos(np.radians(30.0)), np.sin(np.radians(30.0))])
+NORMAL_30 = np.array([-DIR_30[1], DIR_30[0]])
+ONE_WALL = [(((0.0, -1.0), tuple(np.array([0.0, -1.0]) + 8.0 * DIR_30)), np.radians(120.0))]
+
+
+def _points(a, b):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return np.linspace(a, b, round(np.hypot(*(b - a)) * POINTS_PER_M) + 1)
+
+
+def build_maps(walls, n_particles):
+    """Every particle holds the same walls (exact TLS lines from their points)."""
+    maps = SegmentMaps.empty(n_particles, 4)
+    for col, ((a, b), facing) in enumerate(walls):
+        m = moments_of(_points(a, b))
+        alpha, rho, _ = fit_lines(m)
+        maps.valid[:, col] = True
+        maps.seg[:, col] = np.array([a, b])
+        maps.moments[:, col] = m
+        maps.alpha[:, col], maps.rho[:, col] = alpha, rho
+        maps.facing[:, col] = facing
+        maps.hits[:, col] = 10
+    return maps
+
+
+def scan(walls, pose):
+    """Robot-frame segments of the walls seen from ``pose``: moments, ends, facing, covariance."""
+    to_robot = inverse(pose)
+    moments = np.array([moments_of(apply_points(to_robot, _points(a, b))) for (a, b), _ in walls])
+    ends = np.array([apply_points(to_robot, np.array([a, b], float)) for (a, b), _ in walls])
+    facing = np.array([wrap_angle(f - pose[2]) for _, f in walls])
+    alpha, _, s2 = fit_lines(moments)
+    cov = line_covariance(moments, alpha, np.maximum(s2, 0.02**2))
+    return moments, ends, facing, cov
+
+
+def prior():
+    mean = TRUE_POSE + PRIOR_OFFSETS
+    cov = np.tile(
+        np.diag([PRIOR_SIGMA_XY_M**2, PRIOR_SIGMA_XY_M**2, PRIOR_SIGMA_THETA_RAD**2]), (len(mean), 1, 1)
+    )
+    return mean, cov
+
+
+def run(walls):
+    mean, cov = prior()
+    m, ends, facing, seg_cov = scan(walls, TRUE_POSE)
+    res = align(
+        mean,
+        cov,
+        m,
+        ends,
+        facing,
+        seg_cov,
+        build_maps(walls, len(mean)),
+        AssociationConfig(),
+        ProposalConfig(),
+    )
+    return mean, cov, res
+
+
+def test_scan_helper_puts_the_walls_back_at_the_true_pose():
+    m, ends, facing, _ = scan(CORNER_ROOM, TRUE_POSE)
+    back = apply_points(TRUE_POSE, ends)
+    np.testing.assert_allclose(back, np.array([w for w, _ in CORNER_ROOM]), atol=1e-12)
+    # robot-frame facing points back to the sensor: alpha + pi for a line with rho >= 0
+    alpha, _, _ = fit_lines(m)
+    np.testing.assert_allclose(wrap_angle(facing - alpha - np.pi), 0.0, atol=1e-9)
+
+
+def test_corner_room_aligns_to_the_truth():
+    _, _, res = run(CORNER_ROOM)
+    np.testing.assert_array_equal(res.n_matched, [3, 3])
+    err = res.mean - TRUE_POSE
+    assert np.all(np.hypot(err[:, 0], err[:, 1]) < 0.01)
+    assert np.all(np.abs(wrap_angle(err[:, 2])) < np.radians(0.2))
+
+
+def test_corner_room_shrinks_the_covariance_in_every_direction():
+    _, prior_cov, res = run(CORNER_ROOM)
+    assert res.cov.shape == (2, 3, 3)
+    np.testing.assert_allclose(res.cov, np.transpose(res.cov, (0, 2, 1)))
+    assert np.all(np.linalg.eigvalsh(res.cov) > 0)
+    # all three directions are constrained: variances 100× below the prior's
+    ratio = np.diagonal(res.cov, axis1=1, axis2=2) / np.diagonal(prior_cov, axis1=1, axis2=2)
+    assert np.all(ratio < 0.01), ratio
+    # the largest variance of the posterior in any direction too
+    assert np.all(np.linalg.eigvalsh(res.cov[:, :2, :2]).max(axis=1) < 0.01 * PRIOR_SIGMA_XY_M**2)
+
+
+def test_one_wall_corrects_the_across_offset_and_heading_but_not_the_along_offset():
+    prior_mean, prior_cov, res = run(ONE_WALL)
+    np.testing.assert_array_equal(res.n_matched, [1, 1])
+    err = res.mean[:, :2] - TRUE_POSE[:2]
+    assert np.all(np.abs(err @ NORMAL_30) < 0.01)  # across the wall: corrected
+    assert np.all(np.abs(wrap_angle(res.mean[:, 2] - TRUE_POSE[2])) < np.radians(0.2))
+    # along the wall: no information; the mean stays at the prior's and so does the variance
+    np.testing.assert_allclose((res.mean[:, :2] - prior_mean[:, :2]) @ DIR_30, 0.0, atol=0.01)
+    assert np.all(np.abs((prior_mean[:, :2] - TRUE_POSE[:2]) @ DIR_30) > 0.05)  # so it was off
+    var_along = np.einsum("i,pij,j->p", DIR_30, res.cov[:, :2, :2], DIR_30)
+    var_across = np.einsum("i,pij,j->p", NORMAL_30, res.cov[:, :2, :2], NORMAL_30)
+    np.testing.assert_allclose(var_along, PRIOR_SIGMA_XY_M**2, rtol=0.05)
+    assert np.all(var_across < 0.01 * PRIOR_SIGMA_XY_M**2)
+    assert np.all(res.cov[:, 2, 2] < 0.01 * prior_cov[:, 2, 2])
+
+
+def test_empty_map_returns_the_prior():
+    mean, cov = prior()
+    m, ends, facing, seg_cov = scan(CORNER_ROOM, TRUE_POSE)
+    res = align(
+        mean, cov, m, ends, facing, seg_cov, SegmentMaps.empty(2, 4), AssociationConfig(), ProposalConfig()
+    )
+    np.testing.assert_array_equal(res.n_matched, 0)
+    np.testing.assert_allclose(res.mean, mean, atol=1e-12)
+    np.testing.assert_allclose(res.cov, cov, rtol=1e-9)
+
+
+@pytest.mark.parametrize("sample_scale", [0.5, 2.0])
+def test_sample_scale_scales_the_covariance(sample_scale):
+    mean, cov = prior()
+    m, ends, facing, seg_cov = scan(CORNER_ROOM, TRUE_POSE)
+    maps = build_maps(CORNER_ROOM, 2)
+    base = align(mean, cov, m, ends, facing, seg_cov, maps, AssociationConfig(), ProposalConfig())
+    scaled = align(
+        mean,
+        cov,
+        m,
+        ends,
+        facing,
+        seg_cov,
+        maps,
+        AssociationConfig(),
+        ProposalConfig(sample_scale=sample_scale),
+    )
+    np.testing.assert_allclose(scaled.mean, base.mean, atol=1e-12)
+    np.testing.assert_allclose(scaled.cov, sample_scale * base.cov, rtol=1e-9)

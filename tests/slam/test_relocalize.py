@@ -1,0 +1,166 @@
+"""Relocalization at loop closure (report §6): hypotheses from the global map, particle injection."""
+
+import numpy as np
+import pytest
+
+from robot_agent.sim.lidar import cast_rays
+from robot_agent.slam.consensus import GlobalMap
+from robot_agent.slam.extraction import extract_segments
+from robot_agent.slam.lines import fit_lines, moments_of
+from robot_agent.slam.particles import ParticleSet
+from robot_agent.slam.relocalize import Relocalization, RelocalizationConfig, inject, relocalize
+from shared.geometry import compose, wrap_angle
+
+# The L-shaped room with a box of tests/shared/test_matching.py, in the map frame.
+L_ROOM = np.array(
+    [
+        [(-1, -3), (7, -3)],
+        [(7, -3), (7, 1)],
+        [(7, 1), (3, 1)],
+        [(3, 1), (3, 4)],
+        [(3, 4), (-1, 4)],
+        [(-1, 4), (-1, -3)],
+        [(4.5, -2.5), (5.5, -2.5)],
+        [(5.5, -2.5), (5.5, -1.5)],
+        [(5.5, -1.5), (4.5, -1.5)],
+        [(4.5, -1.5), (4.5, -2.5)],
+    ],
+    float,
+)
+L_FACING = np.array([np.pi / 2, np.pi, -np.pi / 2, np.pi, -np.pi / 2, 0.0, -np.pi / 2, 0.0, np.pi / 2, np.pi])
+TRUE_POSE = np.array([2.0, -1.0, 0.4])
+ANGLES = np.linspace(-np.pi, np.pi, 721)[:-1]
+STEP = 300  # a multiple of RelocalizationConfig.every
+LOG_WEIGHTS = np.log([0.1, 0.05, 0.4, 0.02, 0.08, 0.35])  # best: 2; weakest others: 3, then 1
+BEST = 2
+
+
+def global_map(born=0, hits=10, trust=0.9):
+    """An old, reliable global map of the room (one column per wall)."""
+    g = len(L_ROOM)
+    moments = np.array([moments_of(np.linspace(a, b, 41)) for a, b in L_ROOM])
+    alpha, rho, _ = fit_lines(moments)
+    full = np.ones(g)
+    return GlobalMap(
+        step=STEP,
+        cols=np.arange(g),
+        seg=L_ROOM.copy(),
+        alpha=alpha,
+        rho=rho,
+        facing=L_FACING.copy(),
+        moments=moments,
+        hits=np.full(g, hits),
+        born=np.full(g, born),
+        last_seen=np.full(g, born),
+        trust=full * trust,
+        support=full,
+        source=np.zeros(g, int),
+    )
+
+
+def scan_at(pose, noise_m=0.01, seed=0):
+    ranges = cast_rays(pose[None, :2], (pose[2] + ANGLES)[None], L_ROOM, 30.0)[0]
+    ranges = ranges + np.random.default_rng(seed).normal(0.0, noise_m, ranges.shape)
+    segs = extract_segments(ranges, ANGLES)  # laser = robot frame
+    return segs, wrap_angle(segs.alpha + np.pi)
+
+
+def particles(best_pose):
+    """Six particles with distinct maps, slips and poses; the best one at ``best_pose``."""
+    rng = np.random.default_rng(4)
+    ps = ParticleSet.create(6)
+    ps.poses = best_pose + rng.normal(0.0, [0.2, 0.2, 0.05], (6, 3))
+    ps.poses[BEST] = best_pose
+    ps.log_weights = LOG_WEIGHTS.copy()
+    ps.slip = rng.normal(0.0, 0.01, (6, 2))
+    m = ps.maps
+    m.valid[:, :8] = rng.random((6, 8)) < 0.7
+    m.seg[:, :8] = rng.normal(size=(6, 8, 2, 2))
+    m.rho[:, :8] = rng.random((6, 8))
+    m.hits[:, :8] = rng.integers(1, 20, (6, 8))
+    return ps
+
+
+# 0.8 m and 8° off the truth
+OFF_POSE = TRUE_POSE + np.array([0.8 * np.cos(2.0), 0.8 * np.sin(2.0), np.radians(8.0)])
+
+
+def test_relocalize_finds_the_true_pose_when_the_best_particle_is_off():
+    segs, facing = scan_at(TRUE_POSE)
+    cfg = RelocalizationConfig()
+    res = relocalize(particles(OFF_POSE), global_map(), segs, facing, STEP, cfg)
+    assert res is not None
+    assert 1 <= len(res.poses) <= cfg.inject and res.poses.shape[1] == 3
+    best = res.poses[0]
+    assert np.hypot(*(best[:2] - TRUE_POSE[:2])) < 0.05
+    assert abs(wrap_angle(best[2] - TRUE_POSE[2])) < np.radians(1.0)
+    # it explains clearly more of the scan than the current estimate, and is listed best first
+    assert res.scores[0] >= cfg.min_score_m
+    assert res.scores[0] >= res.current_score + cfg.score_gain_m
+    assert np.all(np.diff(res.scores) <= 0)
+    assert res.scores[0] > 0.9 * segs.lengths_m.sum()
+
+
+def test_no_relocalization_when_the_estimate_is_already_right():
+    segs, facing = scan_at(TRUE_POSE)
+    assert relocalize(particles(TRUE_POSE), global_map(), segs, facing, STEP, RelocalizationConfig()) is None
+
+
+def test_no_relocalization_among_young_or_unreliable_elements_or_off_schedule():
+    segs, facing = scan_at(TRUE_POSE)
+    cfg = RelocalizationConfig()
+    ps = particles(OFF_POSE)
+    assert relocalize(ps, global_map(born=STEP - 50), segs, facing, STEP, cfg) is None  # not a revisit
+    assert relocalize(ps, global_map(hits=2), segs, facing, STEP, cfg) is None  # too few updates
+    assert relocalize(ps, global_map(trust=0.1), segs, facing, STEP, cfg) is None
+    assert relocalize(ps, global_map(), segs, facing, STEP + 1, cfg) is None  # every 5 steps
+    assert relocalize(ps, global_map(), segs, facing, STEP, cfg) is not None  # the control
+
+
+def test_no_relocalization_beyond_the_plausible_jump():
+    segs, facing = scan_at(TRUE_POSE)
+    cfg = RelocalizationConfig(max_jump_m=0.5)  # the truth is 0.8 m away
+    assert relocalize(particles(OFF_POSE), global_map(), segs, facing, STEP, cfg) is None
+
+
+def test_inject_replaces_the_weakest_particles_with_the_best_ones_map_and_weight():
+    ps = particles(OFF_POSE)
+    before = ParticleSet(ps.poses.copy(), ps.log_weights.copy(), ps.slip.copy(), ps.maps.take(np.arange(6)))
+    hyp = np.array([TRUE_POSE, compose(TRUE_POSE, [0.3, 0.0, 0.1])])
+    targets, sources = inject(ps, Relocalization(hyp, np.array([20.0, 15.0]), 3.0))
+    np.testing.assert_array_equal(targets, [3, 1])  # the two lightest, the best one never
+    np.testing.assert_array_equal(sources, [BEST, BEST])
+    np.testing.assert_allclose(ps.poses[targets], hyp)
+    np.testing.assert_allclose(ps.slip[targets], before.slip[[BEST, BEST]])
+    for k, v in ps.maps.arrays().items():
+        np.testing.assert_array_equal(v[targets], before.maps.arrays()[k][[BEST, BEST]], err_msg=k)
+    # the injected particles carry the best one's log-weight; weights stay normalized
+    np.testing.assert_allclose(ps.log_weights[targets], ps.log_weights[BEST])
+    assert np.exp(ps.log_weights).sum() == pytest.approx(1.0)
+    others = [0, 2, 4, 5]
+    np.testing.assert_allclose(
+        ps.log_weights[others] - ps.log_weights[BEST], before.log_weights[others] - before.log_weights[BEST]
+    )
+    np.testing.assert_allclose(ps.poses[others], before.poses[others])
+    for k, v in ps.maps.arrays().items():
+        np.testing.assert_array_equal(v[others], before.maps.arrays()[k][others], err_msg=k)
+
+
+def test_inject_never_replaces_the_best_even_when_asked_for_more():
+    ps = ParticleSet.create(2)
+    ps.log_weights = np.log([0.9, 0.1])
+    ps.poses[:] = [[1.0, 1.0, 0.0], [2.0, 2.0, 0.0]]
+    targets, _ = inject(ps, Relocalization(np.array([TRUE_POSE, TRUE_POSE]), np.array([9.0, 9.0]), 1.0))
+    np.testing.assert_array_equal(targets, [1])
+    np.testing.assert_allclose(ps.poses, [[1.0, 1.0, 0.0], TRUE_POSE])
+    np.testing.assert_allclose(np.exp(ps.log_weights), [0.5, 0.5])
+
+
+def test_relocalize_then_inject_puts_a_particle_at_the_truth():
+    segs, facing = scan_at(TRUE_POSE, seed=1)
+    ps = particles(OFF_POSE)
+    res = relocalize(ps, global_map(), segs, facing, STEP, RelocalizationConfig())
+    targets, _ = inject(ps, res)
+    assert BEST not in targets
+    err = ps.poses[targets[0]] - TRUE_POSE
+    assert np.hypot(err[0], err[1]) < 0.05 and abs(wrap_angle(err[2])) < np.radians(1.0)

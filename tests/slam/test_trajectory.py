@@ -1,0 +1,117 @@
+"""Ancestry-tree trajectories: resampling, injection and odometry-bridged scans."""
+
+import numpy as np
+import pytest
+
+from robot_agent.slam.trajectory import Trajectory
+from shared.geometry import compose
+
+
+def poses_at(step, n_particles=3):
+    """Distinct, recognizable poses: x = step, y = particle, theta = 0.1 · particle."""
+    p = np.arange(n_particles, dtype=float)
+    return np.column_stack([np.full(n_particles, float(step)), p, 0.1 * p])
+
+
+def test_resampling_into_one_particle_gives_its_history_to_all():
+    traj = Trajectory()
+    traj.record(0.0, poses_at(0))
+    traj.record(1.0, poses_at(1))
+    traj.reparent(np.array([2, 2, 2]))  # particle 2 copied into every slot
+    traj.record(2.0, poses_at(2))
+    for j in range(3):
+        stamps, poses = traj.backtrack(j)
+        np.testing.assert_array_equal(stamps, [0.0, 1.0, 2.0])
+        np.testing.assert_allclose(poses[:2], [poses_at(0)[2], poses_at(1)[2]])
+        np.testing.assert_allclose(poses[2], poses_at(2)[j])  # after resampling: its own pose
+
+
+def test_bridged_scans_hang_from_the_last_processed_step():
+    traj = Trajectory()
+    traj.record(10.0, poses_at(0))
+    u1, u2 = np.array([0.05, 0.0, 0.01]), np.array([0.08, 0.01, 0.03])
+    traj.bridge(10.2, u1)
+    traj.bridge(10.4, u2)  # odometry from the last processed step, not from the previous bridge
+    traj.record(10.6, poses_at(1))
+    traj.reparent(np.array([1, 1, 0]))
+    traj.bridge(10.8, u1)
+    assert len(traj) == 5
+    stamps, poses = traj.backtrack(2)  # particle 2 is now old particle 0
+    np.testing.assert_array_equal(stamps, [10.0, 10.2, 10.4, 10.6, 10.8])
+    p0, p1 = poses_at(0)[0], poses_at(1)[0]
+    np.testing.assert_allclose(poses, [p0, compose(p0, u1), compose(p0, u2), p1, compose(p1, u1)], atol=1e-12)
+    # with a rotated anchor the increment turns with it (pose ∘ u, not pose + u)
+    _, poses = traj.backtrack(0)
+    anchor = poses_at(0)[1]
+    assert anchor[2] == pytest.approx(0.1)
+    np.testing.assert_allclose(poses[1], compose(anchor, u1), atol=1e-12)
+    assert not np.allclose(poses[1], anchor + u1)
+
+
+def test_inherit_continues_another_particles_history():
+    traj = Trajectory()
+    traj.record(0.0, poses_at(0))
+    traj.inherit(np.array([1]), np.array([0]))  # relocalization: particle 1 takes particle 0's past
+    traj.record(1.0, poses_at(1))
+    _, poses = traj.backtrack(1)
+    np.testing.assert_allclose(poses, [poses_at(0)[0], poses_at(1)[1]])
+    _, poses = traj.backtrack(2)
+    np.testing.assert_allclose(poses, [poses_at(0)[2], poses_at(1)[2]])
+
+
+def test_matches_a_reference_that_copies_every_history():
+    rng = np.random.default_rng(11)
+    n = 5
+    traj = Trajectory()
+    histories = [[] for _ in range(n)]  # reference: each particle's full list of scan poses
+    stamps = []
+    last = None
+    for k in range(60):
+        action = rng.choice(["record", "bridge", "reparent", "inherit"]) if k else "record"
+        if action == "record":
+            last = rng.normal(size=(n, 3))
+            traj.record(float(k), last)
+            for j in range(n):
+                histories[j].append(last[j])
+            stamps.append(float(k))
+        elif action == "bridge":
+            u = rng.normal(size=3) * 0.1
+            traj.bridge(float(k), u)
+            for j in range(n):
+                histories[j].append(compose(last[j], u))
+            stamps.append(float(k))
+        elif action == "reparent":
+            idx = rng.integers(0, n, n)
+            traj.reparent(idx)
+            histories = [list(histories[i]) for i in idx]
+            last = last[idx]
+        else:
+            targets = rng.choice(n, 2, replace=False)
+            sources = rng.integers(0, n, 2)
+            traj.inherit(targets, sources)
+            for t, s in zip(targets, sources, strict=True):
+                histories[t] = list(histories[s])
+            last = last.copy()
+            last[targets] = last[sources]
+    assert len(traj) == len(stamps)
+    for j in range(n):
+        s, poses = traj.backtrack(j)
+        np.testing.assert_array_equal(s, stamps)
+        np.testing.assert_allclose(poses, np.array(histories[j]), atol=1e-12)
+
+
+def test_empty_and_bridge_before_record():
+    traj = Trajectory()
+    stamps, poses = traj.backtrack(0)
+    assert stamps.shape == (0,) and poses.shape == (0, 3)
+    with pytest.raises(ValueError, match="bridge"):
+        traj.bridge(0.0, np.zeros(3))
+
+
+def test_recorded_poses_are_copied():
+    traj = Trajectory()
+    p = poses_at(0)
+    traj.record(0.0, p)
+    p[:] = 99.0
+    _, poses = traj.backtrack(0)
+    np.testing.assert_allclose(poses[0], poses_at(0)[0])
