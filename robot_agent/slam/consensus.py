@@ -68,7 +68,8 @@ def build_global_map(ps: ParticleSet, step: int, trust_cfg: TrustConfig, cfg: Co
     cols = maps.used_columns()
     w_particle = normalized_weights(ps.log_weights)  # (P,)
     trust = element_trust(maps.columns(cols), step, trust_cfg)  # (P,G)
-    score = trust * w_particle[:, None]
+    # only particles that hold the element compete (-1 never wins over a holder's score >= 0)
+    score = np.where(maps.valid[:, cols], trust * w_particle[:, None], -1.0)
     src = np.argmax(score, axis=0)  # (G,) the particle whose version wins
     support = np.sum(np.where(maps.valid[:, cols], w_particle[:, None], 0.0), axis=0)
     g = np.arange(len(cols))
@@ -107,6 +108,11 @@ def refresh_particles(ps: ParticleSet, gm: GlobalMap, step: int, cfg: ConsensusC
     if len(c) == 0:
         return 0
     maps = ps.maps
+    src = gm.source[sure]
+    lacking = ~maps.valid[:, c]  # (P,K): particles that get the element anew take its history too
+    for name in ("quality", "hits", "last_seen", "misses"):
+        arr = getattr(maps, name)
+        arr[:, c] = np.where(lacking, arr[src, c][None, :], arr[:, c])
     maps.valid[:, c] = True
     maps.seg[:, c] = gm.seg[sure]
     maps.alpha[:, c] = gm.alpha[sure]
@@ -115,5 +121,5 @@ def refresh_particles(ps: ParticleSet, gm: GlobalMap, step: int, cfg: ConsensusC
     maps.moments[:, c] = gm.moments[sure]
     maps.hits[:, c] = np.maximum(maps.hits[:, c], gm.hits[sure])
     maps.born[:, c] = gm.born[sure]
-    maps.misses[:, c] = np.minimum(maps.misses[:, c], maps.misses[gm.source[sure], c])
+    maps.misses[:, c] = np.minimum(maps.misses[:, c], maps.misses[src, c])
     return len(c)

@@ -193,41 +193,52 @@ def clean(maps: SegmentMaps, step: int, cfg: CleaningConfig, recent: np.ndarray 
     _merge_redundant(maps, cfg, np.arange(maps.capacity) if recent is None else recent)
 
 
-def _merge_redundant(maps: SegmentMaps, cfg: CleaningConfig, recent: np.ndarray) -> None:
-    """Merge element j into i (i older) when they face the same way, lie on one line and
-    overlap: one refitted element instead of two (report §4.2 "redundant elements").
-    Pairs ``(i, j)`` with ``i`` any column and ``j`` in ``recent``."""
-    c = maps.capacity
-    if c < 2 or len(recent) == 0:
-        return
-    fj, sj = maps.facing[:, recent], maps.seg[:, recent]  # (P,R), (P,R,2,2)
-    da = np.abs(wrap_angle(maps.facing[:, :, None] - fj[:, None, :]))  # (P,C,R)
-    mid = 0.5 * (sj[..., 0, :] + sj[..., 1, :])
-    a_i, r_i = maps.alpha[:, :, None], maps.rho[:, :, None]
-    _, perp = project_to_line(mid[:, None, :, :], a_i, r_i)  # j's midpoint on i's line
-    t_i, _ = project_to_line(maps.seg[:, :, None, :, :], a_i[..., None], r_i[..., None])
-    t_j, _ = project_to_line(sj[:, None, :, :, :], a_i[..., None], r_i[..., None])
-    overlap = np.minimum(t_i.max(-1), t_j.max(-1)) - np.maximum(t_i.min(-1), t_j.min(-1))
-    born_i, born_j = maps.born[:, :, None], maps.born[:, recent][:, None, :]
-    col_i, col_j = np.arange(c)[:, None], recent[None, :]
-    older = (born_i < born_j) | ((born_i == born_j) & (col_i < col_j))
-    pair = (
+def _redundant_pairs(maps: SegmentMaps, cfg: CleaningConfig, recent: np.ndarray) -> np.ndarray:
+    """``(P,C,R)``: column ``x`` and recent column ``r`` are both valid, distinct, face the same
+    way, lie on one line and overlap (or touch)."""
+    fr, sr = maps.facing[:, recent], maps.seg[:, recent]
+    da = np.abs(wrap_angle(maps.facing[:, :, None] - fr[:, None, :]))
+    mid = 0.5 * (sr[..., 0, :] + sr[..., 1, :])
+    a_x, r_x = maps.alpha[:, :, None], maps.rho[:, :, None]
+    _, perp = project_to_line(mid[:, None, :, :], a_x, r_x)  # r's midpoint on x's line
+    t_x, _ = project_to_line(maps.seg[:, :, None, :, :], a_x[..., None], r_x[..., None])
+    t_r, _ = project_to_line(sr[:, None, :, :, :], a_x[..., None], r_x[..., None])
+    overlap = np.minimum(t_x.max(-1), t_r.max(-1)) - np.maximum(t_x.min(-1), t_r.min(-1))
+    distinct = np.arange(maps.capacity)[:, None] != recent[None, :]
+    return (
         maps.valid[:, :, None]
         & maps.valid[:, recent][:, None, :]
-        & older
+        & distinct
         & (da < cfg.redundant_angle_rad)
         & (np.abs(perp) < cfg.redundant_perp_m)
         & (overlap > -cfg.redundant_overlap_m)
     )
+
+
+def _merge_redundant(maps: SegmentMaps, cfg: CleaningConfig, recent: np.ndarray) -> None:
+    """Merge element j into i (i older) when they face the same way, lie on one line and
+    overlap: one refitted element instead of two (report §4.2 "redundant elements").
+    Pairs with at least one column in ``recent``, whichever of the two is the older."""
+    c = maps.capacity
+    if c < 2 or len(recent) == 0:
+        return
+    near = _redundant_pairs(maps, cfg, recent)  # (P,C,R): column x and recent column r alike
+    born_x, born_r = maps.born[:, :, None], maps.born[:, recent][:, None, :]
+    col_x, col_r = np.arange(c)[:, None], recent[None, :]
+    x_older = (born_x < born_r) | ((born_x == born_r) & (col_x < col_r))
+    # pair[p, i, j]: j is absorbed by the older i; built from both roles of the recent column
+    pair = np.zeros((maps.n_particles, c, c), bool)
+    pair[:, :, recent] |= near & x_older
+    pair[:, recent, :] |= np.transpose(near & ~x_older, (0, 2, 1))
+    idx = np.arange(c)
+    pair[:, idx, idx] = False
     # a column absorbed this round absorbs nothing itself
-    absorbed = np.zeros(maps.valid.shape, bool)
-    absorbed[:, recent] = pair.any(axis=1)
+    absorbed = pair.any(axis=1)
     pair &= ~absorbed[:, :, None]
-    p_idx, r_idx = np.nonzero(pair.any(axis=1))
+    p_idx, j_idx = np.nonzero(pair.any(axis=1))
     if len(p_idx) == 0:
         return
-    i_idx = np.argmax(pair[p_idx, :, r_idx], axis=1)
-    j_idx = recent[r_idx]
+    i_idx = np.argmax(pair[p_idx, :, j_idx], axis=1)
     np.add.at(maps.moments, (p_idx, i_idx), maps.moments[p_idx, j_idx])
     np.add.at(maps.hits, (p_idx, i_idx), maps.hits[p_idx, j_idx])
     ends_j = maps.seg[p_idx, j_idx]

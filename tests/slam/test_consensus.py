@@ -118,12 +118,6 @@ def test_refresh_disabled_or_not_quiet_does_nothing():
     assert not ps.maps.valid[1, 1]
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG: refresh_particles (consensus.py) copies seg/alpha/rho/facing/moments/hits/born/misses "
-    "but not `quality` (nor last_seen): a particle that lacked the element gets quality 0, so its "
-    "element_trust is 0 and the copied element is untrusted in that particle",
-)
 def test_refreshed_element_is_as_trusted_in_the_particle_that_lacked_it():
     ps = particle_set()
     cfg = ConsensusConfig()
@@ -133,12 +127,6 @@ def test_refreshed_element_is_as_trusted_in_the_particle_that_lacked_it():
     assert trust[1, 1] == pytest.approx(gm.trust[1], rel=1e-6)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG: consensus.py build_global_map takes argmax(trust * weight) over all particles without "
-    "masking `valid`: when every holder scores 0 (weight underflow, or quality 0) particle 0 wins "
-    "even though it does not hold the element, and its stale arrays become the global version",
-)
 def test_global_version_comes_from_a_particle_that_holds_it():
     ps = particle_set()
     ps.log_weights = np.array([0.0, 0.0, -2000.0])  # particle 2's weight underflows to 0

@@ -20,9 +20,7 @@ BATCH_SHAPES = [(), (3,), (2, 4)]
 
 
 def _random_poses(rng, shape):
-    return np.concatenate(
-        [rng.uniform(-5, 5, (*shape, 2)), rng.uniform(-np.pi, np.pi, (*shape, 1))], axis=-1
-    )
+    return np.concatenate([rng.uniform(-5, 5, (*shape, 2)), rng.uniform(-np.pi, np.pi, (*shape, 1))], axis=-1)
 
 
 def _line_points(alpha, rho, t):
@@ -146,9 +144,7 @@ def test_covariance_shrinks_with_more_points():
     assert var_a[0] > var_a[1] > var_a[2] > 0
     assert var_r[0] > var_r[1] > var_r[2] > 0
     # var(alpha) = sigma2 / sum t_i^2 ~ 1/n
-    assert var_a[0] / var_a[2] == pytest.approx(
-        np.sum(t[2] ** 2) / np.sum(t[0] ** 2), rel=1e-9
-    )
+    assert var_a[0] / var_a[2] == pytest.approx(np.sum(t[2] ** 2) / np.sum(t[0] ** 2), rel=1e-9)
 
 
 def test_covariance_matches_monte_carlo():

@@ -320,11 +320,6 @@ def test_clean_redundancy_only_for_recent_columns():
     assert not maps.valid[0, 4] and maps.valid[0, 5]
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG: update.py _merge_redundant only tests pairs (i older, j in `recent`): when the recently "
-    "extended column is the OLDER one of a redundant pair, the stale younger duplicate is never merged",
-)
 def test_clean_merges_a_stale_younger_duplicate_into_a_recently_extended_older_element():
     maps = SegmentMaps.empty(1, 2)
     put_element(maps, 0, hline(0.0, 3.0, 2.0, 31), DOWN, born=5, hits=4)  # old, just extended
