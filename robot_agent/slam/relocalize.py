@@ -38,6 +38,9 @@ class RelocalizationConfig:
     max_jump_rad: float = np.radians(30.0)
     min_score_m: float = 4.0  # a hypothesis must explain at least this much scan length ...
     score_gain_m: float = 1.5  # ... and this much more than the current estimate
+    unique_ratio: float = 1.3  # the best must beat every distinct alternative (current estimate
+    # included) by this factor: in repetitive places (aisles, rows of doors) aliases score alike
+    distinct_radius_m: float = 1.0  # hypotheses farther apart than this are distinct places
     inject: int = 2  # particles replaced per relocalization
     matching: MatchingConfig = field(default_factory=MatchingConfig)
 
@@ -78,17 +81,34 @@ def relocalize(
     dist, dang = np.hypot(d[:, 0], d[:, 1]), np.abs(d[:, 2])
     far_enough = (dist >= cfg.min_jump_m) | (dang >= cfg.min_jump_rad)
     plausible = (dist <= cfg.max_jump_m) & (dang <= cfg.max_jump_rad)
-    hyp = hyp[far_enough & plausible]
-    if len(hyp) == 0:
-        return None
+    # every hypothesis is scored: implausible ones still count as rivals (aliases)
     scores = overlap_scores(np.vstack([pose, hyp]), segs.endpoints, facing, map_ends, map_facing, mc)
     current, scores = float(scores[0]), scores[1:]
-    good = (scores >= cfg.min_score_m) & (scores >= current + cfg.score_gain_m)
+    good = far_enough & plausible & (scores >= cfg.min_score_m) & (scores >= current + cfg.score_gain_m)
     if not np.any(good):
+        return None
+    best = int(np.argmax(np.where(good, scores, -np.inf)))
+    if not _unique(hyp, scores, best, pose, current, cfg):
         return None
     hyp, scores = hyp[good], scores[good]
     keep = cluster_poses(hyp, scores, 0.2, np.radians(3.0))[: cfg.inject]
     return Relocalization(hyp[keep], scores[keep], current)
+
+
+def _unique(
+    hyp: np.ndarray,
+    scores: np.ndarray,
+    best: int,
+    pose: np.ndarray,
+    current: float,
+    cfg: RelocalizationConfig,
+) -> bool:
+    """The best hypothesis beats every distinct alternative (and the current pose) clearly."""
+    others = np.vstack([hyp, pose])
+    other_scores = np.append(scores, current)
+    far = np.hypot(*(others[:, :2] - hyp[best, :2]).T) > cfg.distinct_radius_m
+    rival = float(other_scores[far].max(initial=0.0))
+    return scores[best] >= cfg.unique_ratio * rival
 
 
 def inject(ps: ParticleSet, reloc: Relocalization) -> tuple[np.ndarray, np.ndarray]:
