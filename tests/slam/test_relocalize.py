@@ -35,19 +35,19 @@ LOG_WEIGHTS = np.log([0.1, 0.05, 0.4, 0.02, 0.08, 0.35])  # best: 2; weakest oth
 BEST = 2
 
 
-def global_map(born=0, hits=10, trust=0.9):
+def global_map(born=0, hits=10, trust=0.9, walls=L_ROOM, facing=L_FACING):
     """An old, reliable global map of the room (one column per wall)."""
-    g = len(L_ROOM)
-    moments = np.array([moments_of(np.linspace(a, b, 41)) for a, b in L_ROOM])
+    g = len(walls)
+    moments = np.array([moments_of(np.linspace(a, b, 41)) for a, b in walls])
     alpha, rho, _ = fit_lines(moments)
     full = np.ones(g)
     return GlobalMap(
         step=STEP,
         cols=np.arange(g),
-        seg=L_ROOM.copy(),
+        seg=np.array(walls, float),
         alpha=alpha,
         rho=rho,
-        facing=L_FACING.copy(),
+        facing=np.array(facing, float),
         moments=moments,
         hits=np.full(g, hits),
         born=np.full(g, born),
@@ -164,3 +164,16 @@ def test_relocalize_then_inject_puts_a_particle_at_the_truth():
     assert BEST not in targets
     err = ps.poses[targets[0]] - TRUE_POSE
     assert np.hypot(err[0], err[1]) < 0.05 and abs(wrap_angle(err[2])) < np.radians(1.0)
+
+
+def test_no_relocalization_where_places_repeat():
+    """Two identical rooms 12 m apart (a row of doors, warehouse aisles): the scan fits both, so
+    no hypothesis is unique and none is injected — an alias would be a wrong loop closure."""
+    twin = np.concatenate([L_ROOM, L_ROOM + np.array([12.0, 0.0])])
+    twin_map = global_map(walls=twin, facing=np.concatenate([L_FACING, L_FACING]))
+    segs, facing = scan_at(TRUE_POSE)
+    cfg = RelocalizationConfig(search_radius_m=25.0)  # both rooms in view of the search
+    assert relocalize(particles(OFF_POSE), twin_map, segs, facing, STEP, cfg) is None
+    # the uniqueness test is what refuses it: without it the (right) room would be injected
+    loose = RelocalizationConfig(search_radius_m=25.0, unique_ratio=0.0)
+    assert relocalize(particles(OFF_POSE), twin_map, segs, facing, STEP, loose) is not None
