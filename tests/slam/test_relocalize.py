@@ -10,26 +10,8 @@ from robot_agent.slam.lines import fit_lines, moments_of
 from robot_agent.slam.particles import ParticleSet
 from robot_agent.slam.relocalize import Relocalization, RelocalizationConfig, inject, relocalize
 from shared.geometry import compose, wrap_angle
+from tests.rooms import ANGLES, L_FACING, L_ROOM, TRUE_POSE
 
-# The L-shaped room with a box of tests/shared/test_matching.py, in the map frame.
-L_ROOM = np.array(
-    [
-        [(-1, -3), (7, -3)],
-        [(7, -3), (7, 1)],
-        [(7, 1), (3, 1)],
-        [(3, 1), (3, 4)],
-        [(3, 4), (-1, 4)],
-        [(-1, 4), (-1, -3)],
-        [(4.5, -2.5), (5.5, -2.5)],
-        [(5.5, -2.5), (5.5, -1.5)],
-        [(5.5, -1.5), (4.5, -1.5)],
-        [(4.5, -1.5), (4.5, -2.5)],
-    ],
-    float,
-)
-L_FACING = np.array([np.pi / 2, np.pi, -np.pi / 2, np.pi, -np.pi / 2, 0.0, -np.pi / 2, 0.0, np.pi / 2, np.pi])
-TRUE_POSE = np.array([2.0, -1.0, 0.4])
-ANGLES = np.linspace(-np.pi, np.pi, 721)[:-1]
 STEP = 300  # a multiple of RelocalizationConfig.every
 LOG_WEIGHTS = np.log([0.1, 0.05, 0.4, 0.02, 0.08, 0.35])  # best: 2; weakest others: 3, then 1
 BEST = 2
