@@ -39,8 +39,10 @@ def route_poses(world, n_scans: int, cfg: SimConfig) -> np.ndarray:
     """``n_scans`` true poses at the scan rate, taken round-robin from every robot's route."""
     per_robot = -(-n_scans // world.num_robots)
     duration_s = per_robot / cfg.lidar.rate_hz
-    poses = [drive_route(r, s, cfg.robot, duration_s)[0][:: cfg.steps_per_scan][:per_robot]
-             for r, s in zip(world.routes, world.starts, strict=True)]
+    poses = [
+        drive_route(r, s, cfg.robot, duration_s)[0][:: cfg.steps_per_scan][:per_robot]
+        for r, s in zip(world.routes, world.starts, strict=True)
+    ]
     return np.stack(poses, axis=1).reshape(-1, 3)[:n_scans]
 
 
@@ -78,8 +80,14 @@ def main(n_scans: int, beams: int, out: Path) -> list[dict]:
         for col in ("world", "walls", "in range", "scans", "s", "scans/s"):
             table.add_column(col, justify="right")
         for r in rows:
-            table.add_row(r["world"], str(r["walls"]), f"{r['mean_walls_in_range']:.0f}", str(r["scans"]),
-                          f"{r['seconds']:.3f}", f"{r['scans_per_s']:.0f}")
+            table.add_row(
+                r["world"],
+                str(r["walls"]),
+                f"{r['mean_walls_in_range']:.0f}",
+                str(r["scans"]),
+                f"{r['seconds']:.3f}",
+                f"{r['scans_per_s']:.0f}",
+            )
         Console().print(table)
     except ImportError:
         for r in rows:
@@ -88,15 +96,20 @@ def main(n_scans: int, beams: int, out: Path) -> list[dict]:
     verdict = "meets" if campus["scans_per_s"] >= TARGET_SCANS_PER_S else "MISSES"
     print(f"campus: {campus['scans_per_s']:.0f} scans/s {verdict} the target of {TARGET_SCANS_PER_S:.0f}")
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({
-        "benchmark": "bench_sim",
-        "max_pairs_per_chunk": MAX_PAIRS_PER_CHUNK,
-        "target_scans_per_s_campus": TARGET_SCANS_PER_S,
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "machine": platform.machine(),
-        "results": rows,
-    }, indent=2))
+    out.write_text(
+        json.dumps(
+            {
+                "benchmark": "bench_sim",
+                "max_pairs_per_chunk": MAX_PAIRS_PER_CHUNK,
+                "target_scans_per_s_campus": TARGET_SCANS_PER_S,
+                "python": platform.python_version(),
+                "numpy": np.__version__,
+                "machine": platform.machine(),
+                "results": rows,
+            },
+            indent=2,
+        )
+    )
     print(f"wrote {out}")
     return rows
 

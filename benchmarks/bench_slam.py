@@ -27,9 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from robot_agent.replay import replay  # noqa: E402
-from robot_agent.sim import LidarConfig, SimConfig, builtin_world, cast_rays, simulate_robot  # noqa: E402
+from robot_agent.sim import LidarConfig, SimConfig, beam_angles, builtin_world, cast_rays, simulate_robot  # noqa: E402
 from robot_agent.slam.config import apply_overrides  # noqa: E402
-from robot_agent.slam.consensus import build_global_map  # noqa: E402
 from robot_agent.slam.fastslam import SlamConfig  # noqa: E402
 from robot_agent.sources import LaserLog, read_log  # noqa: E402
 from shared.geometry import apply_segments  # noqa: E402
@@ -51,11 +50,8 @@ def run_log(log: LaserLog, rel, cfg: SlamConfig, seed: int, limit: int | None) -
     duration = float(np.ptp(log.stamps_s[:n]))
     out = {"scans": n, "wall_s": res.wall_s, "real_time_factor": duration / res.wall_s}
     if rel is not None:
-        from shared.metrics import Relations
-
-        keep = rel.t2_s <= res.stamps_s.max() + 1e-6
-        rel = Relations(rel.t1_s[keep], rel.t2_s[keep], rel.delta[keep])
-        err = relations_error(res.stamps_s, res.poses, rel, log.odom_stamps_s, log.odom_poses)
+        rel = rel.until(res.stamps_s.max() + 1e-6)
+        err = relations_error(res.stamps_s, res.poses, rel, *log.odometry_track())
         out |= {
             k: v
             for k, v in err.summary().items()
@@ -73,15 +69,13 @@ def run_sim(world_name: str, seed: int, duration_s: float, cfg: SlamConfig) -> d
     r = run_log(log, None, cfg, seed, None)
     res = r.pop("_res")
     a = ate(res.stamps_s, res.poses, sim.stamps_s, sim.truth)
-    gm = build_global_map(res.slam.particles, res.slam.step_index, cfg.trust, cfg.consensus)
-    keep = gm.trusted(cfg.consensus.publish_min_trust, cfg.consensus.publish_min_hits)
+    gm, keep = res.slam.published_map()
     mapped = apply_segments(a.alignment, gm.seg[keep])
     lidar = LidarConfig()
     poses = sim.truth[::SEEN_EVERY]
-    angles = lidar_angles = np.linspace(-lidar.fov_rad / 2, lidar.fov_rad / 2, lidar.beams)
-    ranges = cast_rays(poses[:, :2], poses[:, 2:3] + angles[None, :], world.walls, lidar.range_max_m)
+    dirs = poses[:, 2:3] + beam_angles(lidar)[None, :]
+    ranges = cast_rays(poses[:, :2], dirs, world.walls, lidar.range_max_m)
     hit = ranges < lidar.range_max_m
-    dirs = poses[:, 2:3] + lidar_angles[None, :]
     seen = np.stack([poses[:, :1] + ranges * np.cos(dirs), poses[:, 1:2] + ranges * np.sin(dirs)], -1)[hit]
     q = map_quality(mapped, world.walls, seen_points=seen)
     path = sim.truth[:, :2]

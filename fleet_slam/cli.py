@@ -36,9 +36,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         what = args.poses
     else:
         stamps, poses, what = log.stamps_s, log.odometry, "raw odometry"
-    odom_t = log.odom_stamps_s if len(log.odom_stamps_s) > 1 else log.stamps_s
-    odom_p = log.odom_poses if len(log.odom_stamps_s) > 1 else log.odometry
-    err = relations_error(stamps, poses, rel, odom_t, odom_p)
+    err = relations_error(stamps, poses, rel, *log.odometry_track())
     print(f"{what}: {err}")
     return 0
 

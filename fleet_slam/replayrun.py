@@ -9,7 +9,6 @@ import numpy as np
 
 from robot_agent.replay import replay
 from robot_agent.slam.config import apply_overrides
-from robot_agent.slam.consensus import build_global_map
 from robot_agent.slam.fastslam import SlamConfig
 from robot_agent.sources import read_log
 from shared.metrics import read_relations, relations_error, write_poses, write_tum
@@ -48,8 +47,7 @@ def replay_to_dir(
     write_tum(out / f"{name}.tum", res.stamps_s, res.poses)
 
     slam = res.slam
-    gm = build_global_map(slam.particles, slam.step_index, cfg.trust, cfg.consensus)
-    keep = gm.trusted(cfg.consensus.publish_min_trust, cfg.consensus.publish_min_hits)
+    gm, keep = slam.published_map()
     props = [
         {"trust": round(float(t), 3), "hits": int(h), "support": round(float(s), 3)}
         for t, h, s in zip(gm.trust[keep], gm.hits[keep], gm.support[keep], strict=True)
@@ -78,14 +76,8 @@ def replay_to_dir(
         "filter": dict(slam.stats),
     }
     if rel is not None:
-        in_range = rel.t2_s <= res.stamps_s.max() + 1e-6
-        if not np.all(in_range):
-            from shared.metrics import Relations
-
-            rel = Relations(rel.t1_s[in_range], rel.t2_s[in_range], rel.delta[in_range])
-        odom_t = log.odom_stamps_s if len(log.odom_stamps_s) > 1 else log.stamps_s
-        odom_p = log.odom_poses if len(log.odom_stamps_s) > 1 else log.odometry
-        err = relations_error(res.stamps_s, res.poses, rel, odom_t, odom_p)
+        rel = rel.until(res.stamps_s.max() + 1e-6)  # --limit: only relations inside the run
+        err = relations_error(res.stamps_s, res.poses, rel, *log.odometry_track())
         metrics["relations"] = err.summary()
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics

@@ -140,17 +140,18 @@ def overlap_scores(
     return np.sum(np.max(np.where(ok, overlap, 0.0), axis=2), axis=1)
 
 
-def cluster_poses(poses: np.ndarray, scores: np.ndarray, radius_m: float, radius_rad: float) -> np.ndarray:
-    """Indices of the best pose of each cluster (greedy non-maximum suppression), best first."""
-    order = np.argsort(-scores)
+def cluster_poses(
+    poses: np.ndarray, scores: np.ndarray, radius_m: float, radius_rad: float, max_clusters: int = 16
+) -> np.ndarray:
+    """Indices of the best pose of each cluster (greedy non-maximum suppression), best first:
+    take the best remaining pose, drop every pose within ``radius_m`` and ``radius_rad`` of it."""
+    alive = np.ones(len(poses), bool)
     keep: list[int] = []
-    for i in order:
-        if all(
-            np.hypot(*(poses[i, :2] - poses[k, :2])) > radius_m
-            or abs(wrap_angle(poses[i, 2] - poses[k, 2])) > radius_rad
-            for k in keep
-        ):
-            keep.append(int(i))
-        if len(keep) >= 16:
-            break
+    while alive.any() and len(keep) < max_clusters:
+        i = int(np.argmax(np.where(alive, scores, -np.inf)))
+        keep.append(i)
+        near = (np.hypot(*(poses[:, :2] - poses[i, :2]).T) <= radius_m) & (
+            np.abs(wrap_angle(poses[:, 2] - poses[i, 2])) <= radius_rad
+        )
+        alive &= ~near
     return np.asarray(keep, dtype=int)

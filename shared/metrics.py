@@ -38,6 +38,11 @@ class Relations:
     def __len__(self) -> int:
         return len(self.t1_s)
 
+    def until(self, t_max_s: float) -> Relations:
+        """The relations that end by ``t_max_s`` (a run over part of a log scores only those)."""
+        keep = self.t2_s <= t_max_s
+        return Relations(self.t1_s[keep], self.t2_s[keep], self.delta[keep])
+
 
 @dataclass(frozen=True)
 class RelationsError:

@@ -95,7 +95,6 @@ class FastSLAM:
         self.trajectory = Trajectory()
         self.step_index = 0
         self._last_odo: np.ndarray | None = None
-        self.last_segments: ScanSegments | None = None
         self.global_map: consensus_mod.GlobalMap | None = None
         self.stats = {"resamples": 0, "injections": 0, "relocalizations": 0}
 
@@ -129,7 +128,6 @@ class FastSLAM:
 
         # 1. segments, in the robot frame
         segs = extract_segments(ranges_m, angles_rad, cfg.extraction, range_max_m).transformed(laser_offset)
-        self.last_segments = segs
         facing = wrap_angle(segs.alpha + np.pi)  # normal pointing back to the sensor
 
         # 2. motion (slip-aware), 3. proposal
@@ -199,7 +197,7 @@ class FastSLAM:
         if cfg.consensus.enabled and k % cfg.consensus.every == 0:
             self.global_map = consensus_mod.build_global_map(ps, k, cfg.trust, cfg.consensus)
             consensus_mod.refresh_particles(ps, self.global_map, k, cfg.consensus)
-        if cfg.relocalization.enabled and self.global_map is not None and len(segs):
+        if cfg.relocalization.enabled and k % cfg.relocalization.every == 0 and len(segs):
             self._maybe_relocalize(segs, facing, k)
         self._last_odo = odometry
         best = ps.best()
@@ -225,9 +223,10 @@ class FastSLAM:
 
     def _maybe_relocalize(self, segs: ScanSegments, facing: np.ndarray, k: int) -> None:
         ps = self.particles
-        result = reloc_mod.relocalize(
-            ps, self.global_map, segs, facing, k, self.cfg.relocalization, self.cfg.association
-        )
+        gm = self.global_map
+        if gm is None or k - gm.step >= self.cfg.consensus.every:  # relocalization needs no consensus step
+            gm = self.global_map = consensus_mod.build_global_map(ps, k, self.cfg.trust, self.cfg.consensus)
+        result = reloc_mod.relocalize(ps, gm, segs, facing, k, self.cfg.relocalization)
         if result is None:
             return
         self.stats["relocalizations"] += 1
@@ -240,6 +239,15 @@ class FastSLAM:
     def best_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """``stamps (S,)`` and poses ``(S,3)`` of the best particle's whole history, one per scan."""
         return self.trajectory.backtrack(self.particles.best())
+
+    def published_map(self) -> tuple[consensus_mod.GlobalMap, np.ndarray]:
+        """The cross-particle global map as of now and the mask ``(G,)`` of its trusted
+        elements — what the agent publishes (report §5)."""
+        gm = consensus_mod.build_global_map(
+            self.particles, self.step_index, self.cfg.trust, self.cfg.consensus
+        )
+        c = self.cfg.consensus
+        return gm, gm.trusted(c.publish_min_trust, c.publish_min_hits)
 
     def best_map(self) -> SegmentMaps:
         return self.particles.maps.take(np.array([self.particles.best()]))

@@ -94,18 +94,22 @@ class SegmentMaps:
     def used_columns(self) -> np.ndarray:
         return np.flatnonzero(self.valid.any(axis=0))
 
-    def refit(self, rows: np.ndarray | slice, cols: np.ndarray | slice, extra_points=None) -> None:
-        """Refit lines of ``[rows, cols]`` from their moments and re-project the extents.
+    def refit_extend(self, p_idx: np.ndarray, c_idx: np.ndarray, extra_ends: np.ndarray) -> None:
+        """Refit the lines of elements ``(p_idx, c_idx) (K,)`` from their moments and set each
+        extent to the union of its old endpoints and ``extra_ends (K,2,2)`` on the new line.
 
-        The extent is the union of the old endpoints' and ``extra_points (..., K, 2)``'s
-        projections on the new line.
+        A pair may repeat (several observations merged into one element): extents are combined
+        by scatter-min/max so none is lost.
         """
-        alpha, rho, _ = fit_lines(self.moments[rows, cols])
-        ends = self.seg[rows, cols]
-        pts = ends if extra_points is None else np.concatenate([ends, extra_points], axis=-2)
-        t, _ = project_to_line(pts, alpha[..., None], rho[..., None])
-        self.alpha[rows, cols], self.rho[rows, cols] = alpha, rho
-        self.seg[rows, cols] = segment_endpoints(alpha, rho, t.min(axis=-1), t.max(axis=-1))
+        alpha, rho, _ = fit_lines(self.moments[p_idx, c_idx])
+        pts = np.concatenate([self.seg[p_idx, c_idx], extra_ends], axis=1)  # (K,4,2)
+        t, _ = project_to_line(pts, alpha[:, None], rho[:, None])
+        lo = np.full(self.valid.shape, np.inf)
+        hi = np.full(self.valid.shape, -np.inf)
+        np.minimum.at(lo, (p_idx, c_idx), t.min(axis=-1))
+        np.maximum.at(hi, (p_idx, c_idx), t.max(axis=-1))
+        self.alpha[p_idx, c_idx], self.rho[p_idx, c_idx] = alpha, rho
+        self.seg[p_idx, c_idx] = segment_endpoints(alpha, rho, lo[p_idx, c_idx], hi[p_idx, c_idx])
 
 
 @dataclass

@@ -50,8 +50,8 @@ def _normal_equations(
     rho_m: np.ndarray,
     matched: np.ndarray,
     cfg: ProposalConfig,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``H (P,3,3)``, ``g (P,3)`` and per-(P,O) RMS residuals at ``poses (P,3)``."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """``H (P,3,3)`` and ``g (P,3)`` at ``poses (P,3)``."""
     rot = np.zeros_like(poses)
     rot[:, 2] = poses[:, 2]
     q = transform_moments(rot[:, None, :], moments_robot[None])  # (P,O,6)
@@ -83,7 +83,7 @@ def _normal_equations(
     g = np.stack(
         [np.sum(w * nx * sr, axis=1), np.sum(w * ny * sr, axis=1), np.sum(w * (mSn + e * ms), axis=1)], axis=1
     )
-    return h, g, rms
+    return h, g
 
 
 @dataclass(frozen=True)
@@ -123,7 +123,7 @@ def align(
             a_m = np.take_along_axis(maps.alpha, idx, axis=1)
             rho_m = np.take_along_axis(maps.rho, idx, axis=1)
             n_m = np.stack([np.cos(a_m), np.sin(a_m)], axis=-1)
-        h, g, _ = _normal_equations(x, moments_robot, n_m, rho_m, assoc.matched, cfg)
+        h, g = _normal_equations(x, moments_robot, n_m, rho_m, assoc.matched, cfg)
         dx_prior = x - prior_mean
         dx_prior[:, 2] = wrap_angle(dx_prior[:, 2])
         lhs = h + info_prior

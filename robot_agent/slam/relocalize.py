@@ -59,7 +59,6 @@ def relocalize(
     facing: np.ndarray,
     step: int,
     cfg: RelocalizationConfig,
-    _assoc_cfg=None,
 ) -> Relocalization | None:
     """Hypotheses clearly better than the current estimate, or None."""
     if step % cfg.every or len(gm) == 0:

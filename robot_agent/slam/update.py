@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from robot_agent.slam.association import Association, Observations
-from robot_agent.slam.lines import fit_lines, project_to_line, segment_endpoints
+from robot_agent.slam.lines import project_to_line
 from robot_agent.slam.particles import SegmentMaps
 from shared.geometry import wrap_angle
 
@@ -43,17 +43,8 @@ def merge_matches(
     n = maps.moments[p_idx, c_idx, 0]
     scale = np.minimum(1.0, cfg.max_points / np.maximum(n, 1.0))
     maps.moments[p_idx, c_idx] *= scale[:, None]
-    alpha, rho, _ = fit_lines(maps.moments[p_idx, c_idx])
-    maps.alpha[p_idx, c_idx], maps.rho[p_idx, c_idx] = alpha, rho
-    # extents: union of the old extent and every merged observation on the refitted line
-    a, r = maps.alpha[p_idx, c_idx], maps.rho[p_idx, c_idx]
-    t_old, _ = project_to_line(maps.seg[p_idx, c_idx], a[:, None], r[:, None])
-    t_obs, _ = project_to_line(obs.ends[p_idx, o_idx], a[:, None], r[:, None])
-    lo = np.full(maps.valid.shape, np.inf)
-    hi = np.full(maps.valid.shape, -np.inf)
-    np.minimum.at(lo, (p_idx, c_idx), np.minimum(t_old.min(-1), t_obs.min(-1)))
-    np.maximum.at(hi, (p_idx, c_idx), np.maximum(t_old.max(-1), t_obs.max(-1)))
-    maps.seg[p_idx, c_idx] = segment_endpoints(a, r, lo[p_idx, c_idx], hi[p_idx, c_idx])
+    # refit, and extend to the union of the old extent and every merged observation
+    maps.refit_extend(p_idx, c_idx, obs.ends[p_idx, o_idx])
     q = np.exp(-0.5 * assoc.cost[p_idx, o_idx]).astype(np.float32)
     maps.quality[p_idx, c_idx] += cfg.quality_rate * (q - maps.quality[p_idx, c_idx])
     np.add.at(maps.hits, (p_idx, c_idx), 1)
@@ -230,8 +221,6 @@ def _merge_redundant(maps: SegmentMaps, cfg: CleaningConfig, recent: np.ndarray)
     pair = np.zeros((maps.n_particles, c, c), bool)
     pair[:, :, recent] |= near & x_older
     pair[:, recent, :] |= np.transpose(near & ~x_older, (0, 2, 1))
-    idx = np.arange(c)
-    pair[:, idx, idx] = False
     # a column absorbed this round absorbs nothing itself
     absorbed = pair.any(axis=1)
     pair &= ~absorbed[:, :, None]
@@ -241,16 +230,6 @@ def _merge_redundant(maps: SegmentMaps, cfg: CleaningConfig, recent: np.ndarray)
     i_idx = np.argmax(pair[p_idx, :, j_idx], axis=1)
     np.add.at(maps.moments, (p_idx, i_idx), maps.moments[p_idx, j_idx])
     np.add.at(maps.hits, (p_idx, i_idx), maps.hits[p_idx, j_idx])
-    ends_j = maps.seg[p_idx, j_idx]
     maps.valid[p_idx, j_idx] = False
-    alpha, rho, _ = fit_lines(maps.moments[p_idx, i_idx])
-    pts = np.concatenate([maps.seg[p_idx, i_idx], ends_j], axis=1)
-    t, _ = project_to_line(pts, alpha[:, None], rho[:, None])
-    # several j may join one i: extents by scatter-min/max so none is lost
-    lo = np.full(maps.valid.shape, np.inf)
-    hi = np.full(maps.valid.shape, -np.inf)
-    np.minimum.at(lo, (p_idx, i_idx), t.min(-1))
-    np.maximum.at(hi, (p_idx, i_idx), t.max(-1))
-    maps.alpha[p_idx, i_idx], maps.rho[p_idx, i_idx] = alpha, rho
-    maps.seg[p_idx, i_idx] = segment_endpoints(alpha, rho, lo[p_idx, i_idx], hi[p_idx, i_idx])
+    maps.refit_extend(p_idx, i_idx, maps.seg[p_idx, j_idx])
     maps.last_seen[p_idx, i_idx] = np.maximum(maps.last_seen[p_idx, i_idx], maps.last_seen[p_idx, j_idx])

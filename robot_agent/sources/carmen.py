@@ -215,6 +215,13 @@ class LaserLog:
         """Time spanned by the laser stamps (max - min: file order is not time order)."""
         return float(np.ptp(self.stamps_s)) if len(self) else 0.0
 
+    def odometry_track(self) -> tuple[np.ndarray, np.ndarray]:
+        """The densest odometry the log holds: its ODOM lines, or the laser lines' odometry when
+        it has none — ``stamps_s (M,)``, ``poses (M,3)`` (for the relations metric's shift)."""
+        if len(self.odom_stamps_s) > 1:
+            return self.odom_stamps_s, self.odom_poses
+        return self.stamps_s, self.odometry
+
     def scans(self) -> Iterator[Scan]:
         """The scans in file order, each sharing this log's read-only arrays."""
         for i in range(len(self)):
