@@ -148,6 +148,7 @@ class FastSLAM:
                 local,
                 cfg.association,
                 cfg.proposal,
+                segs.points,
             )
             ps.poses = sample_gaussian(self.rng, prop.mean, prop.cov)
             d = prop.mean - mean

@@ -35,12 +35,17 @@ class ProposalConfig:
     enabled: bool = True
     iterations: int = 4  # Gauss-Newton iterations
     reassociate_after: int = 1  # re-associate with the normal gates after this many iterations
-    point_sigma_m: float = 0.05  # per-point residual std used in the alignment (> laser noise:
+    point_sigma_m: float = 0.03  # per-point residual std used in the alignment (> laser noise:
     # it also covers map error and the correlation of neighbouring points)
     max_points_per_segment: float = 40.0  # cap on a segment's weight (long walls do not dominate)
     robust_scale_m: float = 0.10  # Cauchy scale on a segment's RMS residual
     sample_scale: float = 1.0  # scale on the proposal covariance when sampling
     gate_scale_predicted: float = 2.5  # wider gates for the first association at the predicted pose
+    measurement: str = "points"  # "points": every scan point against the map's segments;
+    # "segments": only the extracted segments (assembled from their moments)
+    max_points: int = 240  # scan points used by the point alignment (evenly thinned beyond)
+    point_gate_m: float = 0.2  # a point is associated with an element closer than this ...
+    extent_margin_m: float = 0.2  # ... whose extent (plus this margin) its projection falls in
 
 
 def _normal_equations(
@@ -93,6 +98,60 @@ class ProposalResult:
     n_matched: np.ndarray  # (P,) observations used in the alignment
 
 
+def _rotate(poses: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Robot-frame ``points (N,2)`` rotated by each particle's heading: ``qx, qy (P,N)``."""
+    c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    return c * points[:, 0] - s * points[:, 1], s * points[:, 0] + c * points[:, 1]
+
+
+def associate_points(
+    poses: np.ndarray, points: np.ndarray, maps: SegmentMaps, gate_m: np.ndarray | float, margin_m: float
+) -> np.ndarray:
+    """Element index ``(P,N)`` (or -1) of every scan point ``points (N,2)`` (robot frame) seen
+    from ``poses (P,3)``: the element nearest to the point whose line is within ``gate_m``
+    (scalar or ``(P,)``), whose extent (plus ``margin_m``) the point projects into, and whose
+    free side faces the sensor — the back of a thin wall and a wall's continuation past a
+    doorway are not evidence."""
+    qx, qy = _rotate(poses, points)
+    wx, wy = (qx + poses[:, None, 0])[..., None], (qy + poses[:, None, 1])[..., None]  # map frame
+    nx, ny = np.cos(maps.alpha)[:, None, :], np.sin(maps.alpha)[:, None, :]  # (P,1,C)
+    perp = np.abs(nx * wx + ny * wy - maps.rho[:, None, :])  # (P,N,C)
+    t_pt = ny * wx - nx * wy  # along the line, direction (-n_y, n_x) up to sign, as the ends:
+    t0 = ny * maps.seg[:, None, :, 0, 0] - nx * maps.seg[:, None, :, 0, 1]
+    t1 = ny * maps.seg[:, None, :, 1, 0] - nx * maps.seg[:, None, :, 1, 1]
+    inside = (t_pt > np.minimum(t0, t1) - margin_m) & (t_pt < np.maximum(t0, t1) + margin_m)
+    # the sensor must be on the element's free side: facing · (sensor - point) > 0
+    front = (
+        np.cos(maps.facing)[:, None, :] * qx[..., None] + np.sin(maps.facing)[:, None, :] * qy[..., None] < 0
+    )
+    gate = np.reshape(gate_m, (-1, 1, 1)) if np.ndim(gate_m) else gate_m
+    cost = np.where(maps.valid[:, None, :] & inside & front & (perp < gate), perp, np.inf)
+    idx = np.argmin(cost, axis=2)
+    matched = np.isfinite(np.take_along_axis(cost, idx[..., None], axis=2)[..., 0])
+    return np.where(matched, idx, -1)
+
+
+def _point_normal_equations(
+    poses: np.ndarray,
+    points: np.ndarray,
+    n_m: np.ndarray,
+    rho_m: np.ndarray,
+    matched: np.ndarray,
+    cfg: ProposalConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``H (P,3,3)``, ``g (P,3)`` of the point-to-line residuals ``r = n·(R p + t) - ρ`` of the
+    associated points (lines ``n_m (P,N,2)``, ``rho_m (P,N)``), Cauchy-weighted."""
+    qx, qy = _rotate(poses, points)
+    n_x, n_y = n_m[..., 0], n_m[..., 1]
+    r = n_x * (qx + poses[:, None, 0]) + n_y * (qy + poses[:, None, 1]) - rho_m
+    j_th = n_y * qx - n_x * qy  # ∂r/∂θ = m·q with m = (n_y, -n_x)
+    w = np.where(matched, 1.0 / (1.0 + (r / cfg.robust_scale_m) ** 2), 0.0) / cfg.point_sigma_m**2
+    jac = np.stack([n_x, n_y, j_th], axis=-1)  # (P,N,3)
+    h = np.einsum("pn,pni,pnj->pij", w, jac, jac)
+    g = np.einsum("pn,pni->pi", w * np.where(matched, r, 0.0), jac)
+    return h, g
+
+
 def align(
     prior_mean: np.ndarray,
     prior_cov: np.ndarray,
@@ -103,6 +162,7 @@ def align(
     maps: SegmentMaps,
     assoc_cfg: AssociationConfig,
     cfg: ProposalConfig,
+    points_robot: np.ndarray | None = None,
 ) -> ProposalResult:
     """Refine ``prior_mean (P,3)`` by point-to-line alignment of the scan segments (robot frame)
     to each particle's local map; returns the Gaussian proposal per particle."""
@@ -110,6 +170,8 @@ def align(
     info_prior = np.linalg.inv(prior_cov)
     var_a = prior_cov[:, 2, 2][:, None, None]
     var_p = (prior_cov[:, 0, 0] + prior_cov[:, 1, 1])[:, None, None]
+    if cfg.measurement == "points" and points_robot is not None:
+        return _align_points(prior_mean, prior_cov, points_robot, maps, cfg)
     assoc = None
     h = np.zeros_like(prior_cov)
     for it in range(cfg.iterations):
@@ -134,3 +196,42 @@ def align(
     cov = np.linalg.inv(h + info_prior) * cfg.sample_scale
     cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
     return ProposalResult(x, cov, assoc.matched.sum(axis=1) if assoc is not None else np.zeros(len(x), int))
+
+
+def _align_points(
+    prior_mean: np.ndarray,
+    prior_cov: np.ndarray,
+    points_robot: np.ndarray,
+    maps: SegmentMaps,
+    cfg: ProposalConfig,
+) -> ProposalResult:
+    pts = np.asarray(points_robot, dtype=float).reshape(-1, 2)
+    if len(pts) > cfg.max_points:
+        pts = pts[np.linspace(0, len(pts) - 1, cfg.max_points).round().astype(int)]
+    x = prior_mean.copy()
+    info_prior = np.linalg.inv(prior_cov)
+    # first iterations: the gate covers the prior's uncertainty at the points' mean range
+    reach = float(np.mean(np.hypot(pts[:, 0], pts[:, 1]))) if len(pts) else 0.0
+    spread = np.sqrt(prior_cov[:, 0, 0] + prior_cov[:, 1, 1] + (reach**2) * prior_cov[:, 2, 2])
+    h = np.zeros_like(prior_cov)
+    idx = np.full((len(x), len(pts)), -1)
+    n_m, rho_m = np.zeros((*idx.shape, 2)), np.zeros(idx.shape)
+    for it in range(cfg.iterations):
+        if it == 0 or it == cfg.reassociate_after:  # wide gates first, the normal ones after
+            gate = cfg.point_gate_m + (cfg.gate_scale_predicted * spread if it == 0 else 0.0)
+            idx = associate_points(x, pts, maps, gate, cfg.extent_margin_m)
+            safe = np.maximum(idx, 0)
+            a_m = np.take_along_axis(maps.alpha, safe, axis=1)
+            n_m = np.stack([np.cos(a_m), np.sin(a_m)], axis=-1)
+            rho_m = np.take_along_axis(maps.rho, safe, axis=1)
+        h, g = _point_normal_equations(x, pts, n_m, rho_m, idx >= 0, cfg)
+        dx_prior = x - prior_mean
+        dx_prior[:, 2] = wrap_angle(dx_prior[:, 2])
+        rhs = -(g + np.einsum("pij,pj->pi", info_prior, dx_prior))
+        step = np.linalg.solve(h + info_prior, rhs[..., None])[..., 0]
+        x = x + step
+        x[:, 2] = wrap_angle(x[:, 2])
+    n_matched = np.sum(idx >= 0, axis=1)
+    cov = np.linalg.inv(h + info_prior) * cfg.sample_scale
+    cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
+    return ProposalResult(x, cov, n_matched)

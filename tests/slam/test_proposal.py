@@ -1,4 +1,5 @@
-"""Improved proposal: point-to-line alignment of the scan segments to each particle's map."""
+"""Improved proposal: point-to-line alignment of the scan (its points, or its segments' moments)
+to each particle's map."""
 
 import numpy as np
 import pytest
@@ -67,7 +68,15 @@ def prior():
     return mean, cov
 
 
-def run(walls):
+def scan_points(walls, pose):
+    """Every point of the walls in the robot frame ``(N,2)``: the scan the segments came from."""
+    return np.vstack([apply_points(inverse(pose), _points(a, b)) for (a, b), _ in walls])
+
+
+MODES = ["points", "segments"]
+
+
+def run(walls, mode="points", cfg=None):
     mean, cov = prior()
     m, ends, facing, seg_cov = scan(walls, TRUE_POSE)
     res = align(
@@ -79,7 +88,8 @@ def run(walls):
         seg_cov,
         build_maps(walls, len(mean)),
         AssociationConfig(),
-        ProposalConfig(),
+        cfg or ProposalConfig(measurement=mode),
+        scan_points(walls, TRUE_POSE),
     )
     return mean, cov, res
 
@@ -93,16 +103,20 @@ def test_scan_helper_puts_the_walls_back_at_the_true_pose():
     np.testing.assert_allclose(wrap_angle(facing - alpha - np.pi), 0.0, atol=1e-9)
 
 
-def test_corner_room_aligns_to_the_truth():
-    _, _, res = run(CORNER_ROOM)
-    np.testing.assert_array_equal(res.n_matched, [3, 3])
+@pytest.mark.parametrize("mode", MODES)
+def test_corner_room_aligns_to_the_truth(mode):
+    _, _, res = run(CORNER_ROOM, mode)
+    # every point (thinned to max_points) or every segment is associated
+    n_points = min(len(scan_points(CORNER_ROOM, TRUE_POSE)), ProposalConfig().max_points)
+    np.testing.assert_array_equal(res.n_matched, [n_points if mode == "points" else 3] * 2)
     err = res.mean - TRUE_POSE
     assert np.all(np.hypot(err[:, 0], err[:, 1]) < 0.01)
     assert np.all(np.abs(wrap_angle(err[:, 2])) < np.radians(0.2))
 
 
-def test_corner_room_shrinks_the_covariance_in_every_direction():
-    _, prior_cov, res = run(CORNER_ROOM)
+@pytest.mark.parametrize("mode", MODES)
+def test_corner_room_shrinks_the_covariance_in_every_direction(mode):
+    _, prior_cov, res = run(CORNER_ROOM, mode)
     assert res.cov.shape == (2, 3, 3)
     np.testing.assert_allclose(res.cov, np.transpose(res.cov, (0, 2, 1)))
     assert np.all(np.linalg.eigvalsh(res.cov) > 0)
@@ -113,9 +127,10 @@ def test_corner_room_shrinks_the_covariance_in_every_direction():
     assert np.all(np.linalg.eigvalsh(res.cov[:, :2, :2]).max(axis=1) < 0.01 * PRIOR_SIGMA_XY_M**2)
 
 
-def test_one_wall_corrects_the_across_offset_and_heading_but_not_the_along_offset():
-    prior_mean, prior_cov, res = run(ONE_WALL)
-    np.testing.assert_array_equal(res.n_matched, [1, 1])
+@pytest.mark.parametrize("mode", MODES)
+def test_one_wall_corrects_the_across_offset_and_heading_but_not_the_along_offset(mode):
+    prior_mean, prior_cov, res = run(ONE_WALL, mode)
+    assert np.all(res.n_matched >= (100 if mode == "points" else 1))
     err = res.mean[:, :2] - TRUE_POSE[:2]
     assert np.all(np.abs(err @ NORMAL_30) < 0.01)  # across the wall: corrected
     assert np.all(np.abs(wrap_angle(res.mean[:, 2] - TRUE_POSE[2])) < np.radians(0.2))
@@ -129,25 +144,49 @@ def test_one_wall_corrects_the_across_offset_and_heading_but_not_the_along_offse
     assert np.all(res.cov[:, 2, 2] < 0.01 * prior_cov[:, 2, 2])
 
 
-def test_empty_map_returns_the_prior():
+@pytest.mark.parametrize("mode", MODES)
+def test_empty_map_returns_the_prior(mode):
     mean, cov = prior()
     m, ends, facing, seg_cov = scan(CORNER_ROOM, TRUE_POSE)
     res = align(
-        mean, cov, m, ends, facing, seg_cov, SegmentMaps.empty(2, 4), AssociationConfig(), ProposalConfig()
+        mean,
+        cov,
+        m,
+        ends,
+        facing,
+        seg_cov,
+        SegmentMaps.empty(2, 4),
+        AssociationConfig(),
+        ProposalConfig(measurement=mode),
+        scan_points(CORNER_ROOM, TRUE_POSE),
     )
     np.testing.assert_array_equal(res.n_matched, 0)
     np.testing.assert_allclose(res.mean, mean, atol=1e-12)
     np.testing.assert_allclose(res.cov, cov, rtol=1e-9)
 
 
+@pytest.mark.parametrize("mode", MODES)
 @pytest.mark.parametrize("sample_scale", [0.5, 2.0])
-def test_sample_scale_scales_the_covariance(sample_scale):
+def test_sample_scale_scales_the_covariance(sample_scale, mode):
+    _, _, base = run(CORNER_ROOM, cfg=ProposalConfig(measurement=mode))
+    _, _, scaled = run(CORNER_ROOM, cfg=ProposalConfig(measurement=mode, sample_scale=sample_scale))
+    np.testing.assert_allclose(scaled.mean, base.mean, atol=1e-12)
+    np.testing.assert_allclose(scaled.cov, sample_scale * base.cov, rtol=1e-9)
+
+
+def test_points_behind_an_element_or_beyond_its_extent_are_not_associated():
+    """A point is matched only to an element whose free side faces the sensor and whose extent
+    (plus the margin) it falls in: the back of a thin wall and the wall's continuation past a
+    doorway are not evidence."""
     mean, cov = prior()
-    m, ends, facing, seg_cov = scan(CORNER_ROOM, TRUE_POSE)
-    maps = build_maps(CORNER_ROOM, 2)
-    base = align(mean, cov, m, ends, facing, seg_cov, maps, AssociationConfig(), ProposalConfig())
-    scaled = align(
-        mean,
+    wall = [(((0.0, 0.0), (6.0, 0.0)), np.pi / 2)]
+    maps = build_maps(wall, 2)
+    cfg = ProposalConfig()
+    m, ends, facing, seg_cov = scan(wall, TRUE_POSE)
+    # the wall's back: the same line seen from below (the robot mirrored across it)
+    below = TRUE_POSE * np.array([1.0, -1.0, -1.0])
+    res = align(
+        mean * [1, -1, -1],
         cov,
         m,
         ends,
@@ -155,7 +194,20 @@ def test_sample_scale_scales_the_covariance(sample_scale):
         seg_cov,
         maps,
         AssociationConfig(),
-        ProposalConfig(sample_scale=sample_scale),
+        cfg,
+        scan_points(wall, below),
     )
-    np.testing.assert_allclose(scaled.mean, base.mean, atol=1e-12)
-    np.testing.assert_allclose(scaled.cov, sample_scale * base.cov, rtol=1e-9)
+    np.testing.assert_array_equal(res.n_matched, 0)
+    # points on the line but 1 m past the wall's end (beyond the 0.2 m margin)
+    past = [(((7.0, 0.0), (9.0, 0.0)), np.pi / 2)]
+    res = align(
+        mean, cov, m, ends, facing, seg_cov, maps, AssociationConfig(), cfg, scan_points(past, TRUE_POSE)
+    )
+    np.testing.assert_array_equal(res.n_matched, 0)
+    # ... and the ones within the margin are (seen from the true pose: no prior offset)
+    mean = np.tile(TRUE_POSE, (2, 1))
+    edge = [(((6.0, 0.0), (6.15, 0.0)), np.pi / 2)]
+    res = align(
+        mean, cov, m, ends, facing, seg_cov, maps, AssociationConfig(), cfg, scan_points(edge, TRUE_POSE)
+    )
+    assert np.all(res.n_matched == len(scan_points(edge, TRUE_POSE)))
