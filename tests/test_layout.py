@@ -8,7 +8,13 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 IO_MODULES = {"zenoh", "msgpack", "matplotlib", "rich", "json", "gzip", "pickle", "socket", "time"}
 PURE = sorted((ROOT / "robot_agent" / "slam").glob("*.py")) + [
-    p for p in (ROOT / "map_server" / "alignment.py", ROOT / "map_server" / "fusion.py") if p.exists()
+    p
+    for p in (
+        ROOT / "robot_agent" / "explore.py",
+        ROOT / "map_server" / "alignment.py",
+        ROOT / "map_server" / "fusion.py",
+    )
+    if p.exists()
 ]
 
 

@@ -26,7 +26,7 @@ from robot_agent.slam.association import AssociationConfig, associate, match_log
 from robot_agent.slam.extraction import ExtractionConfig, ScanSegments, extract_segments
 from robot_agent.slam.motion import MotionConfig, odometry_increment, predict, sample_gaussian, walk_slip
 from robot_agent.slam.particles import ParticleSet, SegmentMaps
-from robot_agent.slam.proposal import ProposalConfig, align
+from robot_agent.slam.proposal import ProposalConfig, align, align_points
 from robot_agent.slam.resampling import effective_sample_size, systematic_resample
 from robot_agent.slam.trajectory import Trajectory
 from robot_agent.slam.update import (
@@ -40,7 +40,7 @@ from robot_agent.slam.update import (
     trusted_mask,
     visibility,
 )
-from shared.geometry import compose, wrap_angle
+from shared.geometry import apply_points, compose, relative, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -58,6 +58,10 @@ class FilterConfig:
     min_turn_rad: float = np.radians(5.0)  # ... or this much turning (between, odometry bridges)
     local_margin_m: float = 3.0  # elements farther than the scan's reach plus this are not touched
     clean_every: int = 5  # steps between map cleanings
+    refine_bridged: bool = True  # align a bridged scan to the best particle's map (pose only):
+    # its pose then comes from the scan, not from odometry whose timing may lag the laser's
+    bridge_sigma_xy_m: float = 0.05  # extra prior std of a bridged scan's pose: odometry and
+    bridge_sigma_theta_rad: float = np.radians(2.0)  # laser clocks disagree while turning fast
 
 
 @dataclass(frozen=True)
@@ -115,9 +119,11 @@ class FastSLAM:
         if self._last_odo is not None:
             u = odometry_increment(self._last_odo, odometry)
             moved = np.hypot(u[0], u[1]) >= cfg.filter.min_travel_m or abs(u[2]) >= cfg.filter.min_turn_rad
-            if not moved:  # bridge with odometry; the trajectory is refined at the next step
-                self.trajectory.bridge(stamp_s, u)
+            if not moved:  # bridge: no map update, the pose from the scan (or odometry) only
                 best = ps.best()
+                if cfg.filter.refine_bridged and cfg.proposal.enabled:
+                    u = self._refine_bridged(best, u, ranges_m, angles_rad, laser_offset, range_max_m)
+                self.trajectory.bridge(stamp_s, u)
                 return Estimate(
                     stamp_s, compose(ps.poses[best], u), False, effective_sample_size(ps.log_weights), 0
                 )
@@ -221,6 +227,38 @@ class FastSLAM:
         d = np.hypot(*(mid - centre).transpose(2, 0, 1)) - half
         near = np.any(maps.valid[:, used] & (d < radius_m + spread), axis=0)
         return used[near]
+
+    def _refine_bridged(
+        self,
+        best: int,
+        u: np.ndarray,
+        ranges_m: np.ndarray,
+        angles_rad: np.ndarray,
+        laser_offset: np.ndarray,
+        range_max_m: float,
+    ) -> np.ndarray:
+        """The motion ``u`` since the last processed scan, refined by aligning this scan's points
+        to the best particle's local map (one particle, no sampling, no map change)."""
+        cfg = self.cfg
+        ps = self.particles
+        r = np.asarray(ranges_m, dtype=float)
+        with np.errstate(invalid="ignore"):
+            ok = (r >= cfg.extraction.range_min_m) & (r < min(cfg.extraction.max_usable_range_m, range_max_m))
+        if not np.any(ok):
+            return u
+        pts = np.stack([r[ok] * np.cos(angles_rad[ok]), r[ok] * np.sin(angles_rad[ok])], axis=-1)
+        pts = apply_points(np.asarray(laser_offset, dtype=float), pts)
+        one = np.array([best])
+        mean, cov = predict(ps.poses[one], ps.slip[one], u, cfg.motion)
+        f = cfg.filter
+        cov = cov + np.diag([f.bridge_sigma_xy_m**2, f.bridge_sigma_xy_m**2, f.bridge_sigma_theta_rad**2])
+        reach = float(np.max(np.hypot(pts[:, 0], pts[:, 1])))
+        cols = self._local_columns(mean, reach + cfg.filter.local_margin_m)
+        if len(cols) == 0:
+            return u
+        local = ps.maps.take(one).columns(cols)
+        prop = align_points(mean, cov, pts, local, cfg.proposal)
+        return relative(ps.poses[best], prop.mean[0])
 
     def _maybe_relocalize(self, segs: ScanSegments, facing: np.ndarray, k: int) -> None:
         ps = self.particles

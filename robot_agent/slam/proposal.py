@@ -171,7 +171,7 @@ def align(
     var_a = prior_cov[:, 2, 2][:, None, None]
     var_p = (prior_cov[:, 0, 0] + prior_cov[:, 1, 1])[:, None, None]
     if cfg.measurement == "points" and points_robot is not None:
-        return _align_points(prior_mean, prior_cov, points_robot, maps, cfg)
+        return align_points(prior_mean, prior_cov, points_robot, maps, cfg)
     assoc = None
     h = np.zeros_like(prior_cov)
     for it in range(cfg.iterations):
@@ -198,13 +198,15 @@ def align(
     return ProposalResult(x, cov, assoc.matched.sum(axis=1) if assoc is not None else np.zeros(len(x), int))
 
 
-def _align_points(
+def align_points(
     prior_mean: np.ndarray,
     prior_cov: np.ndarray,
     points_robot: np.ndarray,
     maps: SegmentMaps,
     cfg: ProposalConfig,
 ) -> ProposalResult:
+    """Refine ``prior_mean (P,3)`` by aligning the scan points ``points_robot (N,2)`` (robot
+    frame) to each particle's map; the Gaussian proposal per particle."""
     pts = np.asarray(points_robot, dtype=float).reshape(-1, 2)
     if len(pts) > cfg.max_points:
         pts = pts[np.linspace(0, len(pts) - 1, cfg.max_points).round().astype(int)]
