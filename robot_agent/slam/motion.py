@@ -27,7 +27,7 @@ class MotionConfig:
     trans_min_m: float = 0.005  # [m] floor (also lets a standing robot's particles spread a little)
     rot_per_rad: float = 0.05  # [rad/rad] rotation noise per radian turned
     rot_per_m: float = 0.02  # [rad/m] rotation noise per metre driven
-    rot_min_rad: float = 0.002  # [rad]
+    rot_min_rad: float = 0.01  # [rad] (also covers odometry and laser clocks disagreeing while turning)
     slip_scale_walk_per_sqrt_m: float = 0.003  # random walk of the scale error, per √m driven
     slip_drift_walk_per_sqrt_m: float = 0.001  # random walk of heading drift [rad/m], per √m
     slip_scale_max: float = 0.15  # |scale error| bound

@@ -87,7 +87,14 @@ def test_predict_heading_drift_adds_drift_times_distance():
 
 
 def test_predict_covariance_hand_computed():
-    cfg = MotionConfig()
+    cfg = MotionConfig(
+        trans_per_m=0.05,
+        trans_per_rad=0.02,
+        trans_min_m=0.005,
+        rot_per_rad=0.05,
+        rot_per_m=0.02,
+        rot_min_rad=0.002,
+    )
     _, cov = predict(POSES[:1], np.zeros((1, 2)), np.array([1.0, 0.0, -0.5]), cfg)
     s_xy2 = 0.05**2 * 1.0 + (0.02 * 0.5) ** 2 + 0.005**2
     s_th2 = (0.05 * 0.5) ** 2 + (0.02 * 1.0) ** 2 + 0.002**2
