@@ -6,7 +6,7 @@
 
 Prints one table per source and writes ``benchmarks/results/bench_slam.json``. One core.
 Real logs: Kümmerle relations error and real-time factor. Simulation: ATE RMSE, map precision
-and completeness against the true walls (shared/metrics.py), and whether a loop was revisited.
+and completeness against the true walls, and whether the loop closed (robot_agent/sim/evaluate.py).
 """
 
 from __future__ import annotations
@@ -27,12 +27,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from robot_agent.replay import replay  # noqa: E402
-from robot_agent.sim import LidarConfig, SimConfig, beam_angles, builtin_world, cast_rays, simulate_robot  # noqa: E402
+from robot_agent.sim import SimConfig, builtin_world, simulate_robot  # noqa: E402
+from robot_agent.sim.evaluate import score_run  # noqa: E402
 from robot_agent.slam.config import apply_overrides  # noqa: E402
 from robot_agent.slam.fastslam import SlamConfig  # noqa: E402
 from robot_agent.sources import LaserLog, read_log  # noqa: E402
-from shared.geometry import apply_segments  # noqa: E402
-from shared.metrics import ate, map_quality, read_relations, relations_error  # noqa: E402
+from shared.metrics import read_relations, relations_error  # noqa: E402
 
 ABLATIONS = {
     "all": [],
@@ -41,7 +41,6 @@ ABLATIONS = {
     "no-relocalization": ["relocalization.enabled=false"],
 }
 DEFAULT_INTEL = ROOT.parent / "shared" / "datasets" / "intel"
-SEEN_EVERY = 5  # scans between the true-path poses used to decide which walls were seen
 
 
 def run_log(log: LaserLog, rel, cfg: SlamConfig, seed: int, limit: int | None) -> dict:
@@ -68,26 +67,9 @@ def run_sim(world_name: str, seed: int, duration_s: float, cfg: SlamConfig) -> d
     )
     r = run_log(log, None, cfg, seed, None)
     res = r.pop("_res")
-    a = ate(res.stamps_s, res.poses, sim.stamps_s, sim.truth)
     gm, keep = res.slam.published_map()
-    mapped = apply_segments(a.alignment, gm.seg[keep])
-    lidar = LidarConfig()
-    poses = sim.truth[::SEEN_EVERY]
-    dirs = poses[:, 2:3] + beam_angles(lidar)[None, :]
-    ranges = cast_rays(poses[:, :2], dirs, world.walls, lidar.range_max_m)
-    hit = ranges < lidar.range_max_m
-    seen = np.stack([poses[:, :1] + ranges * np.cos(dirs), poses[:, 1:2] + ranges * np.sin(dirs)], -1)[hit]
-    q = map_quality(mapped, world.walls, seen_points=seen)
-    path = sim.truth[:, :2]
-    revisit = bool(
-        np.any(np.hypot(*(path[len(path) // 2 :, None, :] - path[None, : len(path) // 4, :]).T) < 1.0)
-    )
-    return r | {
-        "ate_rmse_m": a.rmse_m,
-        "precision": q.precision,
-        "completeness": q.completeness,
-        "revisits_start_area": revisit,
-    }
+    score = score_run(sim, world, res.stamps_s, res.poses, gm.seg[keep])
+    return r | score.as_dict()
 
 
 def table(title: str, rows: list[dict], cols: list[str]) -> None:
@@ -157,7 +139,16 @@ def main(argv: list[str] | None = None) -> int:
         table(
             f"simulated, {args.duration:.0f} s, {args.particles} particles",
             rows,
-            ["world", "ablation", "seed", "ate_rmse_m", "precision", "completeness", "real_time_factor"],
+            [
+                "world",
+                "ablation",
+                "seed",
+                "ate_rmse_m",
+                "precision",
+                "completeness",
+                "loop_closed",
+                "real_time_factor",
+            ],
         )
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2, default=float))

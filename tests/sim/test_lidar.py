@@ -93,7 +93,7 @@ def test_broad_phase_blocks_and_counts(monkeypatch):
     for s in (0, 17, 39):
         dist = np.array([LineString(w).distance(Point(origins[s])) for w in walls])
         np.testing.assert_array_equal(np.sort(near[s, : count[s]]), np.nonzero(dist <= 6.0)[0])
-        assert np.all(near[s, count[s]:] == len(walls))  # padding slots
+        assert np.all(near[s, count[s] :] == len(walls))  # padding slots
     assert 0 < count.mean() < len(walls)  # the cull does something
     _, count_fov = walls_in_range(origins, walls, 6.0, directions)
     assert np.all(count_fov <= count) and count_fov.sum() < count.sum()  # walls behind dropped

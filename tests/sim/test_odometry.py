@@ -70,8 +70,14 @@ def test_heading_drift_grows_with_distance():
 
 
 def test_random_noise_has_the_configured_size():
-    noise = OdometryNoise(trans_per_m=0.0, trans_per_rad=0.0, rot_per_rad=0.0, rot_per_m=0.005,
-                          scale_error_sigma=0.0, heading_drift_sigma_rad_per_m=0.0)
+    noise = OdometryNoise(
+        trans_per_m=0.0,
+        trans_per_rad=0.0,
+        rot_per_rad=0.0,
+        rot_per_m=0.005,
+        scale_error_sigma=0.0,
+        heading_drift_sigma_rad_per_m=0.0,
+    )
     truth = straight(10.0, steps=100)  # steps of 0.1 m: per-step heading std 0.0005 rad
     finals = np.array([integrate_odometry(np.random.default_rng(k), truth, noise)[-1, 2] for k in range(400)])
     assert finals.std() == pytest.approx(np.sqrt(100) * 0.0005, rel=0.12)

@@ -48,16 +48,18 @@ def test_reproducible_and_robots_differ(office):
 
 
 def test_noise_free_scans_match_casting_at_the_truth(office):
-    cfg = SimConfig(lidar=LidarConfig(range_sigma_m=0.0), odometry=OdometryNoise.none(),
-                    laser_offset=(0.2, 0.0, 0.0))
+    cfg = SimConfig(
+        lidar=LidarConfig(range_sigma_m=0.0), odometry=OdometryNoise.none(), laser_offset=(0.2, 0.0, 0.0)
+    )
     run = simulate_robot(office, 2, 8.0, seed=0, cfg=cfg)
     c, s = np.cos(run.truth[:, 2]), np.sin(run.truth[:, 2])
     laser_xy = run.truth[:, :2] + 0.2 * np.c_[c, s]
     expected = cast_rays(laser_xy, run.truth[:, 2:3] + run.angles_rad, office.walls, cfg.lidar.range_max_m)
     np.testing.assert_array_equal(run.ranges_m, expected)
     assert 0.3 < run.ranges_m.min() and np.median(run.ranges_m) < 10.0  # indoors: walls close by
-    np.testing.assert_allclose(relative(run.odometry[:-1], run.odometry[1:]),
-                               relative(run.truth[:-1], run.truth[1:]), atol=1e-9)
+    np.testing.assert_allclose(
+        relative(run.odometry[:-1], run.odometry[1:]), relative(run.truth[:-1], run.truth[1:]), atol=1e-9
+    )
 
 
 def test_bad_arguments(office):

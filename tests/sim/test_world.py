@@ -174,8 +174,11 @@ def test_geojson_user_file_with_polygon_walls_and_default_start():
         "type": "FeatureCollection",
         "features": [
             {"type": "Feature", "properties": {}, "geometry": shapely.geometry.mapping(box(0, 0, 10, 6))},
-            {"type": "Feature", "properties": {"kind": "route", "robot": 0},
-             "geometry": {"type": "LineString", "coordinates": [[2, 2], [8, 2], [8, 4], [2, 4], [2, 2]]}},
+            {
+                "type": "Feature",
+                "properties": {"kind": "route", "robot": 0},
+                "geometry": {"type": "LineString", "coordinates": [[2, 2], [8, 2], [8, 4], [2, 4], [2, 2]]},
+            },
         ],
     }
     w = from_geojson(data, default_name="tiny")
@@ -199,23 +202,49 @@ ROUTE = {"type": "LineString", "coordinates": [[0, 1], [1, 1], [1, 2]]}
         ([], "FeatureCollection"),
         ({"type": "FeatureCollection"}, "features"),
         ({"type": "FeatureCollection", "features": [{"type": "Nope"}]}, "feature 0"),
-        ({"type": "FeatureCollection", "features": [feature({"type": "Point", "coordinates": [0, 0]})]},
-         "feature 0 \\(wall\\): geometry type Point"),
-        ({"type": "FeatureCollection", "features": [feature({"type": "LineString", "coordinates": [[0]]})]},
-         "feature 0: invalid geometry"),
+        (
+            {"type": "FeatureCollection", "features": [feature({"type": "Point", "coordinates": [0, 0]})]},
+            "feature 0 \\(wall\\): geometry type Point",
+        ),
+        (
+            {
+                "type": "FeatureCollection",
+                "features": [feature({"type": "LineString", "coordinates": [[0]]})],
+            },
+            "feature 0: invalid geometry",
+        ),
         ({"type": "FeatureCollection", "features": [feature(WALL, kind="door")]}, "unknown kind 'door'"),
-        ({"type": "FeatureCollection", "features": [feature(ROUTE, kind="route", robot=1)]},
-         "route robot indices"),
+        (
+            {"type": "FeatureCollection", "features": [feature(ROUTE, kind="route", robot=1)]},
+            "route robot indices",
+        ),
         ({"type": "FeatureCollection", "features": [feature(ROUTE, kind="route", robot=-1)]}, "'robot'"),
-        ({"type": "FeatureCollection", "features": [
-            feature(ROUTE, kind="route", robot=0), feature(ROUTE, kind="route", robot=0)]},
-         "robot 0 given twice"),
-        ({"type": "FeatureCollection", "features": [
-            feature(ROUTE, kind="route"), feature({"type": "Point", "coordinates": [0, 1]}, kind="start")]},
-         "'theta'"),
-        ({"type": "FeatureCollection", "features": [
-            feature({"type": "Point", "coordinates": [0, 1]}, kind="start", robot=3, theta=0.0)]},
-         "robots \\[3\\] have no route"),
+        (
+            {
+                "type": "FeatureCollection",
+                "features": [feature(ROUTE, kind="route", robot=0), feature(ROUTE, kind="route", robot=0)],
+            },
+            "robot 0 given twice",
+        ),
+        (
+            {
+                "type": "FeatureCollection",
+                "features": [
+                    feature(ROUTE, kind="route"),
+                    feature({"type": "Point", "coordinates": [0, 1]}, kind="start"),
+                ],
+            },
+            "'theta'",
+        ),
+        (
+            {
+                "type": "FeatureCollection",
+                "features": [
+                    feature({"type": "Point", "coordinates": [0, 1]}, kind="start", robot=3, theta=0.0)
+                ],
+            },
+            "robots \\[3\\] have no route",
+        ),
     ],
 )
 def test_malformed_geojson(data, message):

@@ -27,15 +27,23 @@ def _random_log(angles_rad, laser_offset, seed=0, scans=25, odoms=40, range_max_
     ranges[:, ::7] = range_max_m  # "no return" beams
     odom_stamps = np.sort(rng.uniform(stamps[0] - 1, stamps[-1] + 1, odoms))
     odom_poses = np.column_stack([rng.uniform(-20, 20, (odoms, 2)), rng.uniform(-3, 3, odoms)])
-    return LaserLog.from_arrays(stamps, ranges, angles_rad, odometry, laser_offset, range_max_m,
-                                odom_stamps, odom_poses, params={"note": "two words"})
+    return LaserLog.from_arrays(
+        stamps,
+        ranges,
+        angles_rad,
+        odometry,
+        laser_offset,
+        range_max_m,
+        odom_stamps,
+        odom_poses,
+        params={"note": "two words"},
+    )
 
 
 GEOMETRIES = {
     "flaser181": (flaser_angles(181), (0.0, 0.0, 0.0), "FLASER"),
     "flaser180_offset": (flaser_angles(180), (0.25, 0.0, 0.0), "FLASER"),
-    "robotlaser360_offset": (-np.pi + np.arange(360) * (2 * np.pi / 360), (0.12, -0.05, 0.3),
-                             "ROBOTLASER1"),
+    "robotlaser360_offset": (-np.pi + np.arange(360) * (2 * np.pi / 360), (0.12, -0.05, 0.3), "ROBOTLASER1"),
 }
 
 
@@ -76,9 +84,13 @@ def test_written_lines_are_time_ordered_and_kind_matches(tmp_path):
 
 def test_write_from_mapping_and_gzip_detected_by_magic_bytes(tmp_path):
     gz_path = tmp_path / "log.gz"
-    arrays = {"stamps_s": [1.0, 2.0], "ranges_m": [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]],
-              "angles_rad": flaser_angles(3), "odometry": [[0, 0, 0], [1, 0, 0.5]],
-              "range_max_m": 10.0}
+    arrays = {
+        "stamps_s": [1.0, 2.0],
+        "ranges_m": [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]],
+        "angles_rad": flaser_angles(3),
+        "odometry": [[0, 0, 0], [1, 0, 0.5]],
+        "range_max_m": 10.0,
+    }
     write_log(gz_path, arrays)
     plain_name = tmp_path / "log.clf"  # gzip bytes under a plain name
     plain_name.write_bytes(gz_path.read_bytes())
@@ -100,13 +112,25 @@ def test_from_arrays_names_bad_argument_and_shapes():
     with pytest.raises(ValueError, match=r"angles_rad has shape \(4,\).*B=3"):
         LaserLog.from_arrays([1.0, 2.0], np.ones((2, 3)), np.zeros(4), np.zeros((2, 3)))
     with pytest.raises(ValueError, match=r"odom_poses has shape \(5, 3\).*M=4"):
-        LaserLog.from_arrays([1.0], np.ones((1, 3)), flaser_angles(3), np.zeros((1, 3)),
-                             odom_stamps_s=np.zeros(4), odom_poses=np.zeros((5, 3)))
+        LaserLog.from_arrays(
+            [1.0],
+            np.ones((1, 3)),
+            flaser_angles(3),
+            np.zeros((1, 3)),
+            odom_stamps_s=np.zeros(4),
+            odom_poses=np.zeros((5, 3)),
+        )
 
 
 def test_scans_and_read_only_arrays():
-    log = LaserLog.from_arrays([5.0, 6.0], [[1.0, 2.0], [3.0, 4.0]], flaser_angles(2),
-                               [[0, 0, 0], [1, 2, 3]], (0.1, 0, 0), range_max_m=8.0)
+    log = LaserLog.from_arrays(
+        [5.0, 6.0],
+        [[1.0, 2.0], [3.0, 4.0]],
+        flaser_angles(2),
+        [[0, 0, 0], [1, 2, 3]],
+        (0.1, 0, 0),
+        range_max_m=8.0,
+    )
     scans = list(log.scans())
     assert len(log) == 2 and log.duration_s == 1.0
     assert isinstance(scans[1], Scan) and scans[1].stamp_s == 6.0
@@ -131,8 +155,9 @@ def _flaser(ranges="1.0 2.0 3.0", n=None, poses=POSES, stamp="100.5"):
 
 def _rl1(n=3, n_rem="0"):
     ranges = " ".join(["1.5"] * 3)
-    return (f"ROBOTLASER1 0 -1.0 2.0 1.0 20.0 0.01 0 {n} {ranges} {n_rem} 0 0 0 0 0 0 "
-            "0 0 0 0 0 100.0 nohost 0.1")
+    return (
+        f"ROBOTLASER1 0 -1.0 2.0 1.0 20.0 0.01 0 {n} {ranges} {n_rem} 0 0 0 0 0 0 0 0 0 0 0 100.0 nohost 0.1"
+    )
 
 
 MALFORMED = {
@@ -152,8 +177,11 @@ MALFORMED = {
     "rl1_zero_max_range": ([_rl1().replace(" 20.0 ", " 0 ")], "max_range", "positive"),
     "rl1_nan_start_angle": ([_rl1().replace(" -1.0 ", " nan ")], "start_angle", "not finite"),
     "no_laser_lines": (["ODOM 1 2 0.5 0 0 0 100.0 nohost 0.1"], "FLASER|ROBOTLASER1", "no laser"),
-    "bad_offset_param": (["PARAM robot_frontlaser_offset abc nohost 0", _flaser()],
-                         "robot_frontlaser_offset", "'abc'"),
+    "bad_offset_param": (
+        ["PARAM robot_frontlaser_offset abc nohost 0", _flaser()],
+        "robot_frontlaser_offset",
+        "'abc'",
+    ),
 }
 
 
@@ -185,11 +213,20 @@ def test_truncated_gzip_is_a_log_format_error(tmp_path):
 
 def test_other_message_types_are_skipped_and_counted(tmp_path):
     path = tmp_path / "mixed.clf"
-    path.write_text("\n".join([
-        "SYNC tag", _flaser(), "RLASER 2 1 1 0 0 0 0 0 0 100.0 nohost 0.1",
-        "TRUEPOS 0 0 0 0 0 0 100.0 nohost 0.1", "RLASER 2 1 1 0 0 0 0 0 0 101.0 nohost 0.1",
-        _rl1(), "", _flaser(stamp="101.5"),
-    ]))
+    path.write_text(
+        "\n".join(
+            [
+                "SYNC tag",
+                _flaser(),
+                "RLASER 2 1 1 0 0 0 0 0 0 100.0 nohost 0.1",
+                "TRUEPOS 0 0 0 0 0 0 100.0 nohost 0.1",
+                "RLASER 2 1 1 0 0 0 0 0 0 101.0 nohost 0.1",
+                _rl1(),
+                "",
+                _flaser(stamp="101.5"),
+            ]
+        )
+    )
     log = read_log(path)
     assert len(log) == 2 and log.kind == "FLASER"
     assert log.skipped == {"RLASER": 2, "TRUEPOS": 1, "ROBOTLASER1": 1}
@@ -202,9 +239,11 @@ def test_flaser_offset_from_poses_beats_param(tmp_path):
     poses = "1 2.3 1.5707963267948966 1 2 1.5707963267948966"
     path.write_text(f"PARAM robot_frontlaser_offset 0.5 nohost 0\n{_flaser(poses=poses)}\n")
     np.testing.assert_allclose(read_log(path).laser_offset, [0.3, 0.0, 0.0], atol=1e-12)
-    path.write_text("PARAM robot_frontlaser_offset 0.5 nohost 0\n"
-                    "PARAM robot_frontlaser_angular_offset 0.1 nohost 0\n"
-                    f"{_flaser(poses='1 2 0.7 1 2 0.7')}\n")
+    path.write_text(
+        "PARAM robot_frontlaser_offset 0.5 nohost 0\n"
+        "PARAM robot_frontlaser_angular_offset 0.1 nohost 0\n"
+        f"{_flaser(poses='1 2 0.7 1 2 0.7')}\n"
+    )
     np.testing.assert_array_equal(read_log(path).laser_offset, [0.5, 0.0, 0.1])
 
 
@@ -212,8 +251,9 @@ def test_robotlaser_geometry_and_offset(tmp_path):
     path = tmp_path / "rl.clf"
     robot = np.array([2.0, -1.0, 0.4])
     laser = compose(robot, [0.2, 0.1, -0.3])
-    line = _rl1().replace("0 0 0 0 0 0 0 0 0 0 0 100.0",
-                          " ".join(f"{v:.12f}" for v in (*laser, *robot)) + " 0 0 0 0 0 100.0")
+    line = _rl1().replace(
+        "0 0 0 0 0 0 0 0 0 0 0 100.0", " ".join(f"{v:.12f}" for v in (*laser, *robot)) + " 0 0 0 0 0 100.0"
+    )
     path.write_text(line + "\n")
     log = read_log(path)
     np.testing.assert_allclose(log.angles_rad, [-1.0, 0.0, 1.0])
