@@ -62,9 +62,7 @@ def run_log(log: LaserLog, rel, cfg: SlamConfig, seed: int, limit: int | None) -
 def run_sim(world_name: str, seed: int, duration_s: float, cfg: SlamConfig) -> dict:
     world = builtin_world(world_name)
     sim = simulate_robot(world, 0, duration_s, seed, SimConfig())
-    log = LaserLog.from_arrays(
-        sim.stamps_s, sim.ranges_m, sim.angles_rad, sim.odometry, sim.laser_offset, sim.range_max_m
-    )
+    log = sim.to_log()
     r = run_log(log, None, cfg, seed, None)
     res = r.pop("_res")
     gm, keep = res.slam.published_map()

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from robot_agent.sim import SimConfig, builtin_world, load_geojson, simulate_robot, to_geojson
-from robot_agent.sources import LaserLog, write_log
+from robot_agent.sources import write_log
 from shared.metrics import make_relations, write_poses, write_relations
 from shared.viz import PathLayer, Picture, SegmentLayer, robot_colour, save_geojson, save_picture
 
@@ -47,17 +47,7 @@ def simulate_to_dir(
     for i in range(n_robots):
         name = robot_name(i)
         run = simulate_robot(world, i, duration_s, seed, cfg)
-        log = LaserLog.from_arrays(
-            stamps_s=run.stamps_s,
-            ranges_m=run.ranges_m,
-            angles_rad=run.angles_rad,
-            odometry=run.odometry,
-            laser_offset=run.laser_offset,
-            range_max_m=run.range_max_m,
-            odom_stamps_s=run.odom_stamps_s,
-            odom_poses=run.odom_poses,
-            params={"robot_name": name, "sim_world": world.name},
-        )
+        log = run.to_log({"robot_name": name, "sim_world": world.name})
         write_log(out / f"{name}.clf", log)
         write_poses(out / f"{name}.truth.txt", run.stamps_s, run.truth)
         rel = make_relations(run.stamps_s, run.truth, np.random.default_rng([seed, i, 7]))

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.geometry import apply_segments, wrap_angle
+from shared.geometry import apply_segments, transform_points, wrap_angle
 
 # Hypotheses × observed × map pairs scored at once; bounds the temporaries (~100 MB).
 SCORE_CHUNK_ELEMENTS = 1_000_000
@@ -85,13 +85,13 @@ def pose_hypotheses(
     theta = wrap_angle(map_facing[m1] - obs_facing[o1])
     # rotated observed lines must coincide with the map lines: f_m·t = c_m - f_m·(R p_o)
     f1, f2 = _facing_vectors(map_facing[m1]), _facing_vectors(map_facing[m2])
-    c, s = np.cos(theta), np.sin(theta)
-
-    def rot(p):
-        return np.stack([c * p[:, 0] - s * p[:, 1], s * p[:, 0] + c * p[:, 1]], axis=-1)
-
-    rhs1 = np.sum(f1 * map_ends[m1, 0], axis=1) - np.sum(f1 * rot(obs_ends[o1, 0]), axis=1)
-    rhs2 = np.sum(f2 * map_ends[m2, 0], axis=1) - np.sum(f2 * rot(obs_ends[o2, 0]), axis=1)
+    heading = np.column_stack([np.zeros_like(theta), np.zeros_like(theta), theta])  # rotation only
+    rhs1 = np.sum(f1 * map_ends[m1, 0], axis=1) - np.sum(
+        f1 * transform_points(heading, obs_ends[o1, 0]), axis=1
+    )
+    rhs2 = np.sum(f2 * map_ends[m2, 0], axis=1) - np.sum(
+        f2 * transform_points(heading, obs_ends[o2, 0]), axis=1
+    )
     det = f1[:, 0] * f2[:, 1] - f1[:, 1] * f2[:, 0]
     tx = (rhs1 * f2[:, 1] - rhs2 * f1[:, 1]) / det
     ty = (f1[:, 0] * rhs2 - f2[:, 0] * rhs1) / det

@@ -23,6 +23,7 @@ from robot_agent.sim.odometry import (
 from robot_agent.sim.robot import RobotConfig, RouteFollower, _step_pose, drive_route, limit_velocity
 from robot_agent.sim.world import World
 from robot_agent.sources.base import Scan
+from robot_agent.sources.carmen import LaserLog
 from shared.geometry import compose, point_segment_distance, relative
 
 
@@ -79,6 +80,21 @@ class SimRun:
     odom_poses: np.ndarray
     truth_dense: np.ndarray
     bias: OdometryBias
+
+    def to_log(self, params: dict[str, str] | None = None) -> LaserLog:
+        """The run as a :class:`~robot_agent.sources.LaserLog` (scans, odometry at scan times and
+        the dense odometry track), as it would be recorded."""
+        return LaserLog.from_arrays(
+            stamps_s=self.stamps_s,
+            ranges_m=self.ranges_m,
+            angles_rad=self.angles_rad,
+            odometry=self.odometry,
+            laser_offset=self.laser_offset,
+            range_max_m=self.range_max_m,
+            odom_stamps_s=self.odom_stamps_s,
+            odom_poses=self.odom_poses,
+            params=params,
+        )
 
     def scans(self) -> Iterator[Scan]:
         """The run as a scan source."""

@@ -157,8 +157,7 @@ def extract_segments(
         )
     if not np.all(np.isfinite(phi)):
         raise ExtractionError(f"angles_rad must be finite, got {phi[~np.isfinite(phi)][:3]}")
-    with np.errstate(invalid="ignore"):
-        valid = (r >= cfg.range_min_m) & (r < min(cfg.max_usable_range_m, range_max_m))
+    valid = usable_readings(r, cfg, range_max_m)
     r = np.where(valid, r, 0.0)
     xy = np.stack([r * np.cos(phi), r * np.sin(phi)], axis=-1)
 
@@ -172,6 +171,24 @@ def extract_segments(
     if merged.size < starts.size:  # merged pieces' lines moved: their boundaries may too
         merged = _refine_boundaries(pts, merged, cluster, cfg)
     return _assemble(pts, beam, merged, cfg)
+
+
+def usable_readings(ranges_m: np.ndarray, cfg: ExtractionConfig, range_max_m: float = np.inf) -> np.ndarray:
+    """Mask ``(B,)`` of the readings extraction uses: finite, at least ``cfg.range_min_m``, below
+    ``min(cfg.max_usable_range_m, range_max_m)``."""
+    with np.errstate(invalid="ignore"):
+        return (ranges_m >= cfg.range_min_m) & (ranges_m < min(cfg.max_usable_range_m, range_max_m))
+
+
+def scan_points(
+    ranges_m: np.ndarray, angles_rad: np.ndarray, cfg: ExtractionConfig, range_max_m: float = np.inf
+) -> np.ndarray:
+    """The usable readings as points ``(K,2)`` in the laser frame, in scan order (the points
+    :func:`extract_segments` works on, without the segmentation)."""
+    r = np.asarray(ranges_m, dtype=float)
+    phi = np.asarray(angles_rad, dtype=float)
+    ok = usable_readings(r, cfg, range_max_m)
+    return np.stack([r[ok] * np.cos(phi[ok]), r[ok] * np.sin(phi[ok])], axis=-1)
 
 
 def _clusters(

@@ -23,7 +23,7 @@ import numpy as np
 from robot_agent.slam import consensus as consensus_mod
 from robot_agent.slam import relocalize as reloc_mod
 from robot_agent.slam.association import AssociationConfig, associate, match_log_likelihood, observe
-from robot_agent.slam.extraction import ExtractionConfig, ScanSegments, extract_segments
+from robot_agent.slam.extraction import ExtractionConfig, ScanSegments, extract_segments, scan_points
 from robot_agent.slam.motion import MotionConfig, odometry_increment, predict, sample_gaussian, walk_slip
 from robot_agent.slam.particles import ParticleSet, SegmentMaps
 from robot_agent.slam.proposal import ProposalConfig, align, align_points
@@ -241,13 +241,9 @@ class FastSLAM:
         to the best particle's local map (one particle, no sampling, no map change)."""
         cfg = self.cfg
         ps = self.particles
-        r = np.asarray(ranges_m, dtype=float)
-        with np.errstate(invalid="ignore"):
-            ok = (r >= cfg.extraction.range_min_m) & (r < min(cfg.extraction.max_usable_range_m, range_max_m))
-        if not np.any(ok):
+        pts = apply_points(laser_offset, scan_points(ranges_m, angles_rad, cfg.extraction, range_max_m))
+        if len(pts) == 0:
             return u
-        pts = np.stack([r[ok] * np.cos(angles_rad[ok]), r[ok] * np.sin(angles_rad[ok])], axis=-1)
-        pts = apply_points(np.asarray(laser_offset, dtype=float), pts)
         one = np.array([best])
         mean, cov = predict(ps.poses[one], ps.slip[one], u, cfg.motion)
         f = cfg.filter

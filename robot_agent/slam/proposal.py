@@ -5,8 +5,15 @@ from the motion model alone, each particle's pose is refined by the current scan
 map and sampled from the Gaussian ``N(x*, (H + Σ_motion⁻¹)⁻¹)`` — the motion prior fused with
 the measurement.
 
-The measurement term is point-to-line least squares: every point ``p_i`` of an observed segment
-against the line ``(n, ρ)`` of its associated element, ``r_i = n·(R p_i + t) - ρ``. Because the
+The measurement term is point-to-line least squares, ``r_i = n·(R p_i + t) - ρ`` for a point
+``p_i`` against the line ``(n, ρ)`` of its associated element. Two measurements share one
+Gauss-Newton solver (``_gauss_newton``):
+
+- ``measurement = "points"`` (default): every scan point (thinned to ``max_points``), each
+  associated with the nearest element whose extent it falls in and whose free side faces the
+  sensor, Cauchy-weighted. It uses what extraction drops: sparse points of walls seen at grazing
+  angles, far along a corridor, which lock the rotation.
+- ``measurement = "segments"``: only the points of the extracted segments. Because the
 sum over a segment's points of ``r_i²`` and its derivatives only involve the points' first and
 second moments, the Gauss-Newton normal equations are assembled from the segment moments:
 with ``q = R p`` (moments of the rotated points: ``N, s = Σq, S = Σqqᵀ``), ``e = n·t - ρ`` and
@@ -20,6 +27,7 @@ with ``q = R p`` (moments of the rotated points: ``N, s = Σq, S = Σqqᵀ``), `
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +35,7 @@ import numpy as np
 from robot_agent.slam.association import AssociationConfig, associate, observe
 from robot_agent.slam.lines import transform_moments
 from robot_agent.slam.particles import SegmentMaps
-from shared.geometry import wrap_angle
+from shared.geometry import apply_points, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -100,8 +108,10 @@ class ProposalResult:
 
 def _rotate(poses: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Robot-frame ``points (N,2)`` rotated by each particle's heading: ``qx, qy (P,N)``."""
-    c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-    return c * points[:, 0] - s * points[:, 1], s * points[:, 0] + c * points[:, 1]
+    heading_only = np.zeros_like(poses)
+    heading_only[:, 2] = poses[:, 2]
+    q = apply_points(heading_only, points)
+    return q[..., 0], q[..., 1]
 
 
 def associate_points(
@@ -152,6 +162,47 @@ def _point_normal_equations(
     return h, g
 
 
+def _element_lines(maps: SegmentMaps, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Normals ``(P,K,2)`` and distances ``(P,K)`` of the elements ``idx (P,K)`` (-1: any)."""
+    safe = np.maximum(idx, 0)
+    a_m = np.take_along_axis(maps.alpha, safe, axis=1)
+    return np.stack([np.cos(a_m), np.sin(a_m)], axis=-1), np.take_along_axis(maps.rho, safe, axis=1)
+
+
+def _gauss_newton(
+    prior_mean: np.ndarray,
+    prior_cov: np.ndarray,
+    maps: SegmentMaps,
+    cfg: ProposalConfig,
+    associate_at: Callable[[np.ndarray, bool], np.ndarray],
+    normal_equations: Callable[..., tuple[np.ndarray, np.ndarray]],
+) -> ProposalResult:
+    """The motion prior fused with a point-to-line measurement, by Gauss-Newton.
+
+    ``associate_at(x, wide)`` gives the element index ``(P,K)`` (-1: none) of every measured
+    item (point or segment) at poses ``x``, with gates widened for the predicted pose when
+    ``wide``; it runs at the first iteration and again at ``cfg.reassociate_after``.
+    ``normal_equations(x, n_m, rho_m, matched)`` gives ``H (P,3,3)`` and ``g (P,3)``."""
+    x = prior_mean.copy()
+    info_prior = np.linalg.inv(prior_cov)
+    h = np.zeros_like(prior_cov)
+    idx = np.full((len(x), 0), -1)
+    for it in range(cfg.iterations):
+        if it == 0 or it == cfg.reassociate_after:
+            idx = associate_at(x, it == 0)
+            n_m, rho_m = _element_lines(maps, idx)
+        h, g = normal_equations(x, n_m, rho_m, idx >= 0)
+        dx_prior = x - prior_mean
+        dx_prior[:, 2] = wrap_angle(dx_prior[:, 2])
+        rhs = -(g + np.einsum("pij,pj->pi", info_prior, dx_prior))
+        step = np.linalg.solve(h + info_prior, rhs[..., None])[..., 0]
+        x = x + step
+        x[:, 2] = wrap_angle(x[:, 2])
+    cov = np.linalg.inv(h + info_prior) * cfg.sample_scale
+    cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
+    return ProposalResult(x, cov, np.sum(idx >= 0, axis=1))
+
+
 def align(
     prior_mean: np.ndarray,
     prior_cov: np.ndarray,
@@ -164,38 +215,24 @@ def align(
     cfg: ProposalConfig,
     points_robot: np.ndarray | None = None,
 ) -> ProposalResult:
-    """Refine ``prior_mean (P,3)`` by point-to-line alignment of the scan segments (robot frame)
-    to each particle's local map; returns the Gaussian proposal per particle."""
-    x = prior_mean.copy()
-    info_prior = np.linalg.inv(prior_cov)
-    var_a = prior_cov[:, 2, 2][:, None, None]
-    var_p = (prior_cov[:, 0, 0] + prior_cov[:, 1, 1])[:, None, None]
+    """Refine ``prior_mean (P,3)`` by point-to-line alignment of the scan (robot frame) to each
+    particle's local map: its points when given and ``cfg.measurement == "points"``, else its
+    segments (moments, ends, facing, line covariance). The Gaussian proposal per particle."""
     if cfg.measurement == "points" and points_robot is not None:
         return align_points(prior_mean, prior_cov, points_robot, maps, cfg)
-    assoc = None
-    h = np.zeros_like(prior_cov)
-    for it in range(cfg.iterations):
-        if it == 0 or it == cfg.reassociate_after:
-            obs = observe(x, moments_robot, ends_robot, facing_robot, cov_robot, assoc_cfg.point_sigma_m)
-            if it == 0:
-                assoc = associate(obs, maps, assoc_cfg, var_a, var_p, cfg.gate_scale_predicted)
-            else:
-                assoc = associate(obs, maps, assoc_cfg)
-            idx = np.maximum(assoc.index, 0)
-            a_m = np.take_along_axis(maps.alpha, idx, axis=1)
-            rho_m = np.take_along_axis(maps.rho, idx, axis=1)
-            n_m = np.stack([np.cos(a_m), np.sin(a_m)], axis=-1)
-        h, g = _normal_equations(x, moments_robot, n_m, rho_m, assoc.matched, cfg)
-        dx_prior = x - prior_mean
-        dx_prior[:, 2] = wrap_angle(dx_prior[:, 2])
-        lhs = h + info_prior
-        rhs = -(g + np.einsum("pij,pj->pi", info_prior, dx_prior))
-        step = np.linalg.solve(lhs, rhs[..., None])[..., 0]
-        x = x + step
-        x[:, 2] = wrap_angle(x[:, 2])
-    cov = np.linalg.inv(h + info_prior) * cfg.sample_scale
-    cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
-    return ProposalResult(x, cov, assoc.matched.sum(axis=1) if assoc is not None else np.zeros(len(x), int))
+    var_a = prior_cov[:, 2, 2][:, None, None]
+    var_p = (prior_cov[:, 0, 0] + prior_cov[:, 1, 1])[:, None, None]
+
+    def associate_at(x: np.ndarray, wide: bool) -> np.ndarray:
+        obs = observe(x, moments_robot, ends_robot, facing_robot, cov_robot, assoc_cfg.point_sigma_m)
+        if wide:
+            return associate(obs, maps, assoc_cfg, var_a, var_p, cfg.gate_scale_predicted).index
+        return associate(obs, maps, assoc_cfg).index
+
+    def normal_equations(x, n_m, rho_m, matched):
+        return _normal_equations(x, moments_robot, n_m, rho_m, matched, cfg)
+
+    return _gauss_newton(prior_mean, prior_cov, maps, cfg, associate_at, normal_equations)
 
 
 def align_points(
@@ -210,30 +247,15 @@ def align_points(
     pts = np.asarray(points_robot, dtype=float).reshape(-1, 2)
     if len(pts) > cfg.max_points:
         pts = pts[np.linspace(0, len(pts) - 1, cfg.max_points).round().astype(int)]
-    x = prior_mean.copy()
-    info_prior = np.linalg.inv(prior_cov)
-    # first iterations: the gate covers the prior's uncertainty at the points' mean range
+    # the first association's gate covers the prior's uncertainty at the points' mean range
     reach = float(np.mean(np.hypot(pts[:, 0], pts[:, 1]))) if len(pts) else 0.0
     spread = np.sqrt(prior_cov[:, 0, 0] + prior_cov[:, 1, 1] + (reach**2) * prior_cov[:, 2, 2])
-    h = np.zeros_like(prior_cov)
-    idx = np.full((len(x), len(pts)), -1)
-    n_m, rho_m = np.zeros((*idx.shape, 2)), np.zeros(idx.shape)
-    for it in range(cfg.iterations):
-        if it == 0 or it == cfg.reassociate_after:  # wide gates first, the normal ones after
-            gate = cfg.point_gate_m + (cfg.gate_scale_predicted * spread if it == 0 else 0.0)
-            idx = associate_points(x, pts, maps, gate, cfg.extent_margin_m)
-            safe = np.maximum(idx, 0)
-            a_m = np.take_along_axis(maps.alpha, safe, axis=1)
-            n_m = np.stack([np.cos(a_m), np.sin(a_m)], axis=-1)
-            rho_m = np.take_along_axis(maps.rho, safe, axis=1)
-        h, g = _point_normal_equations(x, pts, n_m, rho_m, idx >= 0, cfg)
-        dx_prior = x - prior_mean
-        dx_prior[:, 2] = wrap_angle(dx_prior[:, 2])
-        rhs = -(g + np.einsum("pij,pj->pi", info_prior, dx_prior))
-        step = np.linalg.solve(h + info_prior, rhs[..., None])[..., 0]
-        x = x + step
-        x[:, 2] = wrap_angle(x[:, 2])
-    n_matched = np.sum(idx >= 0, axis=1)
-    cov = np.linalg.inv(h + info_prior) * cfg.sample_scale
-    cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
-    return ProposalResult(x, cov, n_matched)
+
+    def associate_at(x: np.ndarray, wide: bool) -> np.ndarray:
+        gate = cfg.point_gate_m + (cfg.gate_scale_predicted * spread if wide else 0.0)
+        return associate_points(x, pts, maps, gate, cfg.extent_margin_m)
+
+    def normal_equations(x, n_m, rho_m, matched):
+        return _point_normal_equations(x, pts, n_m, rho_m, matched, cfg)
+
+    return _gauss_newton(prior_mean, prior_cov, maps, cfg, associate_at, normal_equations)

@@ -11,6 +11,7 @@ from robot_agent.slam.extraction import (
     ExtractionError,
     ScanSegments,
     extract_segments,
+    scan_points,
 )
 from robot_agent.slam.lines import fit_lines, line_covariance
 from shared.geometry import inverse, line_angle_diff, transform_points, wrap_angle
@@ -152,9 +153,14 @@ def test_invalid_readings_are_dropped():
     np.testing.assert_array_equal(np.sort(seg.point_beam), np.flatnonzero(expected))
     np.testing.assert_allclose(seg.points, np.c_[r * np.cos(ang), r * np.sin(ang)][seg.point_beam])
     assert np.all(np.isfinite(seg.endpoints)) and np.all(np.isfinite(seg.cov))
+    # scan_points keeps the same readings, without segmenting them
+    np.testing.assert_array_equal(scan_points(r, ang, ExtractionConfig(), range_max_m=8.0), seg.points)
     # a reading beyond max_usable_range_m is dropped even below the scan's range_max_m
     seg = extract_segments(r, ang, ExtractionConfig(max_usable_range_m=3.0), range_max_m=80.0)
     assert np.all(r[seg.point_beam] < 3.0)
+    np.testing.assert_array_equal(
+        scan_points(r, ang, ExtractionConfig(max_usable_range_m=3.0), 80.0), seg.points
+    )
 
 
 def test_no_valid_reading_gives_empty_result():

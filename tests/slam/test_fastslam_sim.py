@@ -7,7 +7,6 @@ from robot_agent.replay import replay
 from robot_agent.sim import SimConfig, builtin_world, simulate_robot
 from robot_agent.sim.evaluate import score_run
 from robot_agent.slam.fastslam import SlamConfig
-from robot_agent.sources import LaserLog
 
 DURATION_S = 200.0  # office: the route comes back over its start after about 130 s
 
@@ -16,9 +15,7 @@ DURATION_S = 200.0  # office: the route comes back over its start after about 13
 def office_run():
     world = builtin_world("office")
     sim = simulate_robot(world, 0, DURATION_S, 0, SimConfig())
-    log = LaserLog.from_arrays(
-        sim.stamps_s, sim.ranges_m, sim.angles_rad, sim.odometry, sim.laser_offset, sim.range_max_m
-    )
+    log = sim.to_log()
     res = replay(log, SlamConfig(), seed=0, progress=False)
     gm, keep = res.slam.published_map()
     return sim, score_run(sim, world, res.stamps_s, res.poses, gm.seg[keep])

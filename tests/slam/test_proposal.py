@@ -7,7 +7,7 @@ import pytest
 from robot_agent.slam.association import AssociationConfig
 from robot_agent.slam.lines import fit_lines, line_covariance, moments_of
 from robot_agent.slam.particles import SegmentMaps
-from robot_agent.slam.proposal import ProposalConfig, align
+from robot_agent.slam.proposal import ProposalConfig, align, associate_points
 from shared.geometry import apply_points, inverse, wrap_angle
 
 POINTS_PER_M = 20
@@ -76,7 +76,9 @@ def scan_points(walls, pose):
 MODES = ["points", "segments"]
 
 
-def run(walls, mode="points", cfg=None):
+def run(walls, mode="points", cfg=None, maps=None):
+    """Align the scan of ``walls`` from TRUE_POSE, starting at the offset prior, to ``maps``
+    (default: the same walls)."""
     mean, cov = prior()
     m, ends, facing, seg_cov = scan(walls, TRUE_POSE)
     res = align(
@@ -86,7 +88,7 @@ def run(walls, mode="points", cfg=None):
         ends,
         facing,
         seg_cov,
-        build_maps(walls, len(mean)),
+        build_maps(walls, len(mean)) if maps is None else maps,
         AssociationConfig(),
         cfg or ProposalConfig(measurement=mode),
         scan_points(walls, TRUE_POSE),
@@ -146,20 +148,7 @@ def test_one_wall_corrects_the_across_offset_and_heading_but_not_the_along_offse
 
 @pytest.mark.parametrize("mode", MODES)
 def test_empty_map_returns_the_prior(mode):
-    mean, cov = prior()
-    m, ends, facing, seg_cov = scan(CORNER_ROOM, TRUE_POSE)
-    res = align(
-        mean,
-        cov,
-        m,
-        ends,
-        facing,
-        seg_cov,
-        SegmentMaps.empty(2, 4),
-        AssociationConfig(),
-        ProposalConfig(measurement=mode),
-        scan_points(CORNER_ROOM, TRUE_POSE),
-    )
+    mean, cov, res = run(CORNER_ROOM, mode, maps=SegmentMaps.empty(2, 4))
     np.testing.assert_array_equal(res.n_matched, 0)
     np.testing.assert_allclose(res.mean, mean, atol=1e-12)
     np.testing.assert_allclose(res.cov, cov, rtol=1e-9)
@@ -177,37 +166,23 @@ def test_sample_scale_scales_the_covariance(sample_scale, mode):
 def test_points_behind_an_element_or_beyond_its_extent_are_not_associated():
     """A point is matched only to an element whose free side faces the sensor and whose extent
     (plus the margin) it falls in: the back of a thin wall and the wall's continuation past a
-    doorway are not evidence."""
-    mean, cov = prior()
+    doorway are not evidence. Points exactly on the line: only those two tests can refuse them."""
     wall = [(((0.0, 0.0), (6.0, 0.0)), np.pi / 2)]
     maps = build_maps(wall, 2)
     cfg = ProposalConfig()
-    m, ends, facing, seg_cov = scan(wall, TRUE_POSE)
+
+    def matches(pose, walls_seen):
+        poses = np.tile(pose, (2, 1))
+        idx = associate_points(
+            poses, scan_points(walls_seen, pose), maps, cfg.point_gate_m, cfg.extent_margin_m
+        )
+        assert idx.shape == (2, len(scan_points(walls_seen, pose)))
+        return idx
+
     # the wall's back: the same line seen from below (the robot mirrored across it)
-    below = TRUE_POSE * np.array([1.0, -1.0, -1.0])
-    res = align(
-        mean * [1, -1, -1],
-        cov,
-        m,
-        ends,
-        facing,
-        seg_cov,
-        maps,
-        AssociationConfig(),
-        cfg,
-        scan_points(wall, below),
-    )
-    np.testing.assert_array_equal(res.n_matched, 0)
+    np.testing.assert_array_equal(matches(TRUE_POSE * np.array([1.0, -1.0, -1.0]), wall), -1)
     # points on the line but 1 m past the wall's end (beyond the 0.2 m margin)
-    past = [(((7.0, 0.0), (9.0, 0.0)), np.pi / 2)]
-    res = align(
-        mean, cov, m, ends, facing, seg_cov, maps, AssociationConfig(), cfg, scan_points(past, TRUE_POSE)
-    )
-    np.testing.assert_array_equal(res.n_matched, 0)
-    # ... and the ones within the margin are (seen from the true pose: no prior offset)
-    mean = np.tile(TRUE_POSE, (2, 1))
-    edge = [(((6.0, 0.0), (6.15, 0.0)), np.pi / 2)]
-    res = align(
-        mean, cov, m, ends, facing, seg_cov, maps, AssociationConfig(), cfg, scan_points(edge, TRUE_POSE)
-    )
-    assert np.all(res.n_matched == len(scan_points(edge, TRUE_POSE)))
+    np.testing.assert_array_equal(matches(TRUE_POSE, [(((7.0, 0.0), (9.0, 0.0)), np.pi / 2)]), -1)
+    # ... and the ones within the margin are, like the wall's own points
+    np.testing.assert_array_equal(matches(TRUE_POSE, [(((6.0, 0.0), (6.15, 0.0)), np.pi / 2)]), 0)
+    np.testing.assert_array_equal(matches(TRUE_POSE, wall), 0)
