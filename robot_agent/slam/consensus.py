@@ -28,7 +28,11 @@ class ConsensusConfig:
     refresh_min_trust: float = 0.5  # only elements the global map is sure of ...
     refresh_min_support: float = 0.5  # ... that most of the particle weight agrees exists ...
     refresh_quiet_steps: int = 30  # ... and that nobody has seen for this long (out of view)
-    publish_min_trust: float = 0.3  # the trusted subset the agent publishes
+    # the trusted subset the agent publishes. Trust includes the match quality, a running mean of
+    # exp(-cost/2) (a chi-square tail probability): about 0.5 for a true wall the model fits, lower
+    # for one seen only from far away or through a door. Elements refreshed or relocalized on
+    # keep the stricter trust of refresh_min_trust / relocalization.min_trust.
+    publish_min_trust: float = 0.15
     publish_min_hits: int = 3
 
 

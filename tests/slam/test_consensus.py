@@ -134,3 +134,22 @@ def test_global_version_comes_from_a_particle_that_holds_it():
     gm = build_global_map(ps, STEP, TrustConfig(), ConsensusConfig())
     assert gm.source[1] == 2
     assert gm.trust[1] > 0.0
+
+
+def test_published_subset_keeps_a_confirmed_wall_of_average_match_quality():
+    """Match quality is a chi-square tail probability, about 0.5 for a wall the model fits; a
+    well-confirmed element with that quality and some misses is published; one with too few hits
+    or seen through again and again is not."""
+    ps = ParticleSet.create(1)
+    ps.maps.misses[:] = 0.0
+    ps.log_weights = np.zeros(1)
+    m = ps.maps
+    put_element(m, 0, 0, (0.0, 2.0), (3.0, 2.0), DOWN, hits=40, quality=0.45)
+    m.misses[0, 0] = 1.5
+    put_element(m, 0, 1, (5.0, 0.0), (5.0, 3.0), LEFT, hits=2, quality=0.9)  # too few hits
+    put_element(m, 0, 2, (0.0, 6.0), (4.0, 6.0), DOWN, hits=40, quality=0.45)
+    m.misses[0, 2] = 2.9  # seen through again and again: about to be cleaned away
+    cfg = ConsensusConfig()
+    gm = build_global_map(ps, STEP, TrustConfig(), cfg)
+    published = gm.trusted(cfg.publish_min_trust, cfg.publish_min_hits)
+    np.testing.assert_array_equal(published, [True, False, False])
