@@ -11,9 +11,10 @@ from robot_agent.slam.association import (
     observe,
     pair_terms,
 )
-from robot_agent.slam.lines import fit_lines, line_covariance, moments_of
 from robot_agent.slam.particles import SegmentMaps
-from shared.geometry import apply_points, inverse, wrap_angle
+from shared.geometry import wrap_angle
+from tests.maps import put_element as maps_put
+from tests.maps import seen_from, wall_points
 
 POINTS_PER_M = 20
 POINT_SIGMA_M = 0.02
@@ -22,35 +23,14 @@ TRUE_POSE = np.array([1.0, 0.5, 0.3])
 PARTICLE_OFFSETS = np.array([[0.0, 0.0, 0.0], [0.02, -0.01, 0.0], [-0.015, 0.02, 0.01]])
 
 
-def _points(a, b):
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    n = max(round(np.hypot(*(b - a)) * POINTS_PER_M) + 1, 5)
-    return np.linspace(a, b, n)
-
-
 def scan_from_map(segments_map, pose):
     """Robot-frame ``moments (O,6), ends (O,2,2), facing (O,), cov (O,2,2)`` of walls given in the
-    map frame, seen from ``pose``: exact points, facing = the normal back to the sensor."""
-    to_robot = inverse(pose)
-    moments, ends = [], []
-    for a, b in segments_map:
-        moments.append(moments_of(apply_points(to_robot, _points(a, b))))
-        ends.append(apply_points(to_robot, np.array([a, b], float)))
-    moments, ends = np.array(moments), np.array(ends)
-    alpha, _, s2 = fit_lines(moments)
-    cov = line_covariance(moments, alpha, np.maximum(s2, POINT_SIGMA_M**2))
-    return moments, ends, wrap_angle(alpha + np.pi), cov
+    map frame, seen from ``pose`` (tests/maps.py)."""
+    return seen_from(segments_map, pose, POINT_SIGMA_M, POINTS_PER_M)
 
 
 def put_element(maps, col, a, b, facing, rows=slice(None)):
-    m = moments_of(_points(a, b))
-    alpha, rho, _ = fit_lines(m)
-    maps.valid[rows, col] = True
-    maps.seg[rows, col] = np.array([a, b], float)
-    maps.moments[rows, col] = m
-    maps.alpha[rows, col], maps.rho[rows, col] = alpha, rho
-    maps.facing[rows, col] = facing
-    maps.hits[rows, col] = 5
+    maps_put(maps, col, wall_points(a, b, POINTS_PER_M), facing, rows, ends=[a, b], hits=5)
 
 
 def _rotated(a, b, angle, centre):

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from robot_agent.slam.consensus import ConsensusConfig, build_global_map, refresh_particles
-from robot_agent.slam.lines import fit_lines, moments_of
 from robot_agent.slam.particles import ParticleSet
 from robot_agent.slam.update import TrustConfig, element_trust
+from tests.maps import put_element as maps_put
 
 STEP = 100
 WEIGHTS = np.array([0.8, 0.1, 0.1])  # particle 0 much heavier
@@ -14,16 +14,9 @@ DOWN, LEFT = -np.pi / 2, np.pi
 
 
 def put_element(maps, row, col, a, b, facing, *, born=0, last_seen=0, hits=10, quality=0.9):
-    pts = np.linspace(a, b, 21)
-    m = moments_of(pts)
-    alpha, rho, _ = fit_lines(m)
-    maps.valid[row, col] = True
-    maps.seg[row, col] = np.array([a, b], float)
-    maps.moments[row, col] = m
-    maps.alpha[row, col], maps.rho[row, col] = alpha, rho
-    maps.facing[row, col] = facing
-    maps.born[row, col], maps.last_seen[row, col], maps.hits[row, col] = born, last_seen, hits
-    maps.quality[row, col] = quality
+    points = np.linspace(a, b, 21)
+    fields = {"born": born, "last_seen": last_seen, "hits": hits, "quality": quality}
+    maps_put(maps, col, points, facing, row, ends=[a, b], **fields)
 
 
 def particle_set():
@@ -141,7 +134,6 @@ def test_published_subset_keeps_a_confirmed_wall_of_average_match_quality():
     well-confirmed element with that quality and some misses is published; one with too few hits
     or seen through again and again is not."""
     ps = ParticleSet.create(1)
-    ps.maps.misses[:] = 0.0
     ps.log_weights = np.zeros(1)
     m = ps.maps
     put_element(m, 0, 0, (0.0, 2.0), (3.0, 2.0), DOWN, hits=40, quality=0.45)

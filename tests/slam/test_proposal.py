@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 
 from robot_agent.slam.association import AssociationConfig
-from robot_agent.slam.lines import fit_lines, line_covariance, moments_of
+from robot_agent.slam.lines import fit_lines
 from robot_agent.slam.particles import SegmentMaps
 from robot_agent.slam.proposal import ProposalConfig, align, associate_points
 from shared.geometry import apply_points, inverse, wrap_angle
+from tests.maps import put_element, seen_from, wall_points
 
 POINTS_PER_M = 20
 TRUE_POSE = np.array([2.5, 2.0, 0.4])
@@ -29,34 +30,18 @@ NORMAL_30 = np.array([-DIR_30[1], DIR_30[0]])
 ONE_WALL = [(((0.0, -1.0), tuple(np.array([0.0, -1.0]) + 8.0 * DIR_30)), np.radians(120.0))]
 
 
-def _points(a, b):
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    return np.linspace(a, b, round(np.hypot(*(b - a)) * POINTS_PER_M) + 1)
-
-
 def build_maps(walls, n_particles):
     """Every particle holds the same walls (exact TLS lines from their points)."""
     maps = SegmentMaps.empty(n_particles, 4)
     for col, ((a, b), facing) in enumerate(walls):
-        m = moments_of(_points(a, b))
-        alpha, rho, _ = fit_lines(m)
-        maps.valid[:, col] = True
-        maps.seg[:, col] = np.array([a, b])
-        maps.moments[:, col] = m
-        maps.alpha[:, col], maps.rho[:, col] = alpha, rho
-        maps.facing[:, col] = facing
-        maps.hits[:, col] = 10
+        put_element(maps, col, wall_points(a, b, POINTS_PER_M), facing, ends=[a, b], hits=10)
     return maps
 
 
 def scan(walls, pose):
     """Robot-frame segments of the walls seen from ``pose``: moments, ends, facing, covariance."""
-    to_robot = inverse(pose)
-    moments = np.array([moments_of(apply_points(to_robot, _points(a, b))) for (a, b), _ in walls])
-    ends = np.array([apply_points(to_robot, np.array([a, b], float)) for (a, b), _ in walls])
+    moments, ends, _, cov = seen_from([ab for ab, _ in walls], pose, 0.02, POINTS_PER_M)
     facing = np.array([wrap_angle(f - pose[2]) for _, f in walls])
-    alpha, _, s2 = fit_lines(moments)
-    cov = line_covariance(moments, alpha, np.maximum(s2, 0.02**2))
     return moments, ends, facing, cov
 
 
@@ -70,7 +55,7 @@ def prior():
 
 def scan_points(walls, pose):
     """Every point of the walls in the robot frame ``(N,2)``: the scan the segments came from."""
-    return np.vstack([apply_points(inverse(pose), _points(a, b)) for (a, b), _ in walls])
+    return np.vstack([apply_points(inverse(pose), wall_points(a, b, POINTS_PER_M)) for (a, b), _ in walls])
 
 
 MODES = ["points", "segments"]

@@ -18,26 +18,15 @@ from robot_agent.slam.update import (
     visibility,
 )
 from shared.geometry import wrap_angle
+from tests.maps import put_element as maps_put
 
 DOWN, UP, LEFT = -np.pi / 2, np.pi / 2, np.pi
 
 
 def put_element(maps, col, points, facing, rows=slice(None), *, born=0, hits=5, quality=0.5, misses=0.0):
     """An element fitted to ``points (K,2)``, its extent their projection on the line."""
-    points = np.asarray(points, float)
-    m = moments_of(points)
-    alpha, rho, _ = fit_lines(m)
-    t, _ = project_to_line(points, alpha, rho)
-    maps.valid[rows, col] = True
-    maps.moments[rows, col] = m
-    maps.alpha[rows, col], maps.rho[rows, col] = alpha, rho
-    maps.seg[rows, col] = np.array([points[np.argmin(t)], points[np.argmax(t)]])
-    maps.facing[rows, col] = facing
-    maps.born[rows, col] = born
-    maps.last_seen[rows, col] = born
-    maps.hits[rows, col] = hits
-    maps.quality[rows, col] = quality
-    maps.misses[rows, col] = misses
+    fields = {"born": born, "last_seen": born, "hits": hits, "quality": quality, "misses": misses}
+    maps_put(maps, col, points, facing, rows, **fields)
 
 
 def hline(x0, x1, y, n):
