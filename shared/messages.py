@@ -1,0 +1,321 @@
+"""Wire messages (frozen dataclasses) with a schema version — the contract between agents and server.
+
+Every message validates itself on construction (``__post_init__``): shapes, dtypes, finite values,
+ranges and size limits. ``shared/codec.py`` turns bytes into these objects, so a decoded message is
+a valid message; a bad one raises :class:`WireFormatError` naming the field and what is wrong.
+
+Frames: a robot's map and poses are in its own *map frame* (where its filter started, the origin);
+the fused map and ``RobotStatus.transform`` / ``pose`` are in the *global frame*.
+``transform`` maps the robot's map frame into the global frame (``global = transform ∘ local``).
+
+Large maps travel as bounded chunks (``chunk`` of ``n_chunks``, at most ``MAX_CHUNK_ELEMENTS``
+elements each), every chunk carrying the small header; the receiver assembles a map when all
+chunks of one ``(session, seq)`` are in.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+SCHEMA_VERSION = 1
+
+MAX_CHUNK_ELEMENTS = 2048  # elements (segments) per chunk: ~64 KB per message
+MAX_CHUNKS = 64  # chunks per map: bounds a robot map at 131,072 elements
+MAX_PARTICLES = 64  # top particles per robot map (the membership mask is a uint64)
+MAX_ROBOTS = 256  # robots in one fused map
+MAX_ID_LENGTH = 64
+MAX_COORD_M = 1.0e5  # |x|, |y| of any point or pose: 100 km
+ID_PATTERN = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")  # robot ids are key-expression chunks
+
+ALIGNMENT_STATUSES = ("reference", "prior", "aligned", "unaligned")
+
+
+class WireFormatError(ValueError):
+    """A message that is not a valid fleet-slam message; the text says which field and why."""
+
+
+# -- validation helpers -----------------------------------------------------------------------
+
+
+def check_id(name: str, value: object) -> str:
+    if not isinstance(value, str) or not ID_PATTERN.match(value):
+        raise WireFormatError(
+            f"{name}: expected 1-{MAX_ID_LENGTH} characters of [A-Za-z0-9_-], got {value!r:.80}"
+        )
+    return value
+
+
+def check_int(name: str, value: object, lo: int = 0, hi: int = 2**63 - 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise WireFormatError(f"{name}: expected an integer, got {type(value).__name__}")
+    if not lo <= int(value) <= hi:
+        raise WireFormatError(f"{name}: {value} out of range [{lo}, {hi}]")
+    return int(value)
+
+
+def check_float(name: str, value: object, lo: float = -math.inf, hi: float = math.inf) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
+        raise WireFormatError(f"{name}: expected a number, got {type(value).__name__}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise WireFormatError(f"{name}: not finite ({v})")
+    if not lo <= v <= hi:
+        raise WireFormatError(f"{name}: {v} out of range [{lo}, {hi}]")
+    return v
+
+
+def check_array(
+    name: str,
+    value: object,
+    shape: tuple[int | None, ...],
+    kind: str = "f",
+    lo: float = -math.inf,
+    hi: float = math.inf,
+) -> np.ndarray:
+    """``value`` as an array of ``shape`` (``None`` = any length) and dtype kind ``f`` (float64) or
+    ``i`` (int64), every value finite and in ``[lo, hi]``; raises naming ``name`` otherwise."""
+    if not isinstance(value, np.ndarray):
+        raise WireFormatError(f"{name}: expected an array, got {type(value).__name__}")
+    bad = value.ndim != len(shape) or any(
+        s is not None and s != d for s, d in zip(shape, value.shape, strict=True)
+    )
+    if bad:
+        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+        raise WireFormatError(f"{name}: expected shape {want}, got {value.shape}")
+    if kind == "f":
+        if value.dtype.kind not in "fiu":
+            raise WireFormatError(f"{name}: expected numbers, got dtype {value.dtype}")
+        arr = value.astype(np.float64, copy=False)
+        if not np.all(np.isfinite(arr)):
+            raise WireFormatError(f"{name}: contains NaN or inf")
+    else:
+        if value.dtype.kind not in "iu":
+            raise WireFormatError(f"{name}: expected integers, got dtype {value.dtype}")
+        arr = value.astype(np.int64, copy=False)
+    if arr.size and (arr.min() < lo or arr.max() > hi):
+        raise WireFormatError(f"{name}: values out of range [{lo}, {hi}] (min {arr.min()}, max {arr.max()})")
+    return arr
+
+
+def _freeze(obj: object, **arrays: np.ndarray) -> None:
+    for k, v in arrays.items():
+        v = np.array(v, copy=True)
+        v.setflags(write=False)
+        object.__setattr__(obj, k, v)
+
+
+def _pose(name: str, value: object) -> np.ndarray:
+    arr = check_array(name, value, (3,), lo=-MAX_COORD_M, hi=MAX_COORD_M)
+    return arr
+
+
+# -- messages ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class RobotMap:
+    """One chunk of a robot's trusted segment map: the top particles' trusted elements.
+
+    Elements shared by several top particles are sent once; ``members`` is a bitmask over the
+    ``K`` particles (bit k set: particle k's map has this element version).
+
+    - ``particle_weights (K,)`` normalized weights of the top particles (sum ≤ 1: the rest is
+      the weight of the particles not sent), ``particle_poses (K,3)`` their current poses;
+    - ``seg (N,2,2)`` endpoints [m] in the robot's map frame, ``element (N,)`` element identity
+      (the same id in several particles = one landmark seen by each), ``members (N,)``,
+      ``trust (N,)`` in [0, 1] (match quality × age × confirmation, report §5), ``hits (N,)``
+      observations merged, ``age (N,)`` filter steps since the element was born;
+    - ``prior (3,)`` the robot's map frame in the global frame when known (a start-pose prior),
+      with ``prior_sigma (3,)`` [m, m, rad]; ``None`` when the server must estimate it.
+    """
+
+    robot: str
+    session: str
+    seq: int
+    stamp_s: float
+    chunk: int
+    n_chunks: int
+    particle_weights: np.ndarray
+    particle_poses: np.ndarray
+    seg: np.ndarray
+    element: np.ndarray
+    members: np.ndarray
+    trust: np.ndarray
+    hits: np.ndarray
+    age: np.ndarray
+    prior: np.ndarray | None = None
+    prior_sigma: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        check_id("robot", self.robot)
+        check_id("session", self.session)
+        check_int("seq", self.seq)
+        check_float("stamp_s", self.stamp_s, lo=0.0)
+        n_chunks = check_int("n_chunks", self.n_chunks, 1, MAX_CHUNKS)
+        check_int("chunk", self.chunk, 0, n_chunks - 1)
+        w = check_array("particle_weights", self.particle_weights, (None,), lo=0.0, hi=1.0)
+        k = len(w)
+        if not 1 <= k <= MAX_PARTICLES:
+            raise WireFormatError(f"particle_weights: {k} particles, expected 1..{MAX_PARTICLES}")
+        if w.sum() > 1.0 + 1e-6:
+            raise WireFormatError(f"particle_weights: sum {w.sum():.6f} exceeds 1")
+        poses = check_array("particle_poses", self.particle_poses, (k, 3), lo=-MAX_COORD_M, hi=MAX_COORD_M)
+        seg = check_array("seg", self.seg, (None, 2, 2), lo=-MAX_COORD_M, hi=MAX_COORD_M)
+        n = len(seg)
+        if n > MAX_CHUNK_ELEMENTS:
+            raise WireFormatError(f"seg: {n} elements in one chunk, at most {MAX_CHUNK_ELEMENTS}")
+        element = check_array("element", self.element, (n,), "i", 0, 2**62)
+        members = check_array("members", self.members, (n,), "i", 1, 2**k - 1)
+        trust = check_array("trust", self.trust, (n,), lo=0.0, hi=1.0)
+        hits = check_array("hits", self.hits, (n,), "i", 0, 2**40)
+        age = check_array("age", self.age, (n,), "i", 0, 2**40)
+        arrays = dict(
+            particle_weights=w, particle_poses=poses, seg=seg, element=element,
+            members=members, trust=trust, hits=hits, age=age,
+        )  # fmt: skip
+        if (self.prior is None) != (self.prior_sigma is None):
+            raise WireFormatError("prior and prior_sigma: give both or neither")
+        if self.prior is not None:
+            arrays["prior"] = _pose("prior", self.prior)
+            arrays["prior_sigma"] = check_array("prior_sigma", self.prior_sigma, (3,), lo=0.0, hi=MAX_COORD_M)
+        _freeze(self, **arrays)
+
+    @property
+    def n_particles(self) -> int:
+        return len(self.particle_weights)
+
+
+@dataclass(frozen=True, eq=False)
+class PoseUpdate:
+    """A robot's current pose ``(3,)`` in its own map frame (sent often, small)."""
+
+    robot: str
+    session: str
+    seq: int
+    stamp_s: float
+    pose: np.ndarray
+
+    def __post_init__(self) -> None:
+        check_id("robot", self.robot)
+        check_id("session", self.session)
+        check_int("seq", self.seq)
+        check_float("stamp_s", self.stamp_s, lo=0.0)
+        _freeze(self, pose=_pose("pose", self.pose))
+
+
+@dataclass(frozen=True, eq=False)
+class RobotStatus:
+    """One robot as the server sees it.
+
+    ``status``: ``reference`` (its map frame defines the global frame), ``prior`` (placed by a
+    start-pose prior), ``aligned`` (placed by map matching), ``unaligned`` (not merged).
+    ``transform (3,)`` its map frame in the global frame with ``sigma (3,)`` [m, m, rad];
+    ``pose (3,)`` its latest pose in the global frame (``None`` if unaligned or never heard).
+    ``aligned_at_s`` server time (seconds since the server's first message) of its first merge.
+    """
+
+    robot: str
+    status: str
+    online: bool
+    session: str
+    map_seq: int
+    n_elements: int
+    transform: np.ndarray
+    sigma: np.ndarray
+    pose: np.ndarray | None = None
+    pose_stamp_s: float = 0.0
+    aligned_at_s: float | None = None
+
+    def __post_init__(self) -> None:
+        check_id("robot", self.robot)
+        if self.status not in ALIGNMENT_STATUSES:
+            raise WireFormatError(f"status: {self.status!r:.40} is not one of {ALIGNMENT_STATUSES}")
+        if not isinstance(self.online, bool):
+            raise WireFormatError(f"online: expected a bool, got {type(self.online).__name__}")
+        check_id("session", self.session)
+        check_int("map_seq", self.map_seq)
+        check_int("n_elements", self.n_elements, 0, MAX_CHUNKS * MAX_CHUNK_ELEMENTS)
+        check_float("pose_stamp_s", self.pose_stamp_s, lo=0.0)
+        if self.aligned_at_s is not None:
+            check_float("aligned_at_s", self.aligned_at_s, lo=0.0)
+        arrays = {
+            "transform": _pose("transform", self.transform),
+            "sigma": check_array("sigma", self.sigma, (3,), lo=0.0, hi=MAX_COORD_M),
+        }
+        if self.pose is not None:
+            arrays["pose"] = _pose("pose", self.pose)
+        _freeze(self, **arrays)
+
+    @property
+    def merged(self) -> bool:
+        return self.status != "unaligned"
+
+
+@dataclass(frozen=True, eq=False)
+class FusedMap:
+    """One chunk of the fused map (global frame).
+
+    ``seg (M,2,2)`` segments, ``support (M,)`` how many robot-map elements were merged into each,
+    provenance as CSR: the robots (indices into ``robots``) that contributed to segment ``i`` are
+    ``prov_robot[prov_offsets[i]:prov_offsets[i+1]]``. ``robots`` (every chunk carries the full
+    table) and ``version`` (increases with every change) identify the snapshot.
+    """
+
+    server: str
+    version: int
+    stamp_s: float
+    chunk: int
+    n_chunks: int
+    robots: tuple[RobotStatus, ...]
+    seg: np.ndarray
+    support: np.ndarray
+    prov_offsets: np.ndarray
+    prov_robot: np.ndarray
+    extra: dict = field(default_factory=dict)  # up to 32 named numbers (e.g. fusion time)
+
+    def __post_init__(self) -> None:
+        check_id("server", self.server)
+        check_int("version", self.version)
+        check_float("stamp_s", self.stamp_s, lo=0.0)
+        n_chunks = check_int("n_chunks", self.n_chunks, 1, MAX_CHUNKS)
+        check_int("chunk", self.chunk, 0, n_chunks - 1)
+        if not isinstance(self.robots, tuple) or not all(isinstance(r, RobotStatus) for r in self.robots):
+            raise WireFormatError("robots: expected a tuple of RobotStatus")
+        if len(self.robots) > MAX_ROBOTS:
+            raise WireFormatError(f"robots: {len(self.robots)} robots, at most {MAX_ROBOTS}")
+        names = [r.robot for r in self.robots]
+        if len(set(names)) != len(names):
+            raise WireFormatError("robots: duplicate robot ids")
+        seg = check_array("seg", self.seg, (None, 2, 2), lo=-MAX_COORD_M, hi=MAX_COORD_M)
+        m = len(seg)
+        if m > MAX_CHUNK_ELEMENTS:
+            raise WireFormatError(f"seg: {m} segments in one chunk, at most {MAX_CHUNK_ELEMENTS}")
+        support = check_array("support", self.support, (m,), "i", 1, 2**40)
+        offsets = check_array("prov_offsets", self.prov_offsets, (m + 1,), "i", 0, m * MAX_ROBOTS)
+        if offsets[0] != 0 or np.any(np.diff(offsets) < 1):
+            raise WireFormatError("prov_offsets: must start at 0 and increase (every segment has a robot)")
+        if m and not self.robots:
+            raise WireFormatError("prov_robot: segments but the robot table is empty")
+        n_prov = (int(offsets[-1]),)
+        prov = check_array("prov_robot", self.prov_robot, n_prov, "i", 0, max(len(self.robots) - 1, 0))
+        if not isinstance(self.extra, dict) or len(self.extra) > 32:
+            raise WireFormatError("extra: expected a dict of at most 32 entries")
+        for k, v in self.extra.items():
+            if not isinstance(k, str) or len(k) > MAX_ID_LENGTH:
+                raise WireFormatError(f"extra: bad key {k!r:.40}")
+            check_float(f"extra[{k}]", v)
+        _freeze(self, seg=seg, support=support, prov_offsets=offsets, prov_robot=prov)
+
+    def provenance(self, i: int) -> list[str]:
+        a, b = self.prov_offsets[i], self.prov_offsets[i + 1]
+        return [self.robots[j].robot for j in self.prov_robot[a:b]]
+
+    def robot(self, robot_id: str) -> RobotStatus | None:
+        return next((r for r in self.robots if r.robot == robot_id), None)
+
+
+Message = RobotMap | PoseUpdate | FusedMap
