@@ -9,8 +9,13 @@ the fused map and ``RobotStatus.transform`` / ``pose`` are in the *global frame*
 ``transform`` maps the robot's map frame into the global frame (``global = transform ∘ local``).
 
 Large maps travel as bounded chunks (``chunk`` of ``n_chunks``, at most ``MAX_CHUNK_ELEMENTS``
-elements each), every chunk carrying the small header; the receiver assembles a map when all
-chunks of one ``(session, seq)`` are in.
+elements each — the codec refuses to encode or decode a bigger chunk), every chunk carrying the
+small header; the receiver assembles a map when all chunks of one ``(session, seq)`` are in. An
+assembled map is the same dataclass with ``chunk=0, n_chunks=1`` and up to ``MAX_MAP_ELEMENTS``.
+
+Segments are directed: the sensor saw the wall from the *left* of ``p0 → p1``, i.e. the facing
+normal (pointing back to where the wall was seen from) is ``direction(p1 - p0)`` rotated by +90°.
+Map matching relies on it so that the two faces of a thin wall never match.
 """
 
 from __future__ import annotations
@@ -24,7 +29,8 @@ import numpy as np
 SCHEMA_VERSION = 1
 
 MAX_CHUNK_ELEMENTS = 2048  # elements (segments) per chunk: ~64 KB per message
-MAX_CHUNKS = 64  # chunks per map: bounds a robot map at 131,072 elements
+MAX_CHUNKS = 64  # chunks per map
+MAX_MAP_ELEMENTS = MAX_CHUNKS * MAX_CHUNK_ELEMENTS  # 131,072 elements in an assembled map
 MAX_PARTICLES = 64  # top particles per robot map (the membership mask is a uint64)
 MAX_ROBOTS = 256  # robots in one fused map
 MAX_ID_LENGTH = 64
@@ -166,8 +172,8 @@ class RobotMap:
         poses = check_array("particle_poses", self.particle_poses, (k, 3), lo=-MAX_COORD_M, hi=MAX_COORD_M)
         seg = check_array("seg", self.seg, (None, 2, 2), lo=-MAX_COORD_M, hi=MAX_COORD_M)
         n = len(seg)
-        if n > MAX_CHUNK_ELEMENTS:
-            raise WireFormatError(f"seg: {n} elements in one chunk, at most {MAX_CHUNK_ELEMENTS}")
+        if n > MAX_MAP_ELEMENTS:
+            raise WireFormatError(f"seg: {n} elements, at most {MAX_MAP_ELEMENTS}")
         element = check_array("element", self.element, (n,), "i", 0, 2**62)
         members = check_array("members", self.members, (n,), "i", 1, 2**k - 1)
         trust = check_array("trust", self.trust, (n,), lo=0.0, hi=1.0)
@@ -238,7 +244,7 @@ class RobotStatus:
             raise WireFormatError(f"online: expected a bool, got {type(self.online).__name__}")
         check_id("session", self.session)
         check_int("map_seq", self.map_seq)
-        check_int("n_elements", self.n_elements, 0, MAX_CHUNKS * MAX_CHUNK_ELEMENTS)
+        check_int("n_elements", self.n_elements, 0, MAX_MAP_ELEMENTS)
         check_float("pose_stamp_s", self.pose_stamp_s, lo=0.0)
         if self.aligned_at_s is not None:
             check_float("aligned_at_s", self.aligned_at_s, lo=0.0)
@@ -292,8 +298,8 @@ class FusedMap:
             raise WireFormatError("robots: duplicate robot ids")
         seg = check_array("seg", self.seg, (None, 2, 2), lo=-MAX_COORD_M, hi=MAX_COORD_M)
         m = len(seg)
-        if m > MAX_CHUNK_ELEMENTS:
-            raise WireFormatError(f"seg: {m} segments in one chunk, at most {MAX_CHUNK_ELEMENTS}")
+        if m > MAX_MAP_ELEMENTS:
+            raise WireFormatError(f"seg: {m} segments, at most {MAX_MAP_ELEMENTS}")
         support = check_array("support", self.support, (m,), "i", 1, 2**40)
         offsets = check_array("prov_offsets", self.prov_offsets, (m + 1,), "i", 0, m * MAX_ROBOTS)
         if offsets[0] != 0 or np.any(np.diff(offsets) < 1):
