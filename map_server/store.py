@@ -1,0 +1,118 @@
+"""Durable snapshot of the server's state under ``--state DIR``.
+
+Layout: ``DIR/state.json`` (the index: format version, JSON metadata, the names of the binary
+blobs with their SHA-256, and a SHA-256 of all that) and ``DIR/blobs/<sha256>.bin`` (content-
+addressed binary blobs, e.g. the encoded robot maps).
+
+Writes are atomic and ordered: new blobs are written (temp file, fsync, rename) before the index
+that names them replaces the old index (temp file, fsync, rename, fsync of the directory), and
+only then are unreferenced blobs deleted. A crash at any point leaves either the old or the new
+state, never a mix. Loading verifies every checksum: a damaged or foreign state raises
+:class:`StateError` naming the file and the problem — it is never silently loaded or discarded.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+
+STATE_FORMAT = 1
+MAX_INDEX_BYTES = 64 * 2**20
+
+
+class StateError(ValueError):
+    """The state directory cannot be loaded: the text says which file and why."""
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _canonical(obj: dict) -> bytes:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+class Store:
+    """A state directory. ``save(meta, blobs)`` / ``load() -> (meta, blobs) | None``."""
+
+    def __init__(self, directory: str | os.PathLike[str]):
+        self.dir = Path(directory)
+        self.index = self.dir / "state.json"
+        self.blob_dir = self.dir / "blobs"
+
+    def save(self, meta: dict, blobs: dict[str, bytes]) -> None:
+        """Persist ``meta`` (JSON-able, finite numbers) and the named binary ``blobs`` atomically."""
+        self.blob_dir.mkdir(parents=True, exist_ok=True)
+        names = {}
+        for name, data in blobs.items():
+            digest = _sha256(data)
+            path = self.blob_dir / f"{digest}.bin"
+            if not path.exists():
+                _atomic_write(path, data)
+            names[name] = digest
+        body = {"format": STATE_FORMAT, "meta": meta, "blobs": names}
+        doc = dict(body, sha256=_sha256(_canonical(body)))
+        _atomic_write(self.index, _canonical(doc))
+        keep = {f"{d}.bin" for d in names.values()}
+        for path in self.blob_dir.glob("*.bin"):
+            if path.name not in keep:
+                path.unlink(missing_ok=True)
+        for path in self.blob_dir.glob(".*.tmp"):  # left by a crash mid-write
+            path.unlink(missing_ok=True)
+
+    def load(self) -> tuple[dict, dict[str, bytes]] | None:
+        """The saved state, ``None`` if the directory holds none; :class:`StateError` if damaged."""
+        if not self.index.exists():
+            return None
+        raw = self.index.read_bytes()
+        if len(raw) > MAX_INDEX_BYTES:
+            raise StateError(f"{self.index}: {len(raw)} bytes, over {MAX_INDEX_BYTES}: not a state index")
+        try:
+            doc = json.loads(raw)
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise StateError(f"{self.index}: not valid JSON ({exc}); the state is damaged") from None
+        if not isinstance(doc, dict) or set(doc) != {"format", "meta", "blobs", "sha256"}:
+            raise StateError(f"{self.index}: not a fleet-slam state index (keys {sorted(doc)[:8]!r:.100})")
+        if doc["format"] != STATE_FORMAT:
+            raise StateError(f"{self.index}: state format {doc['format']!r}, this build reads {STATE_FORMAT}")
+        body = {k: doc[k] for k in ("format", "meta", "blobs")}
+        if _sha256(_canonical(body)) != doc["sha256"]:
+            raise StateError(f"{self.index}: checksum mismatch; the state is damaged")
+        if not isinstance(doc["blobs"], dict) or not isinstance(doc["meta"], dict):
+            raise StateError(f"{self.index}: meta and blobs must be objects")
+        blobs = {}
+        for name, digest in doc["blobs"].items():
+            path = self.blob_dir / f"{digest}.bin"
+            try:
+                data = path.read_bytes()
+            except OSError as exc:
+                raise StateError(f"{path}: blob {name!r} missing or unreadable ({exc.strerror})") from None
+            if _sha256(data) != digest:
+                raise StateError(f"{path}: blob {name!r} checksum mismatch; the state is damaged")
+            blobs[name] = data
+        return doc["meta"], blobs
