@@ -1,0 +1,356 @@
+"""Wire codec: messages <-> msgpack bytes. The only module that imports msgpack.
+
+A payload is one msgpack map ``{"schema": 1, "kind": ..., <fields>}``. Arrays travel as raw
+little-endian bytes with a fixed dtype per field (``WIRE_DTYPES``) beside the element counts they
+are checked against, so a short or long buffer is an error, never a silent reshape. Decoding trusts
+nothing: the size before unpacking, msgpack's own limits, the exact key set, python types, buffer
+lengths, then the message's validation (shapes, finite values, ranges; ``shared/messages.py``).
+
+Maps travel as chunks of at most ``MAX_CHUNK_ELEMENTS`` elements: :func:`robot_map_chunks`,
+:func:`fused_map_chunks`, :class:`Assembler` and :class:`SeqFilter` live in ``shared/chunks.py``
+(pure, no msgpack) and are re-exported here, so one import serves a sender or a receiver.
+:func:`encode_stored_map` / :func:`decode_stored_map` are the same format for a whole robot map at
+rest (the server's state), with the whole-map limits instead of the chunk limits.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import msgpack
+import numpy as np
+
+from shared.chunks import (
+    Assembler,
+    ChunkRejected,
+    SeqFilter,
+    fused_map_chunks,
+    join,
+    robot_map_chunks,
+    split,
+    split_fused_map,
+)
+from shared.messages import (
+    MAX_CHUNK_ELEMENTS,
+    MAX_MAP_ELEMENTS,
+    MAX_PARTICLES,
+    MAX_ROBOTS,
+    SCHEMA_VERSION,
+    FusedMap,
+    Message,
+    PoseUpdate,
+    RobotMap,
+    RobotStatus,
+    WireFormatError,
+)
+
+MAX_MESSAGE_BYTES = 1 << 20  # 1 MiB; a full robot-map chunk is ~90 KB (zenoh drops big puts under load)
+MAX_STORED_BYTES = 16 << 20  # a whole stored robot map: MAX_MAP_ELEMENTS × 44 bytes ≈ 5.8 MB
+MAX_STR_BYTES = 256  # longest string on the wire: ids and extra keys are at most 64 characters
+MAX_MAP_KEYS = 64  # largest msgpack map: the top level (~20 keys) or ``extra`` (32 entries)
+
+__all__ = [
+    "KINDS", "MAX_MESSAGE_BYTES", "WIRE_DTYPES", "Assembler", "ChunkRejected", "SeqFilter",
+    "decode", "decode_stored_map", "encode", "encode_stored_map", "fused_map_chunks", "join",
+    "robot_map_chunks", "split", "split_fused_map",
+]  # fmt: skip
+
+KINDS = {RobotMap: "robot_map", PoseUpdate: "pose", FusedMap: "fused_map"}
+
+# Fixed wire dtype of every array field, by field name (the same name has the same dtype everywhere).
+WIRE_DTYPES = {
+    "particle_weights": "<f8", "particle_poses": "<f8", "prior": "<f8", "prior_sigma": "<f8",
+    "pose": "<f8", "transform": "<f8", "sigma": "<f8",
+    "seg": "<f4", "trust": "<f4",  # float32: 8 µm at 100 m, 8 mm at the 100 km coordinate limit
+    "element": "<i8", "members": "<u8", "hits": "<u4", "age": "<u4",
+    "support": "<u4", "prov_offsets": "<u4", "prov_robot": "<u2",
+}  # fmt: skip
+
+# The exact key set of each map on the wire (besides "schema" and "kind" at the top level).
+KEYS = {
+    "robot_map": (
+        "robot", "session", "seq", "stamp_s", "chunk", "n_chunks", "n_particles", "n_elements",
+        "particle_weights", "particle_poses", "seg", "element", "members", "trust", "hits", "age",
+        "prior", "prior_sigma",
+    ),
+    "pose": ("robot", "session", "seq", "stamp_s", "pose"),
+    "fused_map": (
+        "server", "version", "stamp_s", "chunk", "n_chunks", "robots", "n_segments", "n_prov",
+        "seg", "support", "prov_offsets", "prov_robot", "extra",
+    ),
+    "robot_status": (
+        "robot", "status", "online", "session", "map_seq", "n_elements", "transform", "sigma", "pose",
+        "pose_stamp_s", "aligned_at_s",
+    ),
+}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class _Limits:
+    what: str
+    elements: int  # per message
+    bytes: int  # per payload
+
+
+_WIRE = _Limits("message", MAX_CHUNK_ELEMENTS, MAX_MESSAGE_BYTES)
+_STORED = _Limits("stored map", MAX_MAP_ELEMENTS, MAX_STORED_BYTES)
+
+# Message text that marks an exception the decoder did not expect: a codec bug (the fuzz tests look for it).
+UNEXPECTED = "unexpected decoder error"
+
+
+# -- encode -----------------------------------------------------------------------------------
+
+
+def encode(msg: Message) -> bytes:
+    """``msg`` as msgpack bytes; refuses (WireFormatError) a chunk over ``MAX_CHUNK_ELEMENTS``."""
+    return _encode(msg, _WIRE)
+
+
+def encode_stored_map(msg: RobotMap) -> bytes:
+    """A whole robot map (up to ``MAX_MAP_ELEMENTS``) as bytes for storage at rest, never for the bus."""
+    if not isinstance(msg, RobotMap):
+        raise TypeError(f"encode_stored_map: expected a RobotMap, got {type(msg).__name__}")
+    return _encode(msg, _STORED)
+
+
+def _encode(msg: Message, limits: _Limits) -> bytes:
+    kind = KINDS.get(type(msg))
+    if kind is None:
+        raise TypeError(f"encode: expected RobotMap, PoseUpdate or FusedMap, got {type(msg).__name__}")
+    if kind != "pose" and len(msg.seg) > limits.elements:
+        raise WireFormatError(f"seg: {len(msg.seg)} elements in one {limits.what}, at most {limits.elements}")
+    fields = {"schema": SCHEMA_VERSION, "kind": kind, **_ENCODERS[kind](msg)}
+    data = msgpack.packb(fields, use_bin_type=True)
+    if len(data) > limits.bytes:
+        raise WireFormatError(f"payload: {len(data)} bytes, at most {limits.bytes} in one {limits.what}")
+    return data
+
+
+def _wire(name: str, value: np.ndarray | None) -> bytes | None:
+    if value is None:
+        return None
+    dtype = np.dtype(WIRE_DTYPES[name])
+    arr = np.asarray(value)
+    if dtype.kind in "iu" and arr.size:
+        info = np.iinfo(dtype)
+        if arr.min() < info.min or arr.max() > info.max:
+            raise WireFormatError(
+                f"{name}: values [{arr.min()}, {arr.max()}] do not fit the wire dtype {dtype}"
+            )
+    return arr.astype(dtype, copy=False).tobytes()
+
+
+def _arrays(obj: object, *names: str) -> dict:
+    return {name: _wire(name, getattr(obj, name)) for name in names}
+
+
+def _encode_robot_map(m: RobotMap) -> dict:
+    return {
+        "robot": m.robot, "session": m.session, "seq": int(m.seq), "stamp_s": float(m.stamp_s),
+        "chunk": int(m.chunk), "n_chunks": int(m.n_chunks),
+        "n_particles": m.n_particles, "n_elements": len(m.seg),
+        **_arrays(m, "particle_weights", "particle_poses", "seg", "element", "members", "trust", "hits",
+                  "age", "prior", "prior_sigma"),
+    }  # fmt: skip
+
+
+def _encode_pose(m: PoseUpdate) -> dict:
+    return {"robot": m.robot, "session": m.session, "seq": int(m.seq), "stamp_s": float(m.stamp_s),
+            **_arrays(m, "pose")}  # fmt: skip
+
+
+def _encode_status(r: RobotStatus) -> dict:
+    return {
+        "robot": r.robot, "status": r.status, "online": r.online, "session": r.session,
+        "map_seq": int(r.map_seq), "n_elements": int(r.n_elements),
+        **_arrays(r, "transform", "sigma", "pose"), "pose_stamp_s": float(r.pose_stamp_s),
+        "aligned_at_s": None if r.aligned_at_s is None else float(r.aligned_at_s),
+    }  # fmt: skip
+
+
+def _encode_fused_map(m: FusedMap) -> dict:
+    return {
+        "server": m.server, "version": int(m.version), "stamp_s": float(m.stamp_s),
+        "chunk": int(m.chunk), "n_chunks": int(m.n_chunks),
+        "robots": [_encode_status(r) for r in m.robots],
+        "n_segments": len(m.seg), "n_prov": len(m.prov_robot),
+        **_arrays(m, "seg", "support", "prov_offsets", "prov_robot"),
+        "extra": {k: float(v) for k, v in m.extra.items()},
+    }  # fmt: skip
+
+
+_ENCODERS = {"robot_map": _encode_robot_map, "pose": _encode_pose, "fused_map": _encode_fused_map}
+
+
+# -- decode -----------------------------------------------------------------------------------
+
+
+def decode(data: bytes, expect: type | None = None) -> Message:
+    """The message in ``data``; ``expect`` (RobotMap, PoseUpdate or FusedMap) refuses any other kind.
+
+    Raises only :class:`WireFormatError`, whose text names the field and what is wrong.
+    """
+    if expect is not None and expect not in KINDS:
+        raise TypeError(f"decode: expect must be RobotMap, PoseUpdate, FusedMap or None, got {expect!r}")
+    return _guarded(data, expect, _WIRE)
+
+
+def decode_stored_map(data: bytes) -> RobotMap:
+    """The whole robot map in bytes from :func:`encode_stored_map` (checked as strictly as the wire)."""
+    return _guarded(data, RobotMap, _STORED)
+
+
+def _guarded(data: bytes, expect: type | None, limits: _Limits) -> Message:
+    try:
+        return _decode(data, expect, limits)
+    except WireFormatError:
+        raise
+    except Exception as e:  # defensive: hostile bytes must never raise anything else
+        raise WireFormatError(f"payload: {UNEXPECTED} {type(e).__name__}: {e}") from e
+
+
+def _decode(data: bytes, expect: type | None, limits: _Limits) -> Message:
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise WireFormatError(f"payload: expected bytes, got {type(data).__name__}")
+    size = memoryview(data).nbytes
+    if size > limits.bytes:
+        raise WireFormatError(f"payload: {size} bytes, at most {limits.bytes} in one {limits.what}")
+    if isinstance(data, memoryview):
+        data = data.tobytes()  # any layout or item format: the bytes as they are
+    try:
+        obj = msgpack.unpackb(
+            data, raw=False, strict_map_key=True, max_bin_len=limits.bytes, max_str_len=MAX_STR_BYTES,
+            max_array_len=MAX_ROBOTS, max_map_len=MAX_MAP_KEYS, max_ext_len=0,
+        )  # fmt: skip
+    except (ValueError, TypeError, OverflowError, msgpack.UnpackException) as e:
+        raise WireFormatError(f"payload: malformed msgpack ({type(e).__name__}: {e})") from None
+    if not isinstance(obj, dict):
+        raise WireFormatError(f"payload: expected a msgpack map at the top level, got {type(obj).__name__}")
+    fields = dict(obj)
+    if "schema" not in fields:
+        raise WireFormatError("schema: missing")
+    schema = fields.pop("schema")
+    if isinstance(schema, bool) or not isinstance(schema, int) or schema != SCHEMA_VERSION:
+        raise WireFormatError(
+            f"schema: unknown schema version {schema!r:.40}, this build speaks {SCHEMA_VERSION}"
+        )
+    if "kind" not in fields:
+        raise WireFormatError("kind: missing")
+    kind = fields.pop("kind")
+    if not isinstance(kind, str) or kind not in _DECODERS:
+        raise WireFormatError(f"kind: unknown kind {kind!r:.40}, expected one of {tuple(_DECODERS)}")
+    if expect is not None and kind != KINDS[expect]:
+        raise WireFormatError(f"kind: expected {KINDS[expect]}, got {kind}")
+    return _DECODERS[kind](_Reader(kind, fields, limits=limits))
+
+
+class _Reader:
+    """Typed access to one msgpack map whose key set must be exactly ``KEYS[kind]``."""
+
+    def __init__(self, kind: str, fields: dict, where: str = "", limits: _Limits | None = None):
+        self.fields, self.where, self.limits = fields, where, limits
+        missing = [k for k in KEYS[kind] if k not in fields]
+        unknown = [k for k in fields if k not in KEYS[kind]]
+        if missing:
+            raise WireFormatError(f"{where}{missing[0]}: missing field of {kind}")
+        if unknown:
+            raise WireFormatError(f"{where}{unknown[0]!r:.80}: unknown field of {kind}")
+
+    def _get(self, name: str, types: tuple[type, ...], what: str, optional: bool = False):
+        value = self.fields[name]
+        if value is None and optional:
+            return None
+        if isinstance(value, bool) is not (bool in types) or not isinstance(value, types):
+            raise WireFormatError(f"{self.where}{name}: expected {what}, got {type(value).__name__}")
+        return value
+
+    def integer(self, name: str) -> int:
+        return self._get(name, (int,), "an integer")
+
+    def number(self, name: str, optional: bool = False) -> float | None:
+        return self._get(name, (int, float), "a number", optional)
+
+    def text(self, name: str) -> str:
+        return self._get(name, (str,), "a string")
+
+    def flag(self, name: str) -> bool:
+        return self._get(name, (bool,), "a bool")
+
+    def items(self, name: str) -> list:
+        return self._get(name, (list,), "a list")
+
+    def mapping(self, name: str) -> dict:
+        return self._get(name, (dict,), "a map")
+
+    def count(self, name: str, hi: int) -> int:
+        n = self.integer(name)
+        if not 0 <= n <= hi:
+            raise WireFormatError(f"{self.where}{name}: {n} out of range [0, {hi}]")
+        return n
+
+    def array(self, name: str, shape: tuple[int, ...], optional: bool = False) -> np.ndarray | None:
+        buf = self._get(name, (bytes,), "bytes", optional)
+        if buf is None:
+            return None
+        dtype = np.dtype(WIRE_DTYPES[name])
+        want = int(np.prod(shape)) * dtype.itemsize
+        if len(buf) != want:
+            raise WireFormatError(
+                f"{self.where}{name}: {len(buf)} bytes, expected {want} (shape {shape} of {dtype.str})"
+            )
+        return np.frombuffer(buf, dtype).reshape(shape)
+
+
+def _decode_robot_map(r: _Reader) -> RobotMap:
+    k = r.count("n_particles", MAX_PARTICLES)
+    n = r.count("n_elements", r.limits.elements)
+    return RobotMap(
+        robot=r.text("robot"), session=r.text("session"), seq=r.integer("seq"), stamp_s=r.number("stamp_s"),
+        chunk=r.integer("chunk"), n_chunks=r.integer("n_chunks"),
+        particle_weights=r.array("particle_weights", (k,)), particle_poses=r.array("particle_poses", (k, 3)),
+        seg=r.array("seg", (n, 2, 2)), element=r.array("element", (n,)), members=r.array("members", (n,)),
+        trust=r.array("trust", (n,)), hits=r.array("hits", (n,)), age=r.array("age", (n,)),
+        prior=r.array("prior", (3,), optional=True), prior_sigma=r.array("prior_sigma", (3,), optional=True),
+    )  # fmt: skip
+
+
+def _decode_pose(r: _Reader) -> PoseUpdate:
+    return PoseUpdate(robot=r.text("robot"), session=r.text("session"), seq=r.integer("seq"),
+                      stamp_s=r.number("stamp_s"), pose=r.array("pose", (3,)))  # fmt: skip
+
+
+def _decode_status(i: int, item: object) -> RobotStatus:
+    where = f"robots[{i}]."
+    if not isinstance(item, dict):
+        raise WireFormatError(f"{where[:-1]}: expected a map, got {type(item).__name__}")
+    r = _Reader("robot_status", item, where)
+    try:
+        return RobotStatus(
+            robot=r.text("robot"), status=r.text("status"), online=r.flag("online"),
+            session=r.text("session"), map_seq=r.integer("map_seq"), n_elements=r.integer("n_elements"),
+            transform=r.array("transform", (3,)), sigma=r.array("sigma", (3,)),
+            pose=r.array("pose", (3,), optional=True),
+            pose_stamp_s=r.number("pose_stamp_s"), aligned_at_s=r.number("aligned_at_s", optional=True),
+        )  # fmt: skip
+    except WireFormatError as e:
+        if str(e).startswith(where):
+            raise
+        raise WireFormatError(f"{where}{e}") from None
+
+
+def _decode_fused_map(r: _Reader) -> FusedMap:
+    m = r.count("n_segments", MAX_CHUNK_ELEMENTS)
+    n_prov = r.count("n_prov", MAX_CHUNK_ELEMENTS * MAX_ROBOTS)
+    robots = r.items("robots")
+    return FusedMap(
+        server=r.text("server"), version=r.integer("version"), stamp_s=r.number("stamp_s"),
+        chunk=r.integer("chunk"), n_chunks=r.integer("n_chunks"),
+        robots=tuple(_decode_status(i, item) for i, item in enumerate(robots)),
+        seg=r.array("seg", (m, 2, 2)), support=r.array("support", (m,)),
+        prov_offsets=r.array("prov_offsets", (m + 1,)), prov_robot=r.array("prov_robot", (n_prov,)),
+        extra=r.mapping("extra"),
+    )  # fmt: skip
+
+
+_DECODERS = {"robot_map": _decode_robot_map, "pose": _decode_pose, "fused_map": _decode_fused_map}
