@@ -1,0 +1,199 @@
+"""The agent process: a scan source -> FastSLAM -> poses and trusted maps on the bus (DESIGN.md).
+
+:class:`AgentCore` turns scans into wire messages and knows nothing of zenoh; :func:`run_agent`
+drives it from a source at the source's own pace (``speed`` × real time), publishes on a
+:class:`shared.bus.Bus`, answers queries for its latest map (so a restarted server can pull it),
+holds a liveliness token, and writes its trajectory when asked.
+
+Frames: the filter starts at the origin of the robot's *map frame*. A start-pose prior (the map
+frame in the global frame), when given, travels with every map so the server can place the robot.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from robot_agent.publish import MapArrays, PublishConfig, top_particle_maps
+from robot_agent.slam.fastslam import Estimate, FastSLAM
+from robot_agent.sources.base import Scan
+from shared import codec
+from shared.keys import Keys
+from shared.messages import PoseUpdate, RobotMap
+from shared.metrics import write_poses, write_tum
+
+log = logging.getLogger("fleet_slam.agent")
+
+DEFAULT_PRIOR_SIGMA = np.array([0.05, 0.05, np.radians(1.0)])  # a surveyed start pose
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    pose_period_s: float = 0.2  # source time between pose updates (5 Hz)
+    map_period_s: float = 1.0  # source time between map publications (only when the map changed)
+    speed: float = 1.0  # source seconds per wall second; 0 = as fast as possible
+    publish: PublishConfig = field(default_factory=PublishConfig)
+
+
+class AgentCore:
+    """Scans in, wire messages out: the bus-free part of an agent (testable without zenoh)."""
+
+    def __init__(
+        self,
+        robot: str,
+        slam: FastSLAM,
+        cfg: AgentConfig = AgentConfig(),
+        prior: np.ndarray | None = None,
+        prior_sigma: np.ndarray | None = None,
+        session: str | None = None,
+    ):
+        self.robot = robot
+        self.slam = slam
+        self.cfg = cfg
+        self.session = session or uuid.uuid4().hex[:16]
+        self.prior = None if prior is None else np.asarray(prior, float)
+        self.prior_sigma = (
+            None if prior is None else np.asarray(DEFAULT_PRIOR_SIGMA if prior_sigma is None else prior_sigma)
+        )
+        self.map_seq = 0
+        self.pose_seq = 0
+        self.scans = 0
+        self.estimate: Estimate | None = None
+        self.latest_map: list[RobotMap] = []  # chunks of the last published map
+        self._fingerprint: bytes | None = None
+        self._next_pose_s = -np.inf
+        self._next_map_s = -np.inf
+        self._last_stamp_s = 0.0
+
+    def step(self, scan: Scan) -> Estimate:
+        self.estimate = self.slam.step(
+            scan.stamp_s, scan.odometry, scan.ranges_m, scan.angles_rad, scan.laser_offset, scan.range_max_m
+        )
+        self.scans += 1
+        self._last_stamp_s = max(self._last_stamp_s, float(scan.stamp_s))
+        return self.estimate
+
+    def pose_message(self, force: bool = False) -> PoseUpdate | None:
+        """A pose update when one is due (every ``pose_period_s`` of source time)."""
+        if self.estimate is None or (not force and self._last_stamp_s < self._next_pose_s):
+            return None
+        self._next_pose_s = self._last_stamp_s + self.cfg.pose_period_s
+        msg = PoseUpdate(self.robot, self.session, self.pose_seq, self._last_stamp_s, self.estimate.pose)
+        self.pose_seq += 1
+        return msg
+
+    def map_messages(self, force: bool = False) -> list[RobotMap] | None:
+        """The map's chunks when due (``map_period_s``) and changed since the last ones (or ``force``)."""
+        if self.estimate is None or (not force and self._last_stamp_s < self._next_map_s):
+            return None
+        self._next_map_s = self._last_stamp_s + self.cfg.map_period_s
+        arrays = top_particle_maps(self.slam, self.cfg.publish)
+        fp = arrays.fingerprint()
+        if fp == self._fingerprint and not force:
+            return None
+        self._fingerprint = fp
+        self.latest_map = self._chunks(arrays)
+        self.map_seq += 1
+        return self.latest_map
+
+    def _chunks(self, a: MapArrays) -> list[RobotMap]:
+        return codec.robot_map_chunks(
+            self.robot, self.session, self.map_seq, self._last_stamp_s,
+            a.particle_weights, a.particle_poses, a.seg, a.element, a.members, a.trust, a.hits, a.age,
+            prior=self.prior, prior_sigma=self.prior_sigma,
+        )  # fmt: skip
+
+    def write_outputs(self, out_dir: str | Path) -> dict[str, Path]:
+        """``<robot>.poses.txt`` and ``<robot>.tum``: the best particle's trajectory, map frame."""
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        stamps, poses = self.slam.best_trajectory()
+        paths = {"poses": out / f"{self.robot}.poses.txt", "tum": out / f"{self.robot}.tum"}
+        write_poses(paths["poses"], stamps, poses)
+        write_tum(paths["tum"], stamps, poses)
+        return paths
+
+
+class Publisher:
+    """The agent's side of the bus: puts, the map queryable, the liveliness token, byte counts."""
+
+    def __init__(self, bus, keys: Keys, core: AgentCore):
+        self.bus, self.keys, self.core = bus, keys, core
+        self.bytes_sent = {"map": 0, "pose": 0}
+        self.messages_sent = {"map": 0, "pose": 0}
+        self._lock = threading.Lock()
+        self._latest: list[bytes] = []
+        bus.declare_alive(keys.robot_alive(core.robot))
+        bus.serve(keys.robot_map(core.robot), self._answer)
+
+    def _answer(self, _key: str) -> list[tuple[str, bytes]]:
+        with self._lock:
+            return [(self.keys.robot_map(self.core.robot), b) for b in self._latest]
+
+    def publish(self, force_map: bool = False) -> None:
+        pose = self.core.pose_message()
+        if pose is not None:
+            self._put("pose", self.keys.robot_pose(self.core.robot), [codec.encode(pose)], reliable=False)
+        chunks = self.core.map_messages(force=force_map)
+        if chunks is not None:
+            payloads = [codec.encode(c) for c in chunks]
+            with self._lock:
+                self._latest = payloads
+            self._put("map", self.keys.robot_map(self.core.robot), payloads, reliable=True)
+
+    def _put(self, what: str, key: str, payloads: list[bytes], reliable: bool) -> None:
+        for p in payloads:
+            self.bus.put(key, p, reliable=reliable)
+            self.bytes_sent[what] += len(p)
+            self.messages_sent[what] += 1
+
+
+def paced(scans: Iterator[Scan], speed: float, stop: threading.Event) -> Iterator[Scan]:
+    """``scans`` at ``speed`` × their own clock (``0`` = no waiting); ends early when ``stop`` is set.
+    The clock is the running maximum of the stamps (real logs step back in time)."""
+    t0_wall = time.monotonic()
+    t0_src: float | None = None
+    latest = -np.inf
+    for scan in scans:
+        if stop.is_set():
+            return
+        latest = max(latest, scan.stamp_s)
+        if t0_src is None:
+            t0_src = latest
+        if speed > 0:
+            wait = t0_wall + (latest - t0_src) / speed - time.monotonic()
+            if wait > 0 and stop.wait(wait):
+                return
+        yield scan
+
+
+def run_agent(
+    bus,
+    keys: Keys,
+    core: AgentCore,
+    scans: Iterator[Scan],
+    stop: threading.Event,
+    on_estimate: Callable[[Scan, Estimate], None] | None = None,
+    on_progress: Callable[[AgentCore], None] | None = None,
+) -> Publisher:
+    """Feed ``scans`` to ``core`` at ``core.cfg.speed`` and publish until the scans end or ``stop``.
+    ``on_estimate`` lets a simulated robot react (e.g. an explorer sets its velocity)."""
+    pub = Publisher(bus, keys, core)
+    for scan in paced(scans, core.cfg.speed, stop):
+        est = core.step(scan)
+        if on_estimate is not None:
+            on_estimate(scan, est)
+        pub.publish()
+        if on_progress is not None:
+            on_progress(core)
+    if core.estimate is not None:
+        pub.publish(force_map=True)  # the final map, whatever the period
+    log.info("%s: %d scans, %s bytes sent", core.robot, core.scans, pub.bytes_sent)
+    return pub
