@@ -1,0 +1,461 @@
+"""The message bus: the only module of fleet-slam that imports zenoh.
+
+Payloads are opaque ``bytes`` here (``shared/codec.py`` gives them meaning); keys come from
+``shared/keys.py``. The whole API::
+
+    cfg = BusConfig(mode="client", connect=("tcp/127.0.0.1:7447",))
+    with Bus(cfg) as bus:                              # one zenoh session
+        bus.put(key, payload, reliable=True)           # True: block if congested (maps); False: drop (poses)
+        bus.delete(key)                                # subscribers' on_delete(key)
+        h = bus.subscribe(key_expr, on_sample, on_delete)  # on_sample(key, payload), on_delete(key)
+        h = bus.serve(key_expr, answer)                # queryable: answer(query_key_expr) -> [(key, payload)]
+        replies = bus.get(key_expr, timeout_s=2.0)     # [(key, payload)]: ok replies only, [] if none
+        h = bus.declare_alive(key)                     # liveliness token: gone when the bus closes or dies
+        h = bus.watch_alive(key_expr, on_change)       # on_change(key, alive): current members first
+        h.close()                                      # undeclare one; bus.close() undeclares all
+
+    run_router(listen=("tcp/127.0.0.1:7447",), stop=event)  # a router in this process, until stop is set
+    router_main(["tcp/127.0.0.1:7447"])                     # the same for a CLI: signals, one status line
+    python -m shared.bus router --listen tcp/127.0.0.1:7447
+
+Threads: callbacks run on zenoh's callback threads — one per declaration, so several of them run
+concurrently with each other and with the caller. State shared between callbacks and the rest of
+the program needs a lock. An exception raised by a callback is logged (logger ``fleet_slam.bus``)
+and the declaration goes on. Do not close the bus or a handle from inside one of its callbacks.
+
+Callbacks must return quickly (store the payload, signal a worker): one slow callback stalls every
+delivery to its session — poses, liveliness and all — and pushes back to the publishers; after a
+stall of about 5 s zenoh closes the link, and what was queued is lost (measured: 337 of 2000 maps
+arrived, and the stalled session saw every token go and come back). Decoding and fusing belong in
+a worker thread; the same holds for ``serve`` answers, which should return a ready payload.
+
+Network facts the callers rely on (measured, see ``notes/zenoh.md``):
+
+- Nothing listens or connects anywhere the caller did not name: listen/connect endpoints are
+  explicit (zenoh's defaults are ``tcp/[::]`` on every interface) and multicast scouting is off.
+- A client whose router is absent waits for it (``connect_timeout_s=None``) or raises
+  :class:`BusError` after ``connect_timeout_s``. After a router restart clients reconnect on their
+  own (every ``retry_ms``) and their subscriptions, queryables and tokens come back; while the
+  router is down ``put`` is dropped silently and ``get`` returns ``[]``. Watchers see a router
+  restart as every token going (``False``) and coming back (``True``).
+- ``reliable=True`` puts block the caller when the link is congested, so nothing is lost between
+  two live ends whose callbacks keep up; ``reliable=False`` puts vanish under load (a burst of
+  200 × 50 KB lost 33 with a subscriber that did nothing) — right for poses, never for maps.
+- A closed or killed process's tokens vanish within milliseconds; a hung process's only after the
+  lease (``lease_s``, zenoh default 10 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import zenoh
+
+log = logging.getLogger("fleet_slam.bus")
+
+MODES = ("client", "peer", "router")
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+OPEN_SLICE_S = 0.5  # a client waiting for its router retries zenoh.open() this often (see _open)
+ROUTER_POLL_S = 0.1  # how often a router's wait loop looks at its stop event
+
+
+class BusError(RuntimeError):
+    """A bus that cannot be configured, opened or used (bad config, no router, closed bus)."""
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """One zenoh session.
+
+    ``mode``: ``client`` (agents, server, tools: everything goes through a router), ``router``, or
+    ``peer``. ``connect`` / ``listen``: zenoh endpoints such as ``tcp/127.0.0.1:7447``; a router
+    needs ``listen``, a client ``connect``. ``connect_timeout_s``: how long opening waits for a
+    ``connect`` endpoint, ``None`` = forever. ``retry_ms``: reconnect period after a lost link.
+    ``lease_s``: how long others wait before declaring this session dead when it stops answering
+    (zenoh default 10 s); it only matters for hung processes, killed ones are noticed at once.
+    ``shm``: zenoh shared memory between local processes (off: slower for our message sizes).
+    ``overrides``: raw ``(config path, JSON5 value)`` pairs applied last — the hook for security
+    (``("transport/auth/usrpwd", '{user: "a", password: "b"}')``, TLS endpoints, access control).
+    """
+
+    mode: str = "client"
+    connect: tuple[str, ...] = (DEFAULT_ENDPOINT,)
+    listen: tuple[str, ...] = ()
+    connect_timeout_s: float | None = None
+    retry_ms: int = 200
+    lease_s: float | None = None
+    shm: bool = False
+    overrides: tuple[tuple[str, str], ...] = ()
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise BusError(f"mode: expected one of {MODES}, got {self.mode!r}")
+        for name in ("connect", "listen"):
+            endpoints = getattr(self, name)
+            if isinstance(endpoints, str) or not all(isinstance(e, str) and e for e in endpoints):
+                raise BusError(f"{name}: expected a tuple of endpoint strings, got {endpoints!r}")
+            object.__setattr__(self, name, tuple(endpoints))  # a list from a CLI stays hashable
+        if self.mode == "client" and not self.connect:
+            raise BusError("connect: a client needs at least one endpoint (multicast scouting is off)")
+        if self.mode == "router" and not self.listen:
+            raise BusError("listen: a router needs at least one endpoint")
+        if self.connect_timeout_s is not None and not self.connect_timeout_s > 0:
+            raise BusError(f"connect_timeout_s: expected > 0 or None, got {self.connect_timeout_s!r}")
+        if not (isinstance(self.retry_ms, int) and self.retry_ms > 0):
+            raise BusError(f"retry_ms: expected a positive integer, got {self.retry_ms!r}")
+        if self.lease_s is not None and not self.lease_s > 0:
+            raise BusError(f"lease_s: expected > 0 or None, got {self.lease_s!r}")
+
+
+def zenoh_config(cfg: BusConfig) -> zenoh.Config:
+    """The zenoh configuration of ``cfg``: explicit endpoints only, multicast scouting off."""
+    timeout_ms = -1 if cfg.connect_timeout_s is None else max(1, round(cfg.connect_timeout_s * 1000))
+    retry = cfg.retry_ms
+    entries: list[tuple[str, object]] = [
+        ("mode", cfg.mode),
+        ("connect/endpoints", list(cfg.connect)),
+        ("connect/timeout_ms", timeout_ms),
+        # a fixed period: zenoh's default backs off from 1 s to 4 s, i.e. seconds of outage per restart
+        ("connect/retry", {"period_init_ms": retry, "period_max_ms": retry, "period_increase_factor": 1}),
+        # [] replaces zenoh's defaults tcp/[::]:0 (peer) and tcp/[::]:7447 (router): every interface
+        ("listen/endpoints", list(cfg.listen)),
+        ("scouting/multicast/enabled", False),
+        ("scouting/delay", 0),  # routers and peers would wait 500 ms in open() for scouting that is off
+        # gossip tells routers and peers about each other's (explicit) listen endpoints; one hop is enough
+        ("scouting/gossip/enabled", True),
+        ("scouting/gossip/multihop", False),
+        ("transport/shared_memory/enabled", cfg.shm),
+    ]
+    if cfg.lease_s is not None:
+        entries.append(("transport/link/tx/lease", max(1, round(cfg.lease_s * 1000))))
+    conf = zenoh.Config()
+    for path, value in entries:
+        _insert(conf, path, json.dumps(value))
+    for path, value in cfg.overrides:
+        _insert(conf, path, value)
+    return conf
+
+
+def _insert(conf: zenoh.Config, path: str, value_json5: str) -> None:
+    try:
+        conf.insert_json5(path, value_json5)
+    except (zenoh.ZError, ValueError) as e:
+        raise BusError(f"zenoh config {path}: cannot set {value_json5[:200]!r}: {e}") from e
+
+
+class Handle:
+    """One declaration on a bus (subscription, queryable, liveliness token or watch).
+
+    ``close()`` undeclares it; it is idempotent, and ``Bus.close`` closes every handle left.
+    """
+
+    def __init__(self, bus: Bus, entity, what: str):
+        self._bus = bus
+        self._entity = entity
+        self.what = what
+
+    def close(self) -> None:
+        entity, self._entity = self._entity, None
+        if entity is None:
+            return
+        self._bus._forget(self)
+        try:
+            entity.undeclare()
+        except zenoh.ZError as e:  # the session is already closed: nothing left to undeclare
+            log.debug("undeclare %s: %s", self.what, e)
+
+    @property
+    def closed(self) -> bool:
+        return self._entity is None
+
+    def __enter__(self) -> Handle:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"Handle({self.what!r}, closed={self.closed})"
+
+
+class Bus:
+    """A context manager around one zenoh session; see the module docstring for the API.
+
+    Opening a client blocks until its router answers, or raises :class:`BusError` when
+    ``cfg.connect_timeout_s`` passes or ``cancel`` is set (e.g. by :func:`stop_on_signals`).
+    All methods may be called from any thread, callbacks included.
+    """
+
+    def __init__(self, cfg: BusConfig | None = None, *, cancel: threading.Event | None = None):
+        self.cfg = cfg if cfg is not None else BusConfig()
+        self._session = _open(self.cfg, cancel)
+        self._lock = threading.Lock()
+        self._handles: list[Handle] = []
+        self._closed = False
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Undeclare every handle and close the session; idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            handles, self._handles = self._handles, []
+        for handle in reversed(handles):
+            handle.close()
+        self._session.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise BusError("the bus is closed")
+
+    def _keep(self, entity, what: str) -> Handle:
+        handle = Handle(self, entity, what)
+        with self._lock:
+            if self._closed:  # closed while declaring: do not leak the declaration
+                entity.undeclare()
+                raise BusError("the bus is closed")
+            self._handles.append(handle)
+        return handle
+
+    def _forget(self, handle: Handle) -> None:
+        with self._lock:
+            if handle in self._handles:
+                self._handles.remove(handle)
+
+    def _guarded(self, what: str, fn: Callable) -> Callable:
+        """``fn`` wrapped so that an exception is logged instead of reaching zenoh."""
+
+        def call(*args):
+            try:
+                fn(*args)
+            except Exception:
+                if self._closed:  # e.g. a callback that puts while the bus shuts down
+                    log.debug("callback of %s failed after close", what, exc_info=True)
+                else:
+                    log.exception("callback of %s failed; the declaration goes on", what)
+
+        return call
+
+    # -- publish / subscribe --------------------------------------------------------------------
+
+    def put(self, key: str, payload: bytes, *, reliable: bool = True) -> None:
+        """Publish ``payload`` on the concrete ``key``.
+
+        ``reliable=True`` blocks while the link is congested (maps: nothing lost);
+        ``reliable=False`` drops under congestion and skips batching (poses: latest wins).
+        Without a router the sample is dropped silently.
+        """
+        self._check_open()
+        cc = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
+        try:
+            self._session.put(key, bytes(payload), congestion_control=cc, express=not reliable)
+        except zenoh.ZError as e:
+            raise BusError(f"put on {key!r}: {e}") from e
+
+    def delete(self, key: str) -> None:
+        """Publish a deletion of ``key`` (subscribers' ``on_delete``), e.g. a robot that left."""
+        self._check_open()
+        try:
+            self._session.delete(key, congestion_control=zenoh.CongestionControl.BLOCK)
+        except zenoh.ZError as e:
+            raise BusError(f"delete {key!r}: {e}") from e
+
+    def subscribe(
+        self,
+        key_expr: str,
+        on_sample: Callable[[str, bytes], None],
+        on_delete: Callable[[str], None] | None = None,
+    ) -> Handle:
+        """Call ``on_sample(key, payload)`` for every put on a key matching ``key_expr`` and
+        ``on_delete(key)`` for every delete (ignored when ``on_delete`` is None)."""
+        self._check_open()
+
+        def on_zenoh_sample(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            if sample.kind == zenoh.SampleKind.PUT:
+                on_sample(key, sample.payload.to_bytes())
+            elif on_delete is not None:
+                on_delete(key)
+
+        what = f"subscriber {key_expr}"
+        entity = self._declare(what, self._session.declare_subscriber, key_expr, on_zenoh_sample)
+        return self._keep(entity, what)
+
+    # -- query / reply --------------------------------------------------------------------------
+
+    def serve(self, key_expr: str, answer: Callable[[str], list[tuple[str, bytes]]]) -> Handle:
+        """Answer queries on ``key_expr``: ``answer(query_key_expr)`` returns ``(key, payload)``
+        pairs, each on a concrete key that intersects the query (others are logged and skipped)."""
+        self._check_open()
+        what = f"queryable {key_expr}"
+
+        def on_query(query: zenoh.Query) -> None:
+            with query:  # dropping the query finalizes it: without this the querier waits for its timeout
+                for key, payload in answer(str(query.key_expr)):
+                    try:
+                        query.reply(key, bytes(payload))
+                    except zenoh.ZError as e:
+                        log.error("%s: cannot reply on %r to %s: %s", what, key, query.key_expr, e)
+
+        entity = self._declare(what, self._session.declare_queryable, key_expr, on_query)
+        return self._keep(entity, what)
+
+    def get(self, key_expr: str, timeout_s: float = 2.0) -> list[tuple[str, bytes]]:
+        """Query every queryable matching ``key_expr``; the ``(key, payload)`` replies received
+        within ``timeout_s``. Errors and timeouts are not replies: no answer gives ``[]``."""
+        self._check_open()
+        try:
+            replies = self._session.get(key_expr, target=zenoh.QueryTarget.ALL, timeout=timeout_s)
+            out = []
+            for reply in replies:  # ends when every queryable has finished or the timeout fired
+                sample = reply.ok
+                if sample is None:
+                    log.debug("get %s: %s", key_expr, _err_text(reply.err))
+                elif sample.kind == zenoh.SampleKind.PUT:
+                    out.append((str(sample.key_expr), sample.payload.to_bytes()))
+            return out
+        except zenoh.ZError as e:
+            raise BusError(f"get {key_expr!r}: {e}") from e
+
+    # -- liveliness -----------------------------------------------------------------------------
+
+    def declare_alive(self, key: str) -> Handle:
+        """A liveliness token on ``key``: watchers see it until the handle or bus closes or the
+        process dies (lease)."""
+        self._check_open()
+        what = f"liveliness token {key}"
+        try:
+            entity = self._session.liveliness().declare_token(key)
+        except zenoh.ZError as e:
+            raise BusError(f"{what}: {e}") from e
+        return self._keep(entity, what)
+
+    def watch_alive(self, key_expr: str, on_change: Callable[[str, bool], None]) -> Handle:
+        """``on_change(key, alive)`` for every token matching ``key_expr``: first ``True`` for
+        each token present now, then ``True`` when one appears and ``False`` when it goes."""
+        self._check_open()
+
+        def on_zenoh_sample(sample: zenoh.Sample) -> None:
+            on_change(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+
+        what = f"liveliness watch {key_expr}"
+        declare = self._session.liveliness().declare_subscriber
+        entity = self._declare(what, declare, key_expr, on_zenoh_sample, history=True)
+        return self._keep(entity, what)
+
+    def _declare(self, what: str, declare: Callable, key_expr: str, callback: Callable, **kwargs):
+        try:
+            return declare(key_expr, zenoh.handlers.Callback(self._guarded(what, callback)), **kwargs)
+        except zenoh.ZError as e:
+            raise BusError(f"{what}: {e}") from e
+
+
+def _open(cfg: BusConfig, cancel: threading.Event | None) -> zenoh.Session:
+    """``zenoh.open`` in slices of at most ``OPEN_SLICE_S``: zenoh holds the thread (not the GIL)
+    while it waits for a router, so one long wait would delay signal handlers and ``cancel``."""
+    where = ", ".join(cfg.connect if cfg.mode == "client" else cfg.listen)
+    deadline = None if cfg.connect_timeout_s is None else time.monotonic() + cfg.connect_timeout_s
+    while True:
+        left_s = OPEN_SLICE_S if deadline is None else min(OPEN_SLICE_S, deadline - time.monotonic())
+        started = time.monotonic()
+        try:
+            return zenoh.open(zenoh_config(replace(cfg, connect_timeout_s=max(left_s, 0.001))))
+        except zenoh.ZError as e:
+            failed_fast = time.monotonic() - started < left_s / 2  # not a timeout: a real error
+            timed_out = deadline is not None and time.monotonic() >= deadline
+            if failed_fast or timed_out:
+                raise BusError(f"cannot open a zenoh {cfg.mode} session on {where}: {e}") from e
+            log.debug("still waiting for %s: %s", where, e)
+        if cancel is not None and cancel.is_set():
+            raise BusError(f"cancelled while waiting for a zenoh {cfg.mode} session on {where}")
+
+
+def _err_text(err) -> str:
+    try:
+        return err.payload.to_string()
+    except Exception:
+        return repr(err)
+
+
+# -- router ---------------------------------------------------------------------------------------
+
+
+def run_router(
+    listen: Sequence[str] = (DEFAULT_ENDPOINT,),
+    stop: threading.Event | None = None,
+    *,
+    on_ready: Callable[[Bus], None] | None = None,
+) -> None:
+    """Run a zenoh router listening on ``listen`` in this process until ``stop`` is set (forever
+    when None). ``on_ready(bus)`` is called once the router listens. Raises :class:`BusError`
+    when it cannot listen (e.g. the port is taken)."""
+    stop = stop if stop is not None else threading.Event()
+    with Bus(BusConfig(mode="router", connect=(), listen=tuple(listen))) as bus:
+        if on_ready is not None:
+            on_ready(bus)
+        while not stop.wait(ROUTER_POLL_S):  # a bounded wait keeps the main thread responsive to signals
+            pass
+
+
+def stop_on_signals(stop: threading.Event) -> None:
+    """Make SIGINT and SIGTERM set ``stop`` (call from the main thread). A process that is PID 1 in
+    a container would otherwise ignore SIGTERM."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+
+
+def router_main(listen: Sequence[str] | None = None) -> int:
+    """The ``router`` command: run a router until SIGINT/SIGTERM; 0 on a clean stop, 1 when it
+    cannot listen. Prints one line ``router listening on <endpoints>`` once it listens."""
+    listen = tuple(listen) if listen else (DEFAULT_ENDPOINT,)
+    stop = threading.Event()
+    stop_on_signals(stop)
+
+    def ready(_bus: Bus) -> None:
+        print(f"router listening on {' '.join(listen)}", flush=True)
+
+    try:
+        run_router(listen, stop, on_ready=ready)
+    except BusError as e:
+        print(f"router: {e}", file=sys.stderr, flush=True)
+        return 1
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m shared.bus", description="fleet-slam bus tools")
+    commands = parser.add_subparsers(dest="command", required=True)
+    router = commands.add_parser("router", help="run a zenoh router")
+    router.add_argument(
+        "--listen",
+        action="append",
+        metavar="ENDPOINT",
+        help=f"endpoint to listen on, repeatable (default {DEFAULT_ENDPOINT})",
+    )
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    return router_main(args.listen)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
