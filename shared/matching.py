@@ -26,6 +26,8 @@ class MatchingConfig:
     min_pair_angle_rad: float = np.radians(30.0)  # pairs closer to parallel fix no pose
     pair_angle_tol_rad: float = np.radians(4.0)  # relative angle of the two pairs must agree
     max_pair_gap_m: float = 1.5  # a map pair's segments must be this close (corners, near-corners)
+    obs_max_pair_gap_m: float | None = None  # the same for observed pairs (None: any; a scan is
+    # small, but a whole robot map matched against another map needs its pairs local too)
     max_obs_pairs: int = 60  # from the longest observed segments
     min_length_m: float = 0.5  # segments shorter than this take no part in hypotheses
     score_perp_m: float = 0.12  # a transformed segment lies on an element within this offset ...
@@ -72,7 +74,7 @@ def pose_hypotheses(
     km = np.flatnonzero(lm >= cfg.min_length_m)
     if len(ko) < 2 or len(km) < 2:
         return np.zeros((0, 3))
-    oi, oj, orel = _pairs(obs_ends[ko], obs_facing[ko], cfg, None)
+    oi, oj, orel = _pairs(obs_ends[ko], obs_facing[ko], cfg, cfg.obs_max_pair_gap_m)
     oi, oj, orel = oi[: cfg.max_obs_pairs], oj[: cfg.max_obs_pairs], orel[: cfg.max_obs_pairs]
     mi, mj, mrel = _pairs(map_ends[km], map_facing[km], cfg, cfg.max_pair_gap_m)
     if len(oi) == 0 or len(mi) == 0:

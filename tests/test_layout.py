@@ -12,7 +12,11 @@ PURE = sorted((ROOT / "robot_agent" / "slam").glob("*.py")) + [
     for p in (
         ROOT / "robot_agent" / "explore.py",
         ROOT / "map_server" / "alignment.py",
+        ROOT / "map_server" / "candidates.py",
+        ROOT / "map_server" / "fleet.py",
         ROOT / "map_server" / "fusion.py",
+        ROOT / "map_server" / "registration.py",
+        ROOT / "map_server" / "state.py",
     )
     if p.exists()
 ]

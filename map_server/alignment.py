@@ -1,0 +1,247 @@
+"""Robot map frame → global frame: from a start-pose prior, or by geometric map matching, with a
+verdict that says why.
+
+Without a prior (the usual case) candidates come from corner correspondences between the robot
+map and the placed (fused) map, voted, refined and scored (candidates.py). The best is accepted
+only after verification — conservative, since a wrong merge ruins the fused map while
+"unaligned" only delays it: enough absolute overlap, enough of the robot map's length, few
+conflicts (robot walls next to placed walls but not on them, robot walls facing the other way
+on a placed wall, robot walls crossing placed walls), a well-conditioned fit, and a clear margin
+over the best *distinct* rival — repetitive and symmetric places (the office is nearly
+symmetric under a half turn: only the furniture tells the halves apart) score alike.
+
+With a prior the prior is refined by matching within its sigma (a MAP estimate with the prior as
+a Gaussian term) and kept as is when the evidence is thin. A robot that is already aligned keeps
+its alignment (re-refined as its map grows) unless a clearly better, distinct one appears and
+the current one lost support.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from map_server import candidates as cand
+from map_server.candidates import Scored
+from map_server.registration import MapIndex, Samples, refine
+from shared.geometry import segment_lengths, transform_points, wrap_angle
+from shared.matching import MatchingConfig
+from shared.messages import ALIGNMENT_STATUSES
+
+RATIO_CAP = 1000.0  # rival ratio reported when there is no rival at all
+
+
+def _server_matching() -> MatchingConfig:
+    # whole maps: corners on both sides (robot pairs gap-limited too), all of them, long walls only
+    return MatchingConfig(max_pair_gap_m=1.0, obs_max_pair_gap_m=1.0, max_obs_pairs=100_000, min_length_m=0.8)
+
+
+@dataclass(frozen=True)
+class AlignmentConfig:
+    matching: MatchingConfig = field(default_factory=_server_matching)
+    vote_cell_m: float = 0.5  # vote bins: map drift spreads a true overlap's votes over ~0.3 m, 2°
+    vote_cell_rad: float = np.radians(3.0)
+    max_peaks: int = 40  # vote peaks pre-scored
+    max_refined: int = 12  # best pre-scored peaks refined and scored strictly
+    sample_step_m: float = 0.10  # maps are sampled this densely for scores and refinement
+    prescore_perp_m: float = 0.30  # generous tolerances for unrefined candidates (bin size, drift)
+    prescore_angle_rad: float = np.radians(6.0)
+    score_perp_m: float = 0.10  # strict: a robot sample lies on a placed wall within this offset ...
+    score_angle_rad: float = np.radians(5.0)  # ... and facing difference
+    conflict_m: float = 0.30  # a robot sample not on the placed map but this close to a placed wall
+    conflict_weight: float = 1.0  # net score = matched length - this × conflicting length
+    # refinement: one Gauss-Newton iteration per (gate [m], facing tolerance [rad]), gates shrinking
+    refine_stages: tuple[tuple[float, float], ...] = (
+        (0.6, np.radians(8.0)),
+        (0.4, np.radians(6.0)),
+        (0.25, np.radians(5.0)),
+        (0.15, np.radians(5.0)),
+        (0.15, np.radians(5.0)),
+    )
+    point_sigma_m: float = 0.05  # wall-point noise incl. map drift (Huber threshold, information)
+    correlation_m: float = 1.0  # samples closer than this along a wall are not independent
+    # verification
+    min_overlap_m: float = 8.0  # robot-map length on placed walls
+    min_share: float = 0.20  # ... as a share of the robot map's length
+    max_conflict_share: float = 0.15  # conflicting length / matched length (a broken map: more)
+    min_rival_ratio: float = 1.10  # net score / best distinct rival's net score
+    distinct_m: float = 0.5  # two poses are distinct places when they move the robot map apart by
+    # more than this on average
+    opposed_perp_m: float = 0.05  # a robot wall this close to a placed wall's line facing the other way
+    max_opposed_share: float = 0.05  # ... may amount to this share of the matched length
+    cross_margin_m: float = 0.25  # a crossing cuts both walls farther than this from their ends ...
+    cross_min_angle_rad: float = np.radians(20.0)  # ... at this angle or more
+    max_crossing_share: float = 0.10  # crossing robot walls' length / matched length
+    max_sigma_m: float = 0.10  # a fit this loose (one direction unconstrained: a corridor) is refused
+    max_sigma_rad: float = np.radians(1.0)
+    # prior
+    prior_gate_sigmas: float = 3.0  # refinement may move the prior this far (Mahalanobis) at most
+    prior_min_sigma_m: float = 0.01  # floors of the prior's sigma (a zero sigma pins the pose)
+    prior_min_sigma_rad: float = np.radians(0.2)
+    # revision of a current alignment
+    revise_ratio: float = 1.15  # a new place that beats the current one's net score by this factor
+    # takes over (the current one lost its support), if it passes every check
+
+
+@dataclass(frozen=True, eq=False)
+class Alignment:
+    """A verdict on one robot's frame. ``transform (3,)`` maps its map frame into the global frame
+    (for ``unaligned``: the rejected best candidate, for diagnostics), ``sigma (3,)`` [m, m, rad],
+    ``score_m`` verified overlap length, ``inlier_share`` its share of the robot map's length,
+    ``rival_ratio`` net score over the best distinct rival's, ``reason`` why accepted or rejected."""
+
+    status: str
+    transform: np.ndarray
+    sigma: np.ndarray
+    score_m: float = 0.0
+    inlier_share: float = 0.0
+    rival_ratio: float = 0.0
+    reason: str = ""
+
+    def __post_init__(self) -> None:
+        if self.status not in ALIGNMENT_STATUSES:
+            raise ValueError(f"status: {self.status!r} is not one of {ALIGNMENT_STATUSES}")
+        object.__setattr__(self, "transform", np.asarray(self.transform, float).reshape(3))
+        object.__setattr__(self, "sigma", np.asarray(self.sigma, float).reshape(3))
+
+    @property
+    def placed(self) -> bool:
+        return self.status != "unaligned"
+
+
+def _sigma(info: np.ndarray) -> np.ndarray:
+    try:
+        cov = np.linalg.inv(info)
+    except np.linalg.LinAlgError:
+        return np.full(3, 1.0e3)
+    return np.sqrt(np.clip(np.diag(cov), 0.0, 1.0e6))
+
+
+def _problems(s: Scored, total_m: float, index: MapIndex, robot: Samples, robot_seg, cfg) -> list[str]:
+    """What keeps candidate ``s`` from being accepted, rivals aside (empty: nothing)."""
+    out = []
+    if s.matched_m < cfg.min_overlap_m:
+        out.append(f"overlap {s.matched_m:.1f} m < {cfg.min_overlap_m:g} m")
+    if s.matched_m < cfg.min_share * total_m:
+        out.append(f"share {s.matched_m / max(total_m, 1e-9):.2f} < {cfg.min_share:g}")
+    if out:
+        return out
+    if s.conflict_m > cfg.max_conflict_share * s.matched_m:
+        out.append(f"{s.conflict_m:.1f} m next to placed walls but not on them")
+    opposed = index.opposed(s.pose, robot, cfg.opposed_perp_m)
+    if opposed > cfg.max_opposed_share * s.matched_m:
+        out.append(f"{opposed:.1f} m facing placed walls the other way")
+    cross = index.crossings(transform_points(s.pose, robot_seg), cfg.cross_margin_m, cfg.cross_min_angle_rad)
+    crossing = float(segment_lengths(robot_seg)[cross].sum())
+    if crossing > cfg.max_crossing_share * s.matched_m:
+        out.append(f"{crossing:.1f} m crossing placed walls")
+    sig = _sigma(s.refined.info) if s.refined is not None else np.full(3, np.inf)
+    if max(sig[0], sig[1]) > cfg.max_sigma_m or sig[2] > cfg.max_sigma_rad:
+        out.append(f"ill-conditioned fit (sigma {sig[0]:.2f}, {sig[1]:.2f} m, {np.degrees(sig[2]):.2f} deg)")
+    return out
+
+
+def _verdict(status: str, s: Scored, total_m: float, ratio: float, reason: str) -> Alignment:
+    sigma = _sigma(s.refined.info) if s.refined is not None else np.zeros(3)
+    share = s.matched_m / total_m if total_m > 0 else 0.0
+    return Alignment(status, s.pose, sigma, s.matched_m, share, min(ratio, RATIO_CAP), reason)
+
+
+def estimate_alignment(
+    robot_seg: np.ndarray,
+    placed_seg: np.ndarray,
+    cfg: AlignmentConfig,
+    prior: np.ndarray | None = None,
+    prior_sigma: np.ndarray | None = None,
+    current: Alignment | None = None,
+) -> Alignment:
+    """The robot's map frame in the global frame, from its directed segments ``robot_seg (N,2,2)``
+    (its map frame) and the placed robots' fused map ``placed_seg (M,2,2)`` (global frame)."""
+    robot_seg = np.asarray(robot_seg, float).reshape(-1, 2, 2)
+    placed_seg = np.asarray(placed_seg, float).reshape(-1, 2, 2)
+    robot = Samples.of(robot_seg, cfg.sample_step_m)
+    index = MapIndex(placed_seg, cfg.sample_step_m)
+    total = float(robot.length.sum())
+    if prior is not None:
+        sigma = np.zeros(3) if prior_sigma is None else np.asarray(prior_sigma, float)
+        return _from_prior(robot_seg, index, robot, np.asarray(prior, float), sigma, cfg)
+    keep = current is not None and current.status == "aligned"
+    if total < cfg.min_overlap_m or len(index.samples) == 0:
+        if keep:
+            return current
+        why = "nothing placed yet" if len(index.samples) == 0 else f"robot map only {total:.1f} m long"
+        return Alignment("unaligned", np.zeros(3), np.zeros(3), reason=why)
+    cands = cand.search(robot_seg, placed_seg, index, robot, cfg)
+    if keep:
+        cur = cand.refine_and_score(index, robot, current.transform, cfg)
+        return _revise(current, cur, cands, robot_seg, index, robot, total, cfg)
+    if not cands:
+        return Alignment("unaligned", np.zeros(3), np.zeros(3), reason="no corner correspondences")
+    return _accept_best(cands, robot_seg, index, robot, total, cfg)
+
+
+def _accept_best(cands: list[Scored], robot_seg, index, robot, total, cfg) -> Alignment:
+    best = max(cands, key=lambda s: s.net)
+    ratio = best.net / max(cand.rival(best, cands, robot.points, cfg.distinct_m), 1e-9)
+    problems = _problems(best, total, index, robot, robot_seg, cfg)
+    if ratio < cfg.min_rival_ratio:
+        problems.append(f"rival ratio {ratio:.3f} < {cfg.min_rival_ratio:g}")
+    if problems:
+        return _verdict("unaligned", best, total, ratio, "rejected: " + "; ".join(problems))
+    why = f"overlap {best.matched_m:.1f} m ({best.matched_m / total:.0%}), {ratio:.2f}x the best rival"
+    return _verdict("aligned", best, total, ratio, "matched: " + why)
+
+
+def _revise(current: Alignment, cur: Scored, cands, robot_seg, index, robot, total, cfg) -> Alignment:
+    """Keep the current alignment (refined while it stays verified) unless a distinct place passes
+    every check and the current one lost support: it fails a check now, or the new place beats
+    it by ``revise_ratio`` (symmetric buildings: the truth overtakes a mirror image slowly)."""
+    cands = [cur, *cands]
+    best = max(cands, key=lambda s: s.net)
+    cur_problems = _problems(cur, total, index, robot, robot_seg, cfg)
+    ratio = cur.net / max(cand.rival(cur, cands, robot.points, cfg.distinct_m), 1e-9)
+    if cand.mean_displacement(best.pose, cur.pose, robot.points) > cfg.distinct_m:
+        new_ratio = best.net / max(cand.rival(best, cands, robot.points, cfg.distinct_m), 1e-9)
+        new_problems = _problems(best, total, index, robot, robot_seg, cfg)
+        if new_ratio < cfg.min_rival_ratio:
+            new_problems.append(f"rival ratio {new_ratio:.3f} < {cfg.min_rival_ratio:g}")
+        beaten = best.net >= cfg.revise_ratio * cur.net
+        if (cur_problems or beaten) and not new_problems:
+            lost = "; ".join(cur_problems) or f"beaten {best.net / max(cur.net, 1e-9):.2f}x"
+            why = f"current place lost support ({lost}); new overlap {best.matched_m:.1f} m"
+            return _verdict("aligned", best, total, new_ratio, "revised: " + why)
+    if cur_problems:
+        return Alignment(
+            "aligned", current.transform, current.sigma, current.score_m, current.inlier_share,
+            current.rival_ratio, "kept (not re-verified: " + "; ".join(cur_problems) + ")",
+        )  # fmt: skip
+    return _verdict("aligned", cur, total, ratio, f"kept and refined: overlap {cur.matched_m:.1f} m")
+
+
+def _from_prior(robot_seg, index: MapIndex, robot: Samples, prior, prior_sigma, cfg) -> Alignment:
+    """Refine the prior by matching within its sigma; keep it when the evidence is thin."""
+    floor = [cfg.prior_min_sigma_m, cfg.prior_min_sigma_m, cfg.prior_min_sigma_rad]
+    sigma = np.maximum(prior_sigma, floor)
+    total = float(robot.length.sum())
+
+    def kept(why: str) -> Alignment:
+        return Alignment("prior", prior, sigma, 0.0, 0.0, 0.0, "prior kept: " + why)
+
+    if len(index.samples) == 0 or total < cfg.min_overlap_m:
+        return kept("nothing placed to refine against" if len(index.samples) == 0 else "robot map too short")
+    info = np.diag(1.0 / sigma**2)
+    gate = max(cfg.prior_gate_sigmas * max(sigma[0], sigma[1]), cfg.refine_stages[-1][0])
+    stages = tuple((min(g, gate), a) for g, a in cfg.refine_stages)
+    r = refine(index, robot, prior, stages, cfg.point_sigma_m, cfg.correlation_m, prior, info)
+    s = cand.score(index, robot, r.pose, cfg, r)
+    d = s.pose - prior
+    d[2] = wrap_angle(d[2])
+    maha = float(np.sqrt(d @ info @ d))
+    problems = _problems(s, total, index, robot, robot_seg, cfg)
+    if maha > cfg.prior_gate_sigmas:
+        problems.append(f"refinement moved {maha:.1f} sigma")
+    if problems:
+        return kept("; ".join(problems))
+    why = f"prior refined: overlap {s.matched_m:.1f} m, moved {maha:.1f} sigma"
+    return _verdict("prior", s, total, 0.0, why)

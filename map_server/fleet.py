@@ -1,0 +1,282 @@
+"""The map server's state, pure: robot maps and poses in, alignments and the fused map out.
+
+Time is passed in (``now_s``, the server's clock); nothing here does I/O.
+
+Global frame: if a robot's map carries a start-pose prior when the first robot is placed, the
+priors define the global frame (robots without one are aligned against the prior robots);
+otherwise the first robot to publish a non-empty map becomes the *reference* (identity
+transform) and the others are aligned by map matching against the fused map of the robots
+already placed (never including themselves). Priors that arrive after a reference was chosen
+are in a frame nobody placed, so those robots are matched like the others.
+
+Each :meth:`Fleet.fuse` re-attempts the alignment of a robot only when its map grew enough since
+its last attempt (or, while unaligned, when the placed map did), accepts a new alignment only
+after ``confirmations`` consecutive attempts agree on it, then merges the placed robots'
+cross-particle maps (fusion.py) into the fused map. Its version increases only when the content
+(segments, provenance, robot statuses — not the poses) changed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from map_server.alignment import Alignment, AlignmentConfig, estimate_alignment
+from map_server.fusion import FusionConfig, fuse_particles, merge_segments
+from map_server.state import RobotState
+from shared.geometry import apply_segments, compose, transform_points
+from shared.messages import FusedMap, PoseUpdate, RobotMap, RobotStatus
+
+
+@dataclass(frozen=True)
+class FleetConfig:
+    fusion: FusionConfig = field(default_factory=FusionConfig)
+    alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
+    retry_growth_m: float = 5.0  # re-attempt a robot's alignment when its map grew by this much ...
+    retry_growth_share: float = 0.05  # ... or by this share of its length (whichever is larger)
+    retry_placed_growth_m: float = 10.0  # an unaligned robot is retried when the placed map grew so
+    retry_interval_s: float = 10.0  # ... or, while unaligned, when anything changed this long ago
+    confirmations: int = 2  # consecutive attempts that must agree before a robot is aligned
+    same_place_m: float = 0.3  # two verdicts agree when they move the robot map this little (mean)
+    # a new alignment is only attempted once the robot's map and every placed robot's map are
+    # mature: grown by at most mature_growth over the last mature_window_s. Partial maps of a
+    # repetitive or symmetric building match their mirror images as well as their true
+    # counterparts (office, 60-90 s: the half-turned placement scored up to 1.7x the truth)
+    mature_window_s: float = 30.0
+    mature_growth: float = 0.25
+
+
+class Fleet:
+    def __init__(self, cfg: FleetConfig, server_id: str):
+        self.cfg, self.server_id = cfg, server_id
+        self.robots: dict[str, RobotState] = {}
+        self.reference: str | None = None
+        self.frame: str | None = None  # "prior" or "reference", fixed when the first robot is placed
+        self.version = 0
+        self.epoch_s: float | None = None  # server time of the first message
+        self._latest: FusedMap | None = None
+        self._content: tuple | None = None
+        self._arrivals = 0
+
+    # -- inputs ------------------------------------------------------------------------------
+
+    def _robot(self, robot: str, now_s: float | None) -> RobotState:
+        if self.epoch_s is None and now_s is not None:
+            self.epoch_s = now_s
+        if robot not in self.robots:
+            self.robots[robot] = RobotState(robot, order=self._arrivals)
+            self._arrivals += 1
+        return self.robots[robot]
+
+    def put_map(self, m: RobotMap, now_s: float) -> None:
+        """An assembled map (chunk 0 of 1). A new session replaces the old map and its alignment;
+        an older or repeated ``seq`` of the current session is ignored."""
+        r = self._robot(m.robot, now_s)
+        if r.map is not None and m.session == r.map.session and m.seq <= r.map.seq:
+            return
+        if r.map is not None and m.session != r.map.session:
+            r.new_session()
+            if self.reference == m.robot:
+                self.reference = None  # its old frame lives on only through the robots placed in it
+        r.map, r.layer = m, None
+        if r.first_map_s is None and len(m.seg):
+            r.first_map_s = now_s
+
+    def put_pose(self, p: PoseUpdate, now_s: float) -> None:
+        r = self._robot(p.robot, now_s)
+        if r.pose is None or p.session != r.pose.session or p.seq > r.pose.seq:
+            r.pose = p
+
+    def set_online(self, robot: str, online: bool) -> None:
+        self._robot(robot, None).online = bool(online)
+
+    # -- fusion ------------------------------------------------------------------------------
+
+    def fuse(self, now_s: float) -> FusedMap | None:
+        """Recompute alignments where warranted, then the fused map; ``None`` if nothing changed."""
+        if self.epoch_s is None:
+            self.epoch_s = now_s
+        for r in self.robots.values():
+            if r.map is not None and r.layer is None:
+                r.layer = fuse_particles(r.map, self.cfg.fusion)
+                r.record_length(now_s, self.cfg.mature_window_s)
+        self._choose_frame(now_s)
+        while self._align_round(now_s):
+            pass
+        return self._publish(now_s)
+
+    def latest(self) -> FusedMap | None:
+        return self._latest
+
+    def _placed(self) -> list[RobotState]:
+        return [r for r in self._ordered() if r.alignment.placed and r.layer is not None]
+
+    def _ordered(self) -> list[RobotState]:
+        return sorted(self.robots.values(), key=lambda r: r.order)
+
+    def _choose_frame(self, now_s: float) -> None:
+        with_map = [r for r in self._ordered() if r.layer is not None and len(r.layer)]
+        if self.frame is None and with_map:
+            self.frame = "prior" if any(r.map.prior is not None for r in with_map) else "reference"
+        if self.frame != "reference" or self._placed() or not with_map:
+            return  # priors define the frame (_align_round places them), or it is defined already
+        first = min(with_map, key=lambda r: (r.first_map_s, r.order))
+        self.reference = first.robot
+        first.alignment = Alignment("reference", np.zeros(3), np.zeros(3), reason="first non-empty map")
+        first.mark_placed(now_s - self.epoch_s)
+
+    def _global_segments(self, exclude: str) -> np.ndarray:
+        """The fused map of the placed robots except ``exclude`` (what a robot is aligned to)."""
+        seg, w, owner = self._stack([r for r in self._placed() if r.robot != exclude])
+        return merge_segments(seg, w, owner, self.cfg.fusion)[0]
+
+    def _stack(self, placed: list[RobotState]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        seg = [apply_segments(r.alignment.transform, r.layer.seg) for r in placed]
+        w = [r.layer.weight for r in placed]
+        owner = [np.full(len(r.layer), i) for i, r in enumerate(placed)]
+        if not seg:
+            return np.zeros((0, 2, 2)), np.zeros(0), np.zeros(0, np.int64)
+        return np.concatenate(seg), np.concatenate(w), np.concatenate(owner)
+
+    def _align_round(self, now_s: float) -> bool:
+        """One pass over the robots that deserve an attempt; True if a robot got placed."""
+        newly = False
+        for r in self._ordered():
+            if r.layer is None or r.alignment.status == "reference":
+                continue
+            prior = r.map.prior if self.frame == "prior" else None
+            others = [p for p in self._placed() if p.robot != r.robot]
+            placed_m = sum(p.layer.length_m for p in others)
+            if not r.due(self.cfg, placed_m, now_s):
+                continue
+            if prior is None and not r.alignment.placed and not self._mature([r, *others], now_s):
+                continue  # not even attempted: a young map's match is not evidence yet
+            current = r.alignment if r.alignment.status == "aligned" else None
+            sigma = r.map.prior_sigma if prior is not None else None
+            a = estimate_alignment(
+                r.layer.seg, self._global_segments(r.robot), self.cfg.alignment, prior, sigma, current
+            )
+            r.attempted(placed_m, now_s)
+            was_placed = r.alignment.placed
+            if a.status == "aligned" and (current is None or self._moved(r, current, a)):
+                a = self._confirm(r, a, current)  # a new place: not before it is confirmed
+            else:
+                r.pending, r.pending_count = None, 0
+            r.alignment = a
+            if a.placed and not was_placed:
+                r.mark_placed(now_s - self.epoch_s)
+                newly = True
+        return newly
+
+    def _mature(self, robots: list[RobotState], now_s: float) -> bool:
+        c = self.cfg
+        return all(r.mature(now_s, c.mature_window_s, c.mature_growth) for r in robots)
+
+    def _moved(self, r: RobotState, a: Alignment, b: Alignment) -> bool:
+        """Whether ``a`` and ``b`` put the robot's map at different places."""
+        pts = 0.5 * (r.layer.seg[:, 0] + r.layer.seg[:, 1])
+        return _mean_move(a.transform, b.transform, pts) > self.cfg.same_place_m
+
+    def _confirm(self, r: RobotState, a: Alignment, current: Alignment | None) -> Alignment:
+        """A new alignment (or a revision) counts once ``confirmations`` attempts in a row put the
+        robot at the same place; until then the robot stays unaligned (or where it was)."""
+        same = r.pending is not None and not self._moved(r, r.pending, a)
+        r.pending_count = r.pending_count + 1 if same else 1
+        r.pending = a
+        if r.pending_count >= self.cfg.confirmations:
+            r.pending, r.pending_count = None, 0
+            return a
+        why = f"awaiting confirmation ({r.pending_count}/{self.cfg.confirmations}) of {a.reason}"
+        if current is not None:
+            c = current
+            return Alignment("aligned", c.transform, c.sigma, c.score_m, c.inlier_share, c.rival_ratio, why)
+        return Alignment("unaligned", a.transform, a.sigma, a.score_m, a.inlier_share, a.rival_ratio, why)
+
+    # -- output --------------------------------------------------------------------------------
+
+    def _status(self, r: RobotState) -> RobotStatus | None:
+        session = r.map.session if r.map is not None else (r.pose.session if r.pose is not None else None)
+        if session is None:
+            return None
+        a = r.alignment
+        transform = a.transform if a.placed else np.zeros(3)
+        sigma = a.sigma if a.placed else np.zeros(3)
+        local, stamp = None, 0.0
+        if r.pose is not None and r.pose.session == session:
+            local, stamp = r.pose.pose, r.pose.stamp_s
+        elif r.map is not None:
+            local, stamp = r.map.particle_poses[int(np.argmax(r.map.particle_weights))], r.map.stamp_s
+        pose = compose(transform, local) if a.placed and local is not None else None
+        return RobotStatus(
+            r.robot, a.status, r.online, session, r.map.seq if r.map is not None else 0,
+            len(r.layer) if r.layer is not None else 0, transform, sigma, pose, stamp, r.aligned_at_s,
+        )  # fmt: skip
+
+    def _build(self) -> tuple[tuple, tuple, dict]:
+        """The fused content: robot table, merged arrays, and the key that says if it changed."""
+        table = [s for s in (self._status(r) for _, r in sorted(self.robots.items())) if s is not None]
+        row = {s.robot: i for i, s in enumerate(table)}
+        placed = sorted(self._placed(), key=lambda r: r.robot)
+        seg, w, owner = self._stack(placed)
+        to_row = np.array([row[r.robot] for r in placed], np.int64)
+        fseg, support, off, prov = merge_segments(
+            seg, w, to_row[owner] if len(owner) else owner, self.cfg.fusion
+        )
+        arrays = (fseg, support, off, prov)
+        key = tuple(a.tobytes() for a in arrays) + tuple(
+            (s.robot, s.status, s.online, s.session, s.map_seq, s.n_elements, s.transform.tobytes(),
+             s.sigma.tobytes(), s.aligned_at_s)
+            for s in table
+        )  # fmt: skip
+        extra = {"robots_merged": float(len(placed)), "segments_in": float(len(seg))}
+        return tuple(table), arrays, {"key": key, "extra": extra}
+
+    def _publish(self, now_s: float) -> FusedMap | None:
+        table, (seg, support, off, prov), info = self._build()
+        if not table or info["key"] == self._content:
+            return None
+        self._content = info["key"]
+        self.version += 1
+        self._latest = FusedMap(
+            self.server_id, self.version, max(0.0, now_s), 0, 1, table, seg, support, off, prov, info["extra"]
+        )
+        return self._latest
+
+    # -- persistence ---------------------------------------------------------------------------
+
+    def snapshot(self) -> tuple[dict, dict[str, RobotMap]]:
+        """Everything needed to resume: a JSON-able dict and the latest map of every robot."""
+        meta = dict(
+            version=self.version, epoch_s=self.epoch_s, reference=self.reference, frame=self.frame,
+            arrivals=self._arrivals, stamp_s=None if self._latest is None else self._latest.stamp_s,
+            robots={name: r.to_dict() for name, r in self.robots.items()},
+        )  # fmt: skip
+        return meta, {name: r.map for name, r in self.robots.items() if r.map is not None}
+
+    @classmethod
+    def restore(cls, meta: dict, maps: dict[str, RobotMap], cfg: FleetConfig, server_id: str) -> Fleet:
+        """A fleet that fuses to the same map, same version (no alignment is re-attempted until
+        a map changes)."""
+        f = cls(cfg, server_id)
+        f.version, f.epoch_s, f.reference = int(meta["version"]), meta["epoch_s"], meta["reference"]
+        f.frame, f._arrivals = meta["frame"], int(meta["arrivals"])
+        for name, d in meta["robots"].items():
+            r = f.robots[name] = RobotState.from_dict(name, d, maps.get(name))
+            if r.map is not None:
+                r.layer = fuse_particles(r.map, cfg.fusion)
+        table, (seg, support, off, prov), info = f._build()
+        if table and meta["stamp_s"] is not None:
+            f._content = info["key"]
+            f._latest = FusedMap(
+                server_id, f.version, meta["stamp_s"], 0, 1, table, seg, support, off, prov, info["extra"]
+            )
+        return f
+
+
+def _mean_move(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:
+    """Mean distance [m] between ``points`` moved by ``a`` and by ``b``."""
+    if len(points) == 0:
+        return 0.0
+    d = transform_points(a, points) - transform_points(b, points)
+    return float(np.mean(np.hypot(d[:, 0], d[:, 1])))

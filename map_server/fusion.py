@@ -1,0 +1,210 @@
+"""Segment fusion on the server: across the particles of one robot, then across robots.
+
+*Across particles* (report §5, moved to the server): a robot sends the trusted elements of its
+top ``K`` particles; an element (one identity, ``RobotMap.element``) may exist in several
+versions. Like the agent's consensus map, the version with the highest weight wins — the sum of
+the weights of the particles holding it, times its trust (report §5.2 ii) — and an element is
+kept only if enough of the particle weight holds it at all (any version) and it is trusted.
+
+*Across robots*: segments already in the global frame that lie on one line, face the same way
+and overlap (or nearly touch) become one segment, refitted by weighted total least squares over
+all members (each member a uniform density of points along it, weighted by its evidence), its
+extent the union of the members' projections. Support counts the members, provenance lists the
+robots. Segments are directed (facing = left normal of ``p0 → p1``, shared/messages.py), so the
+two faces of a thin wall never merge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from shared.geometry import segment_lengths
+from shared.messages import RobotMap
+
+# Pairs tested at once when looking for merge candidates (bounds the temporaries to ~50 MB).
+PAIR_CHUNK_ELEMENTS = 2_000_000
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    # across particles (report §5)
+    min_support: float = 0.5  # share of the sent particle weight whose map must hold the element:
+    # an element only a minority of the weight believes in is a particle's private mistake
+    min_trust: float = 0.15  # the winning version's trust; the agent publishes from 0.15 (consensus.py)
+    # across robots: two segments are one wall when, seen from the longer one's line, ...
+    merge_angle_rad: float = np.radians(5.0)  # ... their directions differ by at most this ...
+    merge_perp_m: float = 0.10  # ... the shorter one's endpoints are this close to the line ...
+    merge_gap_m: float = 0.30  # ... and they overlap or leave at most this gap (< door openings)
+    outlier_perp_m: float = 0.15  # a member farther than this from its group's fitted line
+    # (a chain of small tolerances can bend a group) is split off and kept on its own
+
+
+@dataclass(frozen=True, eq=False)
+class RobotLayer:
+    """One robot's fused elements in its own map frame: ``seg (N,2,2)`` directed, ``weight (N,)``
+    winning version's share of particle weight × trust, ``support (N,)`` share of particle weight
+    holding the element, ``trust (N,)``, ``hits (N,)``, ``element (N,)`` identities."""
+
+    seg: np.ndarray
+    weight: np.ndarray
+    support: np.ndarray
+    trust: np.ndarray
+    hits: np.ndarray
+    element: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.seg)
+
+    @classmethod
+    def empty(cls) -> RobotLayer:
+        z = np.zeros(0)
+        return cls(np.zeros((0, 2, 2)), z, z, z, np.zeros(0, np.int64), np.zeros(0, np.int64))
+
+    @property
+    def length_m(self) -> float:
+        return float(segment_lengths(self.seg).sum())
+
+
+def _bits(masks: np.ndarray, k: int) -> np.ndarray:
+    """Bit matrix ``(N,K)`` of bitmasks ``(N,)``."""
+    return ((masks[:, None] >> np.arange(k, dtype=np.int64)) & 1).astype(float)
+
+
+def fuse_particles(m: RobotMap, cfg: FusionConfig) -> RobotLayer:
+    """The cross-particle map of one assembled RobotMap (report §5 at the server)."""
+    w = m.particle_weights
+    k, n = len(w), len(m.seg)
+    total = float(w.sum())
+    if n == 0:
+        return RobotLayer.empty()
+    if total <= 0.0:  # no weights given: the particles count alike
+        w, total = np.ones(k), float(k)
+    held = _bits(m.members, k) @ w  # (N,) weight of the particles holding each version
+    score = held * m.trust
+    ids, group = np.unique(m.element, return_inverse=True)
+    union = np.zeros(len(ids), np.int64)
+    np.bitwise_or.at(union, group, m.members)
+    support = (_bits(union, k) @ w) / total
+    # per element the version of highest score (ties: the first row)
+    order = np.lexsort((np.arange(n), -score, group))
+    starts = np.flatnonzero(np.r_[True, np.diff(group[order]) != 0])
+    win = order[starts]
+    keep = (support >= cfg.min_support) & (m.trust[win] >= cfg.min_trust)
+    win = win[keep]
+    return RobotLayer(
+        seg=m.seg[win],
+        weight=score[win] / total,
+        support=support[keep],
+        trust=m.trust[win],
+        hits=m.hits[win],
+        element=ids[keep],
+    )
+
+
+# --- across robots ------------------------------------------------------------------------------
+
+
+def _candidate_pairs(seg: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs ``i < j`` whose bounding boxes, grown by ``margin_m``, intersect (chunked)."""
+    lo = seg.min(axis=1) - margin_m
+    hi = seg.max(axis=1) + margin_m
+    n = len(seg)
+    rows = max(1, PAIR_CHUNK_ELEMENTS // max(n, 1))
+    out_i, out_j = [], []
+    for s in range(0, n, rows):
+        a = slice(s, min(s + rows, n))
+        hit = np.all((lo[a, None] <= hi[None]) & (lo[None] <= hi[a, None]), axis=-1)
+        i, j = np.nonzero(hit)
+        i = i + s
+        keep = i < j
+        out_i.append(i[keep])
+        out_j.append(j[keep])
+    return np.concatenate(out_i), np.concatenate(out_j)
+
+
+def collinear_pairs(seg: np.ndarray, cfg: FusionConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs ``(i, j)`` of directed segments that are one wall (see :class:`FusionConfig`)."""
+    i, j = _candidate_pairs(seg, cfg.merge_gap_m + cfg.merge_perp_m)
+    length = segment_lengths(seg)
+    swap = length[j] > length[i]  # a = the longer one, b = the shorter
+    a, b = np.where(swap, j, i), np.where(swap, i, j)
+    da = seg[a, 1] - seg[a, 0]
+    la = np.maximum(length[a], 1e-12)
+    u = da / la[:, None]  # unit direction of the longer segment
+    rel = seg[b] - seg[a, None, 0]  # (K,2,2) the shorter one's endpoints from a's start
+    t = np.sum(rel * u[:, None, :], axis=-1)  # along a
+    perp = u[:, None, 0] * rel[..., 1] - u[:, None, 1] * rel[..., 0]  # left of a
+    db = seg[b, 1] - seg[b, 0]
+    cos_ab = np.sum(u * db, axis=-1) / np.maximum(length[b], 1e-12)
+    gap = np.maximum(t.min(axis=1) - la, -t.max(axis=1))  # < 0: they overlap
+    ok = (cos_ab >= np.cos(cfg.merge_angle_rad)) & (np.abs(perp).max(axis=1) <= cfg.merge_perp_m)
+    ok &= gap <= cfg.merge_gap_m
+    return i[ok], j[ok]
+
+
+def _group_lines(seg: np.ndarray, weight: np.ndarray, group: np.ndarray, n_groups: int) -> tuple:
+    """Weighted TLS line of every group: centroid ``(G,2)`` and unit direction ``(G,2)`` oriented
+    like the members. A member is a uniform point density along it, weight × length in total:
+    its second moment about its midpoint is ``L²/12`` along its direction."""
+    d = seg[:, 1] - seg[:, 0]
+    mass = np.maximum(weight, 1e-9) * np.maximum(segment_lengths(seg), 1e-9)
+    mid = 0.5 * (seg[:, 0] + seg[:, 1])
+
+    def gsum(v: np.ndarray) -> np.ndarray:
+        return np.bincount(group, weights=v, minlength=n_groups)
+
+    m0 = gsum(mass)
+    cx, cy = gsum(mass * mid[:, 0]) / m0, gsum(mass * mid[:, 1]) / m0
+    sxx = gsum(mass * (mid[:, 0] ** 2 + d[:, 0] ** 2 / 12.0)) - m0 * cx * cx
+    sxy = gsum(mass * (mid[:, 0] * mid[:, 1] + d[:, 0] * d[:, 1] / 12.0)) - m0 * cx * cy
+    syy = gsum(mass * (mid[:, 1] ** 2 + d[:, 1] ** 2 / 12.0)) - m0 * cy * cy
+    phi = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # major axis of the scatter
+    u = np.stack([np.cos(phi), np.sin(phi)], axis=-1)
+    along = np.stack([gsum(mass * d[:, 0]), gsum(mass * d[:, 1])], axis=-1)
+    u = np.where(np.sum(u * along, axis=-1, keepdims=True) < 0, -u, u)
+    return np.stack([cx, cy], axis=-1), u
+
+
+def _split_outliers(seg: np.ndarray, group: np.ndarray, centre, u, cfg: FusionConfig) -> np.ndarray:
+    """Groups with members farther than ``outlier_perp_m`` from the fitted line: those members
+    get groups of their own (new labels after the existing ones)."""
+    rel = seg - centre[group][:, None, :]
+    perp = u[group][:, None, 0] * rel[..., 1] - u[group][:, None, 1] * rel[..., 0]
+    out = np.abs(perp).max(axis=1) > cfg.outlier_perp_m
+    new = group.copy()
+    new[out] = group.max(initial=-1) + 1 + np.arange(int(out.sum()))
+    return np.unique(new, return_inverse=True)[1]
+
+
+def merge_segments(
+    seg: np.ndarray, weight: np.ndarray, robot: np.ndarray, cfg: FusionConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Merge directed global-frame segments ``seg (N,2,2)`` (evidence ``weight (N,)``, owner
+    ``robot (N,)``) into ``seg (M,2,2)``, ``support (M,)`` members per segment, and provenance
+    as CSR: ``prov_offsets (M+1,)``, ``prov_robot (L,)`` sorted unique robots per segment."""
+    seg = np.asarray(seg, float).reshape(-1, 2, 2)
+    n = len(seg)
+    if n == 0:
+        return np.zeros((0, 2, 2)), np.zeros(0, np.int64), np.zeros(1, np.int64), np.zeros(0, np.int64)
+    i, j = collinear_pairs(seg, cfg)
+    graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
+    n_groups, group = connected_components(graph, directed=False)
+    centre, u = _group_lines(seg, weight, group, n_groups)
+    group = _split_outliers(seg, group, centre, u, cfg)
+    n_groups = int(group.max()) + 1
+    centre, u = _group_lines(seg, weight, group, n_groups)
+    # extent: the union of the members' endpoint projections on the group's line
+    t = np.sum((seg - centre[group][:, None, :]) * u[group][:, None, :], axis=-1)
+    lo = np.full(n_groups, np.inf)
+    hi = np.full(n_groups, -np.inf)
+    np.minimum.at(lo, group, t.min(axis=1))
+    np.maximum.at(hi, group, t.max(axis=1))
+    out = np.stack([centre + lo[:, None] * u, centre + hi[:, None] * u], axis=1)
+    support = np.bincount(group, minlength=n_groups).astype(np.int64)
+    pairs = np.unique(np.column_stack([group, np.asarray(robot, np.int64)]), axis=0)  # sorted
+    offsets = np.r_[0, np.cumsum(np.bincount(pairs[:, 0], minlength=n_groups))].astype(np.int64)
+    return out, support, offsets, pairs[:, 1].copy()

@@ -1,0 +1,139 @@
+"""What the server remembers per robot, and its plain (JSON-able) form for snapshots."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from map_server.alignment import Alignment
+from map_server.fusion import RobotLayer
+from shared.messages import PoseUpdate, RobotMap
+
+if TYPE_CHECKING:
+    from map_server.fleet import FleetConfig
+
+
+def _unaligned(reason: str) -> Alignment:
+    return Alignment("unaligned", np.zeros(3), np.zeros(3), reason=reason)
+
+
+@dataclass
+class RobotState:
+    """One robot: its latest map (and cross-particle layer), pose, presence, alignment, and the
+    bookkeeping of alignment attempts (robot-map and placed-map length at the last attempt, a
+    candidate awaiting confirmation)."""
+
+    robot: str
+    order: int  # arrival order
+    map: RobotMap | None = None
+    layer: RobotLayer | None = None
+    pose: PoseUpdate | None = None
+    online: bool = True
+    alignment: Alignment = field(default_factory=lambda: _unaligned("not attempted yet"))
+    aligned_at_s: float | None = None  # server time (since the first message) of its first merge
+    first_map_s: float | None = None  # server time of its first non-empty map (picks the reference)
+    attempt_len_m: float | None = None
+    attempt_placed_m: float = 0.0
+    attempt_s: float = 0.0
+    pending: Alignment | None = None
+    pending_count: int = 0
+    lengths: list[tuple[float, float]] = field(default_factory=list)  # (server time, map length)
+
+    def new_session(self) -> None:
+        """The robot restarted: its map frame is a new one, nothing of the old alignment holds."""
+        self.alignment = _unaligned("new session")
+        self.layer, self.aligned_at_s, self.first_map_s = None, None, None
+        self.attempt_len_m, self.attempt_placed_m = None, 0.0
+        self.pending, self.pending_count = None, 0
+        self.lengths = []
+
+    def record_length(self, now_s: float, keep_s: float) -> None:
+        """Remember the layer's length now; forget what is older than ``keep_s`` but the newest."""
+        self.lengths.append((now_s, self.layer.length_m))
+        old = [i for i, (t, _) in enumerate(self.lengths) if t <= now_s - keep_s]
+        if len(old) > 1:
+            del self.lengths[: old[-1]]
+
+    def mature(self, now_s: float, window_s: float, max_growth: float) -> bool:
+        """Whether the map grew by at most ``max_growth`` (a share) over the last ``window_s``;
+        a map not seen that long is not mature."""
+        before = [length for t, length in self.lengths if t <= now_s - window_s]
+        if not before or self.layer is None:
+            return False
+        return self.layer.length_m <= (1.0 + max_growth) * before[-1]
+
+    def due(self, cfg: FleetConfig, placed_m: float, now_s: float) -> bool:
+        """Whether an alignment attempt is worth it: never tried, the map changed enough, or
+        (while unaligned) the placed map grew enough, or anything changed and it is a while ago."""
+        if self.attempt_len_m is None:
+            return True
+        grown = abs(self.layer.length_m - self.attempt_len_m)
+        if grown >= max(cfg.retry_growth_m, cfg.retry_growth_share * self.attempt_len_m):
+            return True
+        if self.alignment.placed and self.pending is None:
+            return False
+        placed_grown = placed_m - self.attempt_placed_m
+        if placed_grown >= cfg.retry_placed_growth_m:
+            return True
+        changed = grown > 0.0 or placed_grown != 0.0
+        return changed and now_s - self.attempt_s >= cfg.retry_interval_s
+
+    def attempted(self, placed_m: float, now_s: float) -> None:
+        self.attempt_len_m, self.attempt_placed_m, self.attempt_s = self.layer.length_m, placed_m, now_s
+
+    def mark_placed(self, t_s: float) -> None:
+        if self.aligned_at_s is None:
+            self.aligned_at_s = max(0.0, float(t_s))
+
+    # -- plain form ----------------------------------------------------------------------------
+
+    def to_dict(self) -> dict:
+        p = self.pending
+        out = {k: getattr(self, k) for k in _SCALARS}
+        out["alignment"] = alignment_to_dict(self.alignment)
+        out["pending"] = None if p is None else alignment_to_dict(p)
+        q = self.pose
+        if q is not None:
+            out["pose"] = dict(session=q.session, seq=q.seq, stamp_s=q.stamp_s, pose=_floats(q.pose))
+        else:
+            out["pose"] = None
+        return out
+
+    @classmethod
+    def from_dict(cls, robot: str, d: dict, m: RobotMap | None) -> RobotState:
+        q, p = d["pose"], d["pending"]
+        pose = None
+        if q is not None:
+            pose = PoseUpdate(robot, q["session"], q["seq"], q["stamp_s"], np.array(q["pose"]))
+        return cls(
+            robot, map=m, alignment=alignment_from_dict(d["alignment"]), pose=pose,
+            pending=None if p is None else alignment_from_dict(p),
+            **{k: d[k] for k in _SCALARS},
+        )  # fmt: skip
+
+
+# the plain fields of RobotState that a snapshot keeps as they are
+_SCALARS = (
+    "order", "online", "aligned_at_s", "first_map_s", "attempt_len_m", "attempt_placed_m", "attempt_s",
+    "pending_count",
+)  # fmt: skip
+
+
+def _floats(a: np.ndarray) -> list[float]:
+    return [float(v) for v in np.asarray(a).reshape(-1)]
+
+
+def alignment_to_dict(a: Alignment) -> dict:
+    return dict(
+        status=a.status, transform=_floats(a.transform), sigma=_floats(a.sigma), score_m=float(a.score_m),
+        inlier_share=float(a.inlier_share), rival_ratio=float(a.rival_ratio), reason=a.reason,
+    )  # fmt: skip
+
+
+def alignment_from_dict(d: dict) -> Alignment:
+    return Alignment(
+        d["status"], np.array(d["transform"], float), np.array(d["sigma"], float), float(d["score_m"]),
+        float(d["inlier_share"]), float(d["rival_ratio"]), str(d["reason"]),
+    )  # fmt: skip
