@@ -68,6 +68,93 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_agent(args: argparse.Namespace) -> int:
+    from robot_agent.service import run
+
+    return run(args)
+
+
+def _cmd_server(args: argparse.Namespace) -> int:
+    from map_server.service import run
+
+    return run(args)
+
+
+def _cmd_router(args: argparse.Namespace) -> int:
+    from shared.bus import router_main
+
+    return router_main(args.listen)
+
+
+def _cmd_subscribe(args: argparse.Namespace) -> int:
+    from fleet_slam.subscribe import run
+
+    return run(args)
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from fleet_slam.demo import DemoConfig, run_demo
+    from fleet_slam.summary import print_summary
+
+    cfg = DemoConfig(
+        out=args.out,
+        robots=args.robots,
+        world=args.world,
+        duration_s=args.duration,
+        seed=args.seed,
+        unknown_starts=args.unknown_starts,
+        particles=args.particles,
+        speed=args.speed if args.speed is not None else (0.0 if args.log else 1.0),
+        log=args.log,
+        split=args.split,
+        relations=args.relations,
+    )
+    print_summary(run_demo(cfg), cfg)
+    return 0
+
+
+def _add_fleet_commands(sub) -> None:
+    from map_server.service import add_arguments as server_args
+    from robot_agent.service import add_arguments as agent_args
+
+    d = sub.add_parser(
+        "demo",
+        help="the main job on one machine: router, map server and N agents as processes on loopback",
+        description="Start an embedded zenoh router, the map server and N simulated agents (or K agents "
+        "replaying pieces of a real log) as separate processes on 127.0.0.1, show progress, then write "
+        "map.geojson/.svg/.png (fused map and paths), world.geojson, per-robot poses/TUM, metrics.json.",
+    )
+    d.add_argument("--robots", type=int, default=3, help="simulated robots (1-4)")
+    d.add_argument("--world", default="office", help="built-in world: office, warehouse, campus")
+    d.add_argument("--duration", type=float, default=150.0, help="simulated seconds")
+    d.add_argument("--seed", type=int, default=0, help="random seed")
+    d.add_argument("--unknown-starts", action="store_true", help="hide the start poses from the server")
+    d.add_argument("--particles", type=int, default=None, help="particles per agent (default 30)")
+    d.add_argument("--speed", type=float, default=None, help="source s per wall s (sim: 1; log: 0 = max)")
+    d.add_argument("--log", default=None, help="a real CARMEN log cut into --split pieces, one agent each")
+    d.add_argument("--split", type=int, default=3, help="pieces of --log")
+    d.add_argument("--relations", default=None, help="--log: relations file to score the global poses")
+    d.add_argument("--out", default="out/demo", help="output directory")
+    d.set_defaults(func=_cmd_demo)
+
+    a = sub.add_parser("agent", help="one robot agent: FastSLAM on a simulated robot or a log, on the bus")
+    agent_args(a)
+    a.set_defaults(func=_cmd_agent)
+    sv = sub.add_parser("server", help="the map server: fuse robots' maps, publish and serve the fused map")
+    server_args(sv)
+    sv.set_defaults(func=_cmd_server)
+    ro = sub.add_parser("router", help="a zenoh router process (loopback by default)")
+    ro.add_argument("--listen", action="append", default=None, help="endpoint (default tcp/127.0.0.1:7447)")
+    ro.set_defaults(func=_cmd_router)
+    su = sub.add_parser("subscribe", help="print every fused-map update; optionally save it")
+    su.add_argument("--connect", action="append", default=None, help="router endpoint (tcp/127.0.0.1:7447)")
+    su.add_argument("--fleet", default="default", help="fleet id")
+    su.add_argument("--once", action="store_true", help="take the latest fused map by query and exit")
+    su.add_argument("--save", default=None, help="write the map to FILE (.geojson or .svg) on every update")
+    su.add_argument("--count", type=int, default=None, help="exit after this many updates")
+    su.set_defaults(func=_cmd_subscribe)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="fleet-slam",
@@ -118,6 +205,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("relations", help="relations file: t1 t2 dx dy dz droll dpitch dyaw")
     e.add_argument("poses", nargs="?", default=None, help="trajectory: timestamp x y theta")
     e.set_defaults(func=_cmd_eval)
+    _add_fleet_commands(sub)
     return p
 
 

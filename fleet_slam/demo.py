@@ -1,0 +1,180 @@
+"""`fleet-slam demo`: the whole fleet on one machine — an embedded zenoh router, the map server and
+N agents, each a separate process on loopback — with a progress display, then the outputs of
+DESIGN.md (see :mod:`fleet_slam.report`).
+
+Two kinds of fleet: simulated robots patrolling the routes of a built-in world (known starts are
+sent as priors unless ``unknown_starts``), or a real CARMEN log cut into ``split`` consecutive
+pieces, each replayed by its own agent that starts in its own frame with no prior.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fleet_slam.procs import ProcGroup, free_port, python_module
+from fleet_slam.watch import FusedWatcher, Update
+
+STARTUP_TIMEOUT_S = 60.0
+SETTLE_QUIET_S = 3.0  # after the agents end: the fused map is final when quiet this long
+SETTLE_TIMEOUT_S = 30.0
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    out: str = "out/demo"
+    robots: int = 3
+    world: str = "office"
+    duration_s: float = 150.0
+    seed: int = 0
+    unknown_starts: bool = False
+    particles: int | None = None
+    speed: float = 1.0  # simulated: 1 = real time; a log: 0 = as fast as the agents go
+    log: str | None = None
+    split: int = 3
+    relations: str | None = None
+    progress: bool | None = None  # None: when stderr is a terminal
+    fleet: str = "default"
+
+    def robot_names(self) -> list[str]:
+        return [f"robot{i + 1}" for i in range(self.split if self.log else self.robots)]
+
+
+def _agent_args(cfg: DemoConfig, i: int, name: str, endpoint: str, agents_dir: Path, pieces) -> list[str]:
+    args = ["--robot", name, "--connect", endpoint, "--fleet", cfg.fleet, "--out", agents_dir]
+    args += ["--seed", cfg.seed * 100 + i, "--speed", cfg.speed]
+    if cfg.particles is not None:
+        args += ["--particles", cfg.particles]
+    if cfg.log:
+        a, b = pieces[i]
+        return [*args, "--log", cfg.log, "--from", a, "--to", b]
+    from robot_agent.sim import builtin_world
+
+    world = builtin_world(cfg.world)
+    args += ["--world", cfg.world, "--route", i, "--duration", cfg.duration_s]
+    if not cfg.unknown_starts:
+        args += ["--prior", ",".join(f"{v:.9g}" for v in world.starts[i])]
+    return args
+
+
+def log_pieces(n_scans: int, k: int) -> list[tuple[int, int]]:
+    """``k`` consecutive scan ranges covering ``n_scans``."""
+    if k < 1 or k > n_scans:
+        raise ValueError(f"--split must be between 1 and the number of scans ({n_scans}), got {k}")
+    edges = np.linspace(0, n_scans, k + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in itertools.pairwise(edges)]
+
+
+def _check(cfg: DemoConfig) -> list[tuple[int, int]] | None:
+    if cfg.log:
+        from robot_agent.sources import read_log
+
+        return log_pieces(len(read_log(cfg.log, progress=False)), cfg.split)
+    from robot_agent.sim import builtin_world
+
+    world = builtin_world(cfg.world)
+    if not 1 <= cfg.robots <= len(world.routes):
+        raise ValueError(f"--robots must be 1..{len(world.routes)} for world {cfg.world!r}, got {cfg.robots}")
+    if not cfg.duration_s > 0:
+        raise ValueError(f"--duration must be positive, got {cfg.duration_s}")
+    return None
+
+
+def run_demo(cfg: DemoConfig) -> dict:
+    """Run the fleet, write the outputs to ``cfg.out``, return the metrics."""
+    from fleet_slam.report import write_report
+    from shared.bus import Bus, BusConfig
+    from shared.keys import Keys
+
+    pieces = _check(cfg)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    agents_dir = out / "agents"
+    for stale in [*agents_dir.glob("*"), *(out / "state").glob("**/*")]:
+        if stale.is_file():
+            stale.unlink()
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    names = cfg.robot_names()
+    show = sys.stderr.isatty() if cfg.progress is None else cfg.progress
+    t_start = time.monotonic()
+    with ProcGroup(out / "logs") as group:
+        router = group.start("router", python_module("shared.bus", "router", "--listen", endpoint))
+        if not router.wait_for("listening", STARTUP_TIMEOUT_S):
+            raise RuntimeError(f"the router did not start; see {router.log_path}")
+        server = group.start(
+            "server",
+            python_module(
+                "map_server", "--connect", endpoint, "--state", out / "state", "--fleet", cfg.fleet
+            ),
+        )
+        if not server.wait_for("running", STARTUP_TIMEOUT_S):
+            raise RuntimeError(f"the server did not start; see {server.log_path}")
+        with Bus(BusConfig(connect=(endpoint,))) as bus:
+            watcher = FusedWatcher(bus, Keys(cfg.fleet))
+            watcher.start(query_timeout_s=0.5)
+            t_agents = time.monotonic()
+            agents = [
+                group.start(
+                    n, python_module("robot_agent", *_agent_args(cfg, i, n, endpoint, agents_dir, pieces))
+                )
+                for i, n in enumerate(names)
+            ]
+            _follow(agents, watcher, cfg, show, t_agents)
+            failed = [a.name for a in agents if a.popen.wait() != 0]
+            if failed:
+                raise RuntimeError(f"agents failed: {failed}; see {out / 'logs'}")
+            final = watcher.wait_quiet(SETTLE_QUIET_S, SETTLE_TIMEOUT_S)
+            final = watcher.fetch(2.0) or final
+            updates = list(watcher.updates)
+        server.stop()
+        router.stop()
+    if final is None:
+        raise RuntimeError(f"no fused map was received; see {out / 'logs' / 'server.log'}")
+    metrics = write_report(cfg, out, final, updates, t_agents, agents_dir, pieces)
+    metrics["wall_time_s"] = time.monotonic() - t_start
+    metrics["config"] = asdict(cfg)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return metrics
+
+
+def _status_line(upd: Update | None, t0: float, names: list[str]) -> str:
+    if upd is None:
+        return "waiting for the first fused map"
+    f = upd.fused
+    parts = []
+    for n in names:
+        r = f.robot(n)
+        parts.append(f"{n}:{r.status if r else '-'}")
+    return f"t={upd.wall_s - t0:5.0f}s fused v{f.version}: {len(f.seg)} segments, " + " ".join(parts)
+
+
+def _follow(agents, watcher: FusedWatcher, cfg: DemoConfig, show: bool, t0: float) -> None:
+    """Wait for the agents to end, showing progress."""
+    names = [a.name for a in agents]
+    total = None if cfg.log else cfg.duration_s / max(cfg.speed, 1e-9)
+    if show:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        with Progress(
+            TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), transient=False
+        ) as bar:
+            task = bar.add_task("fleet", total=total)
+            while any(a.running for a in agents):
+                latest = watcher.updates[-1] if watcher.updates else None
+                bar.update(task, completed=time.monotonic() - t0, description=_status_line(latest, t0, names))
+                time.sleep(0.5)
+            bar.update(task, completed=total)
+    else:
+        last_print = 0.0
+        while any(a.running for a in agents):
+            if time.monotonic() - last_print >= 15.0:
+                last_print = time.monotonic()
+                latest = watcher.updates[-1] if watcher.updates else None
+                print(_status_line(latest, t0, names), flush=True)
+            time.sleep(0.5)

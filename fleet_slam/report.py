@@ -1,0 +1,167 @@
+"""The demo's outputs and metrics (DESIGN.md; keys documented in the README).
+
+Frames: the server's *global* frame is the prior frame (known starts: the world frame) or the
+reference robot's map frame (unknown starts). For a simulated fleet the true pose of the global
+frame in the world, ``G``, follows from the reference robot's true start; every estimate is
+scored in the world frame through ``G``: a robot's transform error compares its estimated
+transform with the truth ``G⁻¹ ∘ start``; its ATE compares ``G ∘ T ∘ local poses`` with its true
+path (no further alignment: that is what a user of the fused map gets).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from fleet_slam.watch import Update
+from shared.geometry import apply_segments, compose, identity, inverse
+from shared.messages import FusedMap
+from shared.metrics import ate, map_quality, read_poses, transform_error, write_poses, write_tum
+from shared.viz import (
+    PathLayer,
+    Picture,
+    SegmentLayer,
+    robot_colour,
+    save_geojson,
+    save_picture,
+    segments_geojson,
+)
+
+WRONG_MERGE_M = 0.3  # a merged robot whose transform is off by more than this ...
+WRONG_MERGE_DEG = 3.0  # ... or this is a wrong merge
+
+
+def _first_merges(updates: list[Update], t0: float) -> dict[str, float]:
+    first: dict[str, float] = {}
+    for u in updates:
+        for r in u.fused.robots:
+            if r.merged and r.robot not in first:
+                first[r.robot] = u.wall_s - t0
+    return first
+
+
+def _global_frame_in_world(final: FusedMap, starts: dict[str, np.ndarray]) -> np.ndarray:
+    ref = next((r for r in final.robots if r.status == "reference"), None)
+    if ref is None or ref.robot not in starts:
+        return identity()
+    return compose(starts[ref.robot], inverse(ref.transform))
+
+
+def fused_geojson(final: FusedMap) -> dict:
+    props = [{"support": int(final.support[i]), "robots": final.provenance(i)} for i in range(len(final.seg))]
+    return segments_geojson(final.seg, props, kind="fused")
+
+
+def write_report(cfg, out: Path, final: FusedMap, updates: list[Update], t0: float, agents_dir: Path, pieces):
+    names = cfg.robot_names()
+    first = _first_merges(updates, t0)
+    starts, world = {}, None
+    if not cfg.log:
+        from robot_agent.sim import builtin_world, to_geojson
+
+        world = builtin_world(cfg.world)
+        starts = {n: np.asarray(world.starts[i], float) for i, n in enumerate(names)}
+        save_geojson(out / "world.geojson", to_geojson(world))
+    g = _global_frame_in_world(final, starts)
+    pic = Picture(title=f"fused map v{final.version}: {len(final.seg)} segments, {len(names)} robots")
+    if world is not None:
+        pic.segments.append(
+            SegmentLayer(apply_segments(inverse(g), world.walls), "#BBBBBB", 0.12, "true walls")
+        )
+    pic.segments.append(SegmentLayer(final.seg, "#222222", 0.05, "fused map"))
+    robots, all_stamps, all_poses = {}, [], []
+    for i, name in enumerate(names):
+        status = final.robot(name)
+        stamps, local = read_poses(agents_dir / f"{name}.poses.txt")
+        info = json_or_empty(agents_dir / f"{name}.agent.json")
+        r = {
+            "status": status.status if status else "unknown",
+            "time_to_first_merge_s": first.get(name),
+            "scans": len(stamps),
+            "bytes_per_s": _bytes_per_s(info),
+        }
+        merged = status is not None and status.merged
+        poses = compose(status.transform, local) if merged else local
+        r["frame"] = "global" if merged else "local (unaligned)"
+        write_poses(out / f"{name}.poses.txt", stamps, poses)
+        write_tum(out / f"{name}.tum", stamps, poses)
+        if merged:
+            all_stamps.append(stamps)
+            all_poses.append(poses)
+            pic.paths.append(PathLayer(poses[:, :2], robot_colour(i), 0.04, name))
+            r["transform"] = status.transform.tolist()
+            r["transform_sigma"] = status.sigma.tolist()
+        if name in starts:
+            r.update(_sim_scores(name, agents_dir, starts[name], g, status, stamps, local, poses, merged))
+        robots[name] = r
+    save_geojson(out / "map.geojson", fused_geojson(final))
+    save_picture(out / "map", pic)
+    metrics = {"robots": robots, "fused_segments": len(final.seg), "fused_version": final.version}
+    if world is not None:
+        metrics.update(_fused_quality(world, final, g, agents_dir, names))
+    wrong = [n for n, r in robots.items() if r.get("wrong_merge")]
+    metrics["all_merged"] = all(r["status"] in ("reference", "prior", "aligned") for r in robots.values())
+    metrics["wrong_merges"] = wrong
+    if cfg.log and all_stamps:
+        metrics.update(_log_scores(cfg, out, all_stamps, all_poses, pieces))
+    return metrics
+
+
+def json_or_empty(path: Path) -> dict:
+    import json
+
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _bytes_per_s(info: dict) -> dict | None:
+    span = info.get("source_duration_s") or 0.0
+    if not span:
+        return None
+    sent = info.get("bytes_sent", {})
+    return {k: v / span for k, v in sent.items()} | {"total": sum(sent.values()) / span}
+
+
+def _sim_scores(name, agents_dir, start, g, status, stamps, local, poses, merged) -> dict:
+    t_stamps, truth = read_poses(agents_dir / f"{name}.truth.txt")
+    r = {"ate_slam_m": ate(stamps, local, t_stamps, truth).rmse_m}  # SLAM alone (best alignment)
+    if merged:
+        true_t = compose(inverse(g), start)
+        dt, dr = transform_error(status.transform, true_t)
+        r["transform_error_m"], r["transform_error_deg"] = dt, dr
+        r["ate_m"] = ate(stamps, compose(g, poses), t_stamps, truth, align=False).rmse_m
+        r["wrong_merge"] = bool(dt > WRONG_MERGE_M or dr > WRONG_MERGE_DEG)
+    return r
+
+
+def _fused_quality(world, final: FusedMap, g, agents_dir: Path, names) -> dict:
+    from robot_agent.sim import LidarConfig
+    from robot_agent.sim.evaluate import seen_wall_points
+
+    seen = [
+        seen_wall_points(world, read_poses(agents_dir / f"{n}.truth.txt")[1], LidarConfig()) for n in names
+    ]
+    q = map_quality(apply_segments(g, final.seg), world.walls, seen_points=np.concatenate(seen))
+    return {
+        "fused_precision": q.precision,
+        "fused_completeness": q.completeness,
+        "fused_length_m": q.mapped_length_m,
+    }
+
+
+def _log_scores(cfg, out: Path, all_stamps, all_poses, pieces) -> dict:
+    from robot_agent.sources import read_log
+    from shared.metrics import read_relations, relations_error
+
+    stamps = np.concatenate(all_stamps)
+    poses = np.concatenate(all_poses)
+    write_poses(out / "fleet.poses.txt", stamps, poses)
+    res = {"pieces": [list(p) for p in pieces]}
+    if cfg.relations:
+        log = read_log(cfg.log, progress=False)
+        err = relations_error(stamps, poses, read_relations(cfg.relations), *log.odometry_track())
+        res["relations"] = err.summary()
+    return res

@@ -1,0 +1,33 @@
+"""The demo's closing summary on the terminal."""
+
+from __future__ import annotations
+
+
+def _f(v, fmt: str) -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def print_summary(m: dict, cfg) -> None:
+    print(f"fused map v{m['fused_version']}: {m['fused_segments']} segments", end="")
+    if "fused_precision" in m:
+        print(f", precision {m['fused_precision']:.3f}, completeness {m['fused_completeness']:.3f}", end="")
+    print()
+    for name, r in m["robots"].items():
+        line = f"  {name}: {r['status']}, first merge {_f(r.get('time_to_first_merge_s'), '.1f')} s"
+        if "transform_error_m" in r:
+            line += f", transform error {r['transform_error_m']:.3f} m / {r['transform_error_deg']:.2f}°"
+        if "ate_m" in r:
+            line += f", ATE {r['ate_m']:.3f} m (SLAM alone {r['ate_slam_m']:.3f})"
+        bps = r.get("bytes_per_s")
+        if bps:
+            line += f", {bps['total'] / 1000:.1f} kB/s"
+        print(line)
+    if "relations" in m:
+        e = m["relations"]
+        print(
+            f"relations error (global poses): {e['trans_mean_m']:.3f} m, "
+            f"{e['rot_mean_deg']:.2f}° (n={e['n']})"
+        )
+    if m.get("wrong_merges"):
+        print(f"WRONG MERGES: {m['wrong_merges']}")
+    print(f"wrote {cfg.out}/ in {m['wall_time_s']:.0f} s")

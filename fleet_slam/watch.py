@@ -1,0 +1,78 @@
+"""A fused-map subscriber: the latest fused map (query at start, then every update) and a history
+of updates (what `fleet-slam subscribe` prints and what the demo measures)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from shared import codec
+from shared.keys import Keys
+from shared.messages import FusedMap, WireFormatError
+
+
+@dataclass(frozen=True)
+class Update:
+    wall_s: float  # time.monotonic() at arrival
+    fused: FusedMap
+    via: str  # "query" or "put"
+
+
+class FusedWatcher:
+    def __init__(self, bus, keys: Keys, on_update: Callable[[Update], None] | None = None):
+        self.bus, self.keys, self.on_update = bus, keys, on_update
+        self._lock = threading.Lock()
+        self._assembler = codec.Assembler()
+        self.latest: FusedMap | None = None
+        self.updates: list[Update] = []
+        self.rejected = 0
+        self.changed = threading.Condition(self._lock)
+
+    def start(self, query_timeout_s: float = 2.0) -> FusedMap | None:
+        """Subscribe, then take the current fused map by query (so a late subscriber starts with
+        the map at once); returns it (``None`` when the server has none yet)."""
+        self.bus.subscribe(self.keys.fused, lambda k, p: self._on_payload(p, "put"))
+        return self.fetch(query_timeout_s)
+
+    def fetch(self, timeout_s: float = 2.0) -> FusedMap | None:
+        for _key, payload in self.bus.get(self.keys.fused, timeout_s=timeout_s):
+            self._on_payload(payload, "query")
+        return self.latest
+
+    def _on_payload(self, payload: bytes, via: str) -> None:
+        try:
+            msg = codec.decode(payload, expect=FusedMap)
+        except WireFormatError:
+            with self._lock:
+                self.rejected += 1
+            return
+        with self._lock:
+            try:
+                done = self._assembler.add(msg)
+            except WireFormatError:  # stale or duplicate: e.g. the query answer after a newer put
+                return
+            if done is None or (
+                self.latest is not None
+                and done.version <= self.latest.version
+                and done.server == self.latest.server
+            ):
+                return
+            self.latest = done
+            upd = Update(time.monotonic(), done, via)
+            self.updates.append(upd)
+            self.changed.notify_all()
+        if self.on_update is not None:
+            self.on_update(upd)
+
+    def wait_quiet(self, quiet_s: float, timeout_s: float) -> FusedMap | None:
+        """Wait until no update arrived for ``quiet_s`` (or ``timeout_s`` passed); the latest map."""
+        end = time.monotonic() + timeout_s
+        with self._lock:
+            while time.monotonic() < end:
+                last = self.updates[-1].wall_s if self.updates else 0.0
+                if time.monotonic() - last >= quiet_s:
+                    break
+                self.changed.wait(min(quiet_s, max(0.0, end - time.monotonic())))
+            return self.latest

@@ -1,0 +1,173 @@
+"""`fleet-slam agent` / `python -m robot_agent`: one robot agent process.
+
+A live simulated robot in a built-in world (patrolling its route, or exploring from its own map),
+or a CARMEN log (optionally a piece of it, ``--from``/``--to`` scan indices) replayed at
+``--speed`` × real time. Publishes on the bus until the source ends or SIGINT/SIGTERM, then
+writes its trajectory (and, simulated, the true one) to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the parser is built without the heavy imports (instant --help)
+    import numpy as np
+
+    from robot_agent.slam.fastslam import Estimate, FastSLAM
+    from robot_agent.sources.base import Scan
+
+DEFAULT_FLEET = "default"  # = shared.keys.DEFAULT_FLEET
+
+EXPLORER_MAP_EVERY = 5  # scans between rebuilding the map the explorer plans on
+
+
+def parse_pose(text: str, what: str = "pose") -> np.ndarray:
+    """``"x,y,theta"`` (m, m, rad) -> array (3,); ValueError naming ``what`` otherwise."""
+    import numpy as np
+
+    try:
+        v = np.array([float(t) for t in text.split(",")])
+    except ValueError:
+        raise ValueError(f"{what}: expected X,Y,THETA (m, m, rad), got {text!r}") from None
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise ValueError(f"{what}: expected three finite numbers X,Y,THETA, got {text!r}")
+    return v
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--robot", required=True, help="robot id ([A-Za-z0-9_-], at most 64)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--world", help="a built-in world to simulate: office, warehouse, campus")
+    src.add_argument("--log", help="a CARMEN log (.clf, .clf.gz) to replay")
+    p.add_argument("--route", type=int, default=0, help="simulated: which of the world's routes (0-3)")
+    p.add_argument("--start", default=None, help="simulated: start pose X,Y,THETA (default: the route's)")
+    p.add_argument("--explore", action="store_true", help="simulated: explore instead of the route")
+    p.add_argument("--duration", type=float, default=None, help="simulated seconds (default: until stopped)")
+    p.add_argument("--from", dest="first", type=int, default=0, help="log: first scan index")
+    p.add_argument("--to", dest="last", type=int, default=None, help="log: end scan index (exclusive)")
+    p.add_argument("--prior", default=None, help="X,Y,THETA: start in the global frame, for the server")
+    p.add_argument("--speed", type=float, default=1.0, help="source seconds per wall second (0: no waiting)")
+    p.add_argument("--particles", type=int, default=None, help="particles (default 30)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (filter; simulated noise)")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="SLAM parameter")
+    p.add_argument("--connect", action="append", default=None, help="router endpoint (tcp/127.0.0.1:7447)")
+    p.add_argument("--fleet", default=DEFAULT_FLEET, help="fleet id (key prefix fleet/<id>/)")
+    p.add_argument("--out", default=None, help="write <robot>.poses.txt, .tum (and .truth.txt) here")
+
+
+class SimSource:
+    """A live simulated robot: scans, truth per scan, and (exploring) velocity from the filter."""
+
+    def __init__(self, args: argparse.Namespace):
+        import numpy as np
+
+        from robot_agent.sim import LiveSim, builtin_world
+
+        world = builtin_world(args.world)
+        start = None if args.start is None else parse_pose(args.start, "--start")
+        self.sim = LiveSim(world, args.route, seed=args.seed, start=start)
+        self.duration_s = args.duration
+        self.truth: list[np.ndarray] = []
+        self.stamps: list[float] = []
+        self.explorer = None
+        self.slam: FastSLAM | None = None
+        self._map = np.zeros((0, 2, 2))
+        if args.explore:
+            from robot_agent.explore import Explorer
+
+            self.explorer = Explorer()
+
+    def scans(self) -> Iterator[Scan]:
+        for scan in self.sim.scans(self.duration_s):
+            self.truth.append(self.sim.truth)
+            self.stamps.append(scan.stamp_s)
+            yield scan
+
+    def on_estimate(self, scan: Scan, est: Estimate) -> None:
+        if self.explorer is None or self.slam is None:
+            return
+        if len(self.stamps) % EXPLORER_MAP_EVERY == 1:
+            gm, _ = self.slam.published_map()
+            self._map = gm.seg
+        v, w = self.explorer.command(
+            scan.stamp_s, est.pose, self._map, scan.ranges_m, scan.angles_rad, scan.laser_offset,
+            scan.range_max_m,
+        )  # fmt: skip
+        self.sim.set_velocity(v, w)
+
+    def write_truth(self, out: Path, robot: str) -> None:
+        import numpy as np
+
+        from shared.metrics import write_poses
+
+        write_poses(out / f"{robot}.truth.txt", np.array(self.stamps), np.array(self.truth).reshape(-1, 3))
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from robot_agent.agent import AgentConfig, AgentCore, run_agent
+    from robot_agent.publish import PublishConfig
+    from robot_agent.slam.config import apply_overrides
+    from robot_agent.slam.fastslam import FastSLAM, SlamConfig
+    from shared.bus import Bus, BusConfig, stop_on_signals
+    from shared.keys import Keys
+
+    cfg = apply_overrides(SlamConfig(), list(args.set))
+    if args.particles is not None:
+        cfg = apply_overrides(cfg, [f"particles={args.particles}"])
+    if args.speed < 0:
+        raise ValueError(f"--speed must be >= 0, got {args.speed}")
+    prior = None if args.prior is None else parse_pose(args.prior, "--prior")
+    slam = FastSLAM(cfg, np.random.default_rng(args.seed))
+    core = AgentCore(args.robot, slam, AgentConfig(speed=args.speed, publish=PublishConfig()), prior=prior)
+    keys = Keys(args.fleet)
+    sim = None
+    if args.world is not None:
+        sim = SimSource(args)
+        sim.slam = slam
+        scans, on_estimate = sim.scans(), sim.on_estimate
+    else:
+        from robot_agent.sources import read_log
+
+        laser_log = read_log(args.log, progress=False)
+        scans = itertools.islice(laser_log.scans(), args.first, args.last)
+        on_estimate = None
+    stop = threading.Event()
+    stop_on_signals(stop)
+    bus_cfg = BusConfig(connect=tuple(args.connect)) if args.connect else BusConfig()
+    t0 = time.monotonic()
+    with Bus(bus_cfg, cancel=stop) as bus:
+        print(f"agent {args.robot}: session {core.session}, connected", flush=True)
+        pub = run_agent(bus, keys, core, scans, stop, on_estimate)
+    wall = time.monotonic() - t0
+    if args.out:
+        out = Path(args.out)
+        core.write_outputs(out)
+        if sim is not None:
+            sim.write_truth(out, args.robot)
+        stamps, _ = slam.best_trajectory()
+        span = float(np.ptp(stamps)) if len(stamps) else 0.0
+        summary = {
+            "robot": args.robot,
+            "session": core.session,
+            "scans": core.scans,
+            "processed_scans": slam.step_index,
+            "wall_time_s": wall,
+            "source_duration_s": span,
+            "bytes_sent": pub.bytes_sent,
+            "messages_sent": pub.messages_sent,
+            "map_seq": core.map_seq,
+            "prior": None if prior is None else prior.tolist(),
+            "filter": dict(slam.stats),
+        }
+        (out / f"{args.robot}.agent.json").write_text(json.dumps(summary, indent=2))
+    print(f"agent {args.robot}: {core.scans} scans, {pub.bytes_sent['map']} map bytes, done", flush=True)
+    return 0
