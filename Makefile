@@ -18,7 +18,7 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 demo: $(STAMP)
-	$(BIN)/fleet-slam sim --world office --robots 2 --duration 120 --seed 0 --out $(OUT)
+	$(BIN)/fleet-slam demo --robots 3 --world office --out $(OUT)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -162,6 +162,8 @@ class FastSLAM:
             prior_term = -0.5 * np.einsum("pi,pij,pj->p", d, np.linalg.inv(cov), d)
         else:
             ps.poses = sample_gaussian(self.rng, mean, cov)
+        if self._last_odo is None:  # the first scan defines the map frame: the start pose, exactly
+            ps.poses = mean.copy()  # (drawn above all the same: the random stream is unchanged)
 
         # 4. association at the sampled poses, 5. weights
         obs = observe(ps.poses, segs.moments, segs.endpoints, facing, segs.cov, cfg.association.point_sigma_m)
