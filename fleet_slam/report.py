@@ -161,7 +161,20 @@ def _log_scores(cfg, out: Path, all_stamps, all_poses, pieces) -> dict:
     write_poses(out / "fleet.poses.txt", stamps, poses)
     res = {"pieces": [list(p) for p in pieces]}
     if cfg.relations:
+        from shared.metrics import Relations
+
         log = read_log(cfg.log, progress=False)
-        err = relations_error(stamps, poses, read_relations(cfg.relations), *log.odometry_track())
-        res["relations"] = err.summary()
+        rel = read_relations(cfg.relations)
+        # only relations whose both ends fall in a merged piece: the others have no global pose
+        spans = [(s.min(), s.max()) for s in all_stamps]
+
+        def covered(t: np.ndarray) -> np.ndarray:
+            return np.any([(t >= a - 0.5) & (t <= b + 0.5) for a, b in spans], axis=0)
+
+        keep = covered(rel.t1_s) & covered(rel.t2_s)
+        res["relations_total"] = len(rel.t1_s)
+        res["relations_scored"] = int(keep.sum())
+        if keep.any():
+            sub = Relations(rel.t1_s[keep], rel.t2_s[keep], rel.delta[keep])
+            res["relations"] = relations_error(stamps, poses, sub, *log.odometry_track()).summary()
     return res

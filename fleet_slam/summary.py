@@ -26,7 +26,7 @@ def print_summary(m: dict, cfg) -> None:
         e = m["relations"]
         print(
             f"relations error (global poses): {e['trans_mean_m']:.3f} m, "
-            f"{e['rot_mean_deg']:.2f}° (n={e['n']})"
+            f"{e['rot_mean_deg']:.2f}° (n={e['n']} of {m['relations_total']} relations: both ends merged)"
         )
     if m.get("wrong_merges"):
         print(f"WRONG MERGES: {m['wrong_merges']}")
