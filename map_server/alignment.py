@@ -44,7 +44,8 @@ class AlignmentConfig:
     vote_cell_rad: float = np.radians(3.0)
     max_peaks: int = 40  # vote peaks pre-scored
     max_refined: int = 12  # best pre-scored peaks refined and scored strictly
-    sample_step_m: float = 0.10  # maps are sampled this densely for scores and refinement
+    sample_step_m: float = 0.10  # maps are sampled this densely for the strict scores ...
+    coarse_step_m: float = 0.25  # ... and this densely for pre-scores and refinement (speed)
     prescore_perp_m: float = 0.30  # generous tolerances for unrefined candidates (bin size, drift)
     prescore_angle_rad: float = np.radians(6.0)
     score_perp_m: float = 0.10  # strict: a robot sample lies on a placed wall within this offset ...
@@ -63,8 +64,8 @@ class AlignmentConfig:
     correlation_m: float = 1.0  # samples closer than this along a wall are not independent
     # verification
     min_overlap_m: float = 8.0  # robot-map length on placed walls
-    min_share: float = 0.20  # ... as a share of the robot map's length
-    max_conflict_share: float = 0.15  # conflicting length / matched length (a broken map: more)
+    min_share: float = 0.15  # ... as a share of the robot map's length
+    max_conflict_share: float = 1.0  # conflicting length / matched length (a broken map: more)
     min_rival_ratio: float = 1.10  # net score / best distinct rival's net score
     distinct_m: float = 0.5  # two poses are distinct places when they move the robot map apart by
     # more than this on average
@@ -72,7 +73,7 @@ class AlignmentConfig:
     max_opposed_share: float = 0.05  # ... may amount to this share of the matched length
     cross_margin_m: float = 0.25  # a crossing cuts both walls farther than this from their ends ...
     cross_min_angle_rad: float = np.radians(20.0)  # ... at this angle or more
-    max_crossing_share: float = 0.10  # crossing robot walls' length / matched length
+    max_crossing_share: float = 1.0  # crossing robot walls' length / matched length
     max_sigma_m: float = 0.10  # a fit this loose (one direction unconstrained: a corridor) is refused
     max_sigma_rad: float = np.radians(1.0)
     # prior
@@ -161,20 +162,21 @@ def estimate_alignment(
     robot_seg = np.asarray(robot_seg, float).reshape(-1, 2, 2)
     placed_seg = np.asarray(placed_seg, float).reshape(-1, 2, 2)
     robot = Samples.of(robot_seg, cfg.sample_step_m)
+    coarse = Samples.of(robot_seg, cfg.coarse_step_m)
     index = MapIndex(placed_seg, cfg.sample_step_m)
     total = float(robot.length.sum())
     if prior is not None:
         sigma = np.zeros(3) if prior_sigma is None else np.asarray(prior_sigma, float)
-        return _from_prior(robot_seg, index, robot, np.asarray(prior, float), sigma, cfg)
+        return _from_prior(robot_seg, index, robot, coarse, np.asarray(prior, float), sigma, cfg)
     keep = current is not None and current.status == "aligned"
     if total < cfg.min_overlap_m or len(index.samples) == 0:
         if keep:
             return current
         why = "nothing placed yet" if len(index.samples) == 0 else f"robot map only {total:.1f} m long"
         return Alignment("unaligned", np.zeros(3), np.zeros(3), reason=why)
-    cands = cand.search(robot_seg, placed_seg, index, robot, cfg)
+    cands = cand.search(robot_seg, placed_seg, index, robot, coarse, cfg)
     if keep:
-        cur = cand.refine_and_score(index, robot, current.transform, cfg)
+        cur = cand.refine_and_score(index, robot, coarse, current.transform, cfg)
         return _revise(current, cur, cands, robot_seg, index, robot, total, cfg)
     if not cands:
         return Alignment("unaligned", np.zeros(3), np.zeros(3), reason="no corner correspondences")
@@ -219,7 +221,9 @@ def _revise(current: Alignment, cur: Scored, cands, robot_seg, index, robot, tot
     return _verdict("aligned", cur, total, ratio, f"kept and refined: overlap {cur.matched_m:.1f} m")
 
 
-def _from_prior(robot_seg, index: MapIndex, robot: Samples, prior, prior_sigma, cfg) -> Alignment:
+def _from_prior(
+    robot_seg, index: MapIndex, robot: Samples, coarse: Samples, prior, prior_sigma, cfg
+) -> Alignment:
     """Refine the prior by matching within its sigma; keep it when the evidence is thin."""
     floor = [cfg.prior_min_sigma_m, cfg.prior_min_sigma_m, cfg.prior_min_sigma_rad]
     sigma = np.maximum(prior_sigma, floor)
@@ -233,7 +237,7 @@ def _from_prior(robot_seg, index: MapIndex, robot: Samples, prior, prior_sigma, 
     info = np.diag(1.0 / sigma**2)
     gate = max(cfg.prior_gate_sigmas * max(sigma[0], sigma[1]), cfg.refine_stages[-1][0])
     stages = tuple((min(g, gate), a) for g, a in cfg.refine_stages)
-    r = refine(index, robot, prior, stages, cfg.point_sigma_m, cfg.correlation_m, prior, info)
+    r = refine(index, coarse, prior, stages, cfg.point_sigma_m, cfg.correlation_m, prior, info)
     s = cand.score(index, robot, r.pose, cfg, r)
     d = s.pose - prior
     d[2] = wrap_angle(d[2])

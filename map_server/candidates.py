@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from map_server.alignment import AlignmentConfig
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Scored:
     """A candidate pose with its evidence: ``matched_m`` robot length on placed walls,
     ``conflict_m`` length near placed walls but not on them, ``net`` the score compared between
@@ -75,29 +75,33 @@ def mean_displacement(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float
 
 
 def score(index: MapIndex, robot: Samples, pose: np.ndarray, cfg: AlignmentConfig, refined=None) -> Scored:
-    matched, conflict = index.evidence(pose, robot, cfg.score_perp_m, cfg.score_angle_rad, cfg.conflict_m)
-    return Scored(
-        np.asarray(pose, float), matched, conflict, matched - cfg.conflict_weight * conflict, refined
-    )
+    """Strict evidence for ``pose``: matched and conflicting robot-map length and their masks."""
+    on, near = index.evidence(pose, robot, cfg.score_perp_m, cfg.score_angle_rad, cfg.conflict_m)
+    matched, conflict = float(robot.length[on].sum()), float(robot.length[near & ~on].sum())
+    net = matched - cfg.conflict_weight * conflict
+    return Scored(np.asarray(pose, float), matched, conflict, net, refined)
 
 
 def refine_and_score(
-    index: MapIndex, robot: Samples, pose: np.ndarray, cfg: AlignmentConfig, **prior
+    index: MapIndex, robot: Samples, coarse: Samples, pose: np.ndarray, cfg: AlignmentConfig, **prior
 ) -> Scored:
-    r = refine(index, robot, pose, cfg.refine_stages, cfg.point_sigma_m, cfg.correlation_m, **prior)
+    """Refine on the coarse samples, score strictly on the fine ones."""
+    r = refine(index, coarse, pose, cfg.refine_stages, cfg.point_sigma_m, cfg.correlation_m, **prior)
     return score(index, robot, r.pose, cfg, r)
 
 
-def search(robot_seg, placed_seg, index: MapIndex, robot: Samples, cfg: AlignmentConfig) -> list[Scored]:
+def search(
+    robot_seg, placed_seg, index: MapIndex, robot: Samples, coarse: Samples, cfg: AlignmentConfig
+) -> list[Scored]:
     """Candidates from the vote peaks, best first: the best ``max_refined`` by pre-score refined
     and scored strictly, the rest with their generous pre-score — they still count as rivals."""
     hyp = pose_hypotheses(robot_seg, facing_of(robot_seg), placed_seg, facing_of(placed_seg), cfg.matching)
     if len(hyp) == 0:
         return []
     peaks = vote_peaks(hyp, cfg.vote_cell_m, cfg.vote_cell_rad, cfg.max_peaks)[0]
-    pre = np.array([index.overlap(p, robot, cfg.prescore_perp_m, cfg.prescore_angle_rad) for p in peaks])
+    pre = np.array([index.overlap(p, coarse, cfg.prescore_perp_m, cfg.prescore_angle_rad) for p in peaks])
     order = np.argsort(-pre, kind="stable")
-    refined = [refine_and_score(index, robot, peaks[i], cfg) for i in order[: cfg.max_refined]]
+    refined = [refine_and_score(index, robot, coarse, peaks[i], cfg) for i in order[: cfg.max_refined]]
     rest = [Scored(peaks[i], float(pre[i]), 0.0, float(pre[i]), None) for i in order[cfg.max_refined :]]
     return sorted(refined, key=lambda s: -s.net) + rest
 

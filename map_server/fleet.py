@@ -140,8 +140,12 @@ class Fleet:
         return np.concatenate(seg), np.concatenate(w), np.concatenate(owner)
 
     def _align_round(self, now_s: float) -> bool:
-        """One pass over the robots that deserve an attempt; True if a robot got placed."""
-        newly = False
+        """One pass over the robots that deserve an attempt; True if a robot got placed.
+
+        Of the unplaced robots that matched, only the most decisive one (highest rival ratio)
+        is taken this round; the others are tried again against the grown placed map — a robot
+        matched against more of the fleet has fewer mirror images to fall for."""
+        fresh: list[tuple[RobotState, Alignment, float]] = []
         for r in self._ordered():
             if r.layer is None or r.alignment.status == "reference":
                 continue
@@ -157,17 +161,27 @@ class Fleet:
             a = estimate_alignment(
                 r.layer.seg, self._global_segments(r.robot), self.cfg.alignment, prior, sigma, current
             )
+            if a.status == "aligned" and not r.alignment.placed:
+                fresh.append((r, a, placed_m))
+                continue
             r.attempted(placed_m, now_s)
-            was_placed = r.alignment.placed
-            if a.status == "aligned" and (current is None or self._moved(r, current, a)):
-                a = self._confirm(r, a, current)  # a new place: not before it is confirmed
+            if a.status == "aligned" and current is not None and self._moved(r, current, a):
+                a = self._confirm(r, a, current)  # a revision: not before it is confirmed
             else:
                 r.pending, r.pending_count = None, 0
+            was_placed = r.alignment.placed
             r.alignment = a
             if a.placed and not was_placed:
                 r.mark_placed(now_s - self.epoch_s)
-                newly = True
-        return newly
+        if not fresh:
+            return False
+        r, a, placed_m = max(fresh, key=lambda f: f[1].rival_ratio)
+        r.attempted(placed_m, now_s)
+        r.alignment = self._confirm(r, a, None)
+        if r.alignment.placed:
+            r.mark_placed(now_s - self.epoch_s)
+            return True
+        return False
 
     def _mature(self, robots: list[RobotState], now_s: float) -> bool:
         c = self.cfg

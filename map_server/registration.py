@@ -89,12 +89,13 @@ class MapIndex:
 
     def evidence(
         self, pose: np.ndarray, robot: Samples, perp_m: float, angle_rad: float, conflict_m: float
-    ) -> tuple[float, float]:
-        """Robot-map length [m] lying on the placed map at ``pose``, and length that does not
-        although a placed wall (not its other face) is within ``conflict_m``: where the placed
-        robots mapped, this robot sees something else."""
-        if self.tree is None or len(robot) == 0:
-            return 0.0, 0.0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Masks ``(K,)`` of the robot samples that, at ``pose``, lie on the placed map (``on``)
+        and that have a placed wall (not its other face) within ``conflict_m`` (``near``):
+        ``near & ~on`` is where the placed robots mapped and this robot sees something else."""
+        k = len(robot)
+        if self.tree is None or k == 0:
+            return np.zeros(k, bool), np.zeros(k, bool)
         q = transform_points(pose, robot.points)
         _, j = self.tree.query(q, k=NEIGHBOURS, distance_upper_bound=max(conflict_m, perp_m))
         valid = j < len(self.samples)
@@ -106,7 +107,7 @@ class MapIndex:
         gate = np.hypot(perp_m, robot_step(robot))
         on = (valid & (dang <= angle_rad) & (perp <= perp_m) & (dist <= gate)).any(axis=1)
         near = (valid & (dang < OTHER_FACE_RAD)).any(axis=1)
-        return float(robot.length[on].sum()), float(robot.length[near & ~on].sum())
+        return on, near | on
 
     def opposed(self, pose: np.ndarray, robot: Samples, perp_m: float) -> float:
         """Robot-map length [m] on a placed wall's line but facing the other way (a wall seen from
