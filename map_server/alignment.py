@@ -63,21 +63,21 @@ class AlignmentConfig:
     point_sigma_m: float = 0.05  # wall-point noise incl. map drift (Huber threshold, information)
     correlation_m: float = 1.0  # samples closer than this along a wall are not independent
     # verification
-    min_overlap_m: float = 8.0  # robot-map length on placed walls
+    min_overlap_m: float = 30.0  # robot-map length on placed walls (a merge rests on this much wall)
     min_share: float = 0.15  # ... as a share of the robot map's length
     max_conflict_share: float = 1.0  # conflicting length / matched length (a broken map: more)
     min_rival_ratio: float = 1.10  # net score / best distinct rival's net score
     distinct_m: float = 0.5  # two poses are distinct places when they move the robot map apart by
     # more than this on average
     opposed_perp_m: float = 0.05  # a robot wall this close to a placed wall's line facing the other way
-    max_opposed_share: float = 0.05  # ... may amount to this share of the matched length
+    max_opposed_share: float = 0.2  # ... may amount to this share of the matched length
     cross_margin_m: float = 0.25  # a crossing cuts both walls farther than this from their ends ...
     cross_min_angle_rad: float = np.radians(20.0)  # ... at this angle or more
     max_crossing_share: float = 1.0  # crossing robot walls' length / matched length
     max_sigma_m: float = 0.10  # a fit this loose (one direction unconstrained: a corridor) is refused
     max_sigma_rad: float = np.radians(1.0)
     # prior
-    prior_gate_sigmas: float = 3.0  # refinement may move the prior this far (Mahalanobis) at most
+    prior_gate_sigmas: float = 4.0  # refinement may move the prior this far (Mahalanobis, 99.9 %)
     prior_min_sigma_m: float = 0.01  # floors of the prior's sigma (a zero sigma pins the pose)
     prior_min_sigma_rad: float = np.radians(0.2)
     # revision of a current alignment

@@ -145,14 +145,15 @@ class Fleet:
         Of the unplaced robots that matched, only the most decisive one (highest rival ratio)
         is taken this round; the others are tried again against the grown placed map — a robot
         matched against more of the fleet has fewer mirror images to fall for."""
-        fresh: list[tuple[RobotState, Alignment, float]] = []
+        fresh: list[tuple[RobotState, Alignment, float, str]] = []
         for r in self._ordered():
             if r.layer is None or r.alignment.status == "reference":
                 continue
             prior = r.map.prior if self.frame == "prior" else None
             others = [p for p in self._placed() if p.robot != r.robot]
             placed_m = sum(p.layer.length_m for p in others)
-            if not r.due(self.cfg, placed_m, now_s):
+            key = _placed_key(others)
+            if not r.due(self.cfg, placed_m, key, now_s):
                 continue
             if prior is None and not r.alignment.placed and not self._mature([r, *others], now_s):
                 continue  # not even attempted: a young map's match is not evidence yet
@@ -162,9 +163,9 @@ class Fleet:
                 r.layer.seg, self._global_segments(r.robot), self.cfg.alignment, prior, sigma, current
             )
             if a.status == "aligned" and not r.alignment.placed:
-                fresh.append((r, a, placed_m))
+                fresh.append((r, a, placed_m, key))
                 continue
-            r.attempted(placed_m, now_s)
+            r.attempted(placed_m, key, now_s)
             if a.status == "aligned" and current is not None and self._moved(r, current, a):
                 a = self._confirm(r, a, current)  # a revision: not before it is confirmed
             else:
@@ -175,8 +176,9 @@ class Fleet:
                 r.mark_placed(now_s - self.epoch_s)
         if not fresh:
             return False
-        r, a, placed_m = max(fresh, key=lambda f: f[1].rival_ratio)
-        r.attempted(placed_m, now_s)
+        for f in fresh:
+            f[0].attempted(f[2], f[3], now_s)
+        r, a = max(fresh, key=lambda f: f[1].rival_ratio)[:2]
         r.alignment = self._confirm(r, a, None)
         if r.alignment.placed:
             r.mark_placed(now_s - self.epoch_s)
@@ -286,6 +288,15 @@ class Fleet:
                 server_id, f.version, meta["stamp_s"], 0, 1, table, seg, support, off, prov, info["extra"]
             )
         return f
+
+
+def _placed_key(placed: list[RobotState]) -> str:
+    """Which robots are placed, how long their maps are and where: changes when the map a robot
+    is aligned against changes."""
+    return ";".join(
+        f"{r.robot}:{r.layer.length_m:.3f}:" + ":".join(f"{v:.5f}" for v in r.alignment.transform)
+        for r in placed
+    )
 
 
 def _mean_move(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:

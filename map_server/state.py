@@ -36,6 +36,7 @@ class RobotState:
     first_map_s: float | None = None  # server time of its first non-empty map (picks the reference)
     attempt_len_m: float | None = None
     attempt_placed_m: float = 0.0
+    attempt_placed_key: str = ""  # which placed robots, how long, where (see Fleet._placed_key)
     attempt_s: float = 0.0
     pending: Alignment | None = None
     pending_count: int = 0
@@ -45,7 +46,7 @@ class RobotState:
         """The robot restarted: its map frame is a new one, nothing of the old alignment holds."""
         self.alignment = _unaligned("new session")
         self.layer, self.aligned_at_s, self.first_map_s = None, None, None
-        self.attempt_len_m, self.attempt_placed_m = None, 0.0
+        self.attempt_len_m, self.attempt_placed_m, self.attempt_placed_key = None, 0.0, ""
         self.pending, self.pending_count = None, 0
         self.lengths = []
 
@@ -64,7 +65,7 @@ class RobotState:
             return False
         return self.layer.length_m <= (1.0 + max_growth) * before[-1]
 
-    def due(self, cfg: FleetConfig, placed_m: float, now_s: float) -> bool:
+    def due(self, cfg: FleetConfig, placed_m: float, placed_key: str, now_s: float) -> bool:
         """Whether an alignment attempt is worth it: never tried, the map changed enough, or
         (while unaligned) the placed map grew enough, or anything changed and it is a while ago."""
         if self.attempt_len_m is None:
@@ -72,16 +73,21 @@ class RobotState:
         grown = abs(self.layer.length_m - self.attempt_len_m)
         if grown >= max(cfg.retry_growth_m, cfg.retry_growth_share * self.attempt_len_m):
             return True
-        if self.alignment.placed and self.pending is None:
+        waited = now_s - self.attempt_s >= cfg.retry_interval_s
+        if self.pending is not None:
+            return waited  # a candidate awaits confirmation
+        placed_changed = placed_key != self.attempt_placed_key
+        if self.alignment.status == "prior":  # refined against the others while they move
+            return waited and (grown > 0.0 or placed_changed)
+        if self.alignment.placed:
             return False
-        placed_grown = placed_m - self.attempt_placed_m
-        if placed_grown >= cfg.retry_placed_growth_m:
+        if placed_m - self.attempt_placed_m >= cfg.retry_placed_growth_m:
             return True
-        changed = grown > 0.0 or placed_grown != 0.0
-        return changed and now_s - self.attempt_s >= cfg.retry_interval_s
+        return waited and (grown > 0.0 or placed_changed)
 
-    def attempted(self, placed_m: float, now_s: float) -> None:
-        self.attempt_len_m, self.attempt_placed_m, self.attempt_s = self.layer.length_m, placed_m, now_s
+    def attempted(self, placed_m: float, placed_key: str, now_s: float) -> None:
+        self.attempt_len_m, self.attempt_s = self.layer.length_m, now_s
+        self.attempt_placed_m, self.attempt_placed_key = placed_m, placed_key
 
     def mark_placed(self, t_s: float) -> None:
         if self.aligned_at_s is None:
@@ -116,7 +122,8 @@ class RobotState:
 
 # the plain fields of RobotState that a snapshot keeps as they are
 _SCALARS = (
-    "order", "online", "aligned_at_s", "first_map_s", "attempt_len_m", "attempt_placed_m", "attempt_s",
+    "order", "online", "aligned_at_s", "first_map_s", "attempt_len_m", "attempt_placed_m",
+    "attempt_placed_key", "attempt_s",
     "pending_count",
 )  # fmt: skip
 

@@ -1,0 +1,148 @@
+"""Robot frame -> global frame by map matching: accuracy on simulated maps, verdicts, priors.
+
+Truths: a map built from scans at the true poses is in the robot's start frame exactly, so the
+start pose is its true transform. A FastSLAM map's frame is the filter's origin, which differs
+from the start by the filter's own first-pose error; its true transform is taken as the rigid
+fit of the estimated trajectory to the true one (``shared.metrics.ate``).
+"""
+
+import time
+
+import numpy as np
+import pytest
+
+from map_server.alignment import Alignment, AlignmentConfig, estimate_alignment
+from map_server.fusion import FusionConfig, fuse_particles
+from shared.geometry import apply_segments, compose, inverse
+from shared.metrics import ate, transform_error
+from tests.map_server.robots import robot_map_from_slam, scan_map, slam_run
+
+CFG = AlignmentConfig()
+HALF_TURN = np.array([30.0, 20.0, np.pi])  # the office is nearly symmetric under this half turn
+
+
+def pair(duration_s, a=0, b=1, world="office"):
+    """Placed map (robot ``a``'s exact map in the world frame), robot ``b``'s map, its truth."""
+    seg_a, start_a = scan_map(world, a, duration_s)
+    seg_b, start_b = scan_map(world, b, duration_s)
+    return apply_segments(start_a, seg_a), seg_b, start_b
+
+
+def test_exact_maps_give_the_exact_frame_fast():
+    placed, seg, truth = pair(150.0)
+    t = time.perf_counter()
+    a = estimate_alignment(seg, placed, CFG)
+    elapsed = time.perf_counter() - t
+    assert a.status == "aligned", a.reason
+    err_m, err_deg = transform_error(a.transform, truth)
+    assert err_m < 0.01 and err_deg < 0.05  # measured 0.0003 m, 0.001 deg
+    assert np.all(a.sigma[:2] < 0.02) and a.sigma[2] < np.radians(0.2)
+    assert a.score_m > 150.0 and a.inlier_share > 0.6
+    # the half-turned placement is the rival: the office is 89 % self-similar under it
+    assert 1.10 <= a.rival_ratio < 1.3
+    assert elapsed < 2.0  # measured 0.1-0.2 s on the 2-core development machine
+
+
+def test_partial_maps_of_the_symmetric_office_match_their_mirror_image():
+    """Why the Fleet waits for mature maps: at 90 s robot 1's map matches robot 0's better when
+    half-turned (both robots explored mirror-image halves). The pairwise verdict is wrong."""
+    placed, seg, truth = pair(90.0)
+    a = estimate_alignment(seg, placed, CFG)
+    assert transform_error(a.transform, compose(HALF_TURN, truth))[0] < 0.05
+    assert a.status == "aligned"  # passes every pairwise check: ratio 1.4
+
+
+def test_too_little_overlap_is_not_merged():
+    placed, seg, _ = pair(40.0)
+    a = estimate_alignment(seg, placed, CFG)
+    assert a.status == "unaligned"
+    assert "overlap" in a.reason
+
+
+@pytest.mark.parametrize(("a", "b", "duration_s"), [(2, 3, 120.0), (1, 3, 200.0)])
+def test_warehouse_aisles_unaligned_or_right(a, b, duration_s):
+    # aisles repeat every 3.7 m; (2, 3) at 120 s: the aisle-shifted twin scores alike -> refused
+    placed, seg, truth = pair(duration_s, a, b, "warehouse")
+    al = estimate_alignment(seg, placed, CFG)
+    err_m, _ = transform_error(al.transform, truth)
+    assert al.status == "unaligned" or err_m < 0.3, al.reason
+
+
+WAREHOUSE_LIMIT = (
+    "known limit: the warehouse is nearly symmetric under a half turn (pallets differ by ~1 m); "
+    "partial maps match their mirror image (ratio 1.26)"
+)
+
+
+@pytest.mark.xfail(strict=True, reason=WAREHOUSE_LIMIT)
+def test_warehouse_half_turn_of_partial_maps():
+    placed, seg, truth = pair(60.0, 0, 1, "warehouse")
+    al = estimate_alignment(seg, placed, CFG)
+    assert al.status == "unaligned" or transform_error(al.transform, truth)[0] < 0.3
+
+
+@pytest.fixture(scope="module")
+def slam_pair():
+    """Robot 0's and robot 1's published maps after 150 s of FastSLAM (seed 0), with truths."""
+    out = []
+    for r in (0, 1):
+        slam, sim = slam_run("office", r, 150.0, 0)
+        stamps, poses = slam.best_trajectory()
+        frame = ate(stamps, poses, sim.stamps_s, sim.truth).alignment
+        out.append((fuse_particles(robot_map_from_slam(slam, f"r{r}"), FusionConfig()), frame))
+    return out
+
+
+def test_fastslam_maps_align_within_the_demo_bounds(slam_pair):
+    (l0, frame0), (l1, frame1) = slam_pair
+    a = estimate_alignment(l1.seg, l0.seg, CFG)  # global frame = robot 0's map frame
+    assert a.status == "aligned", a.reason
+    err_m, err_deg = transform_error(a.transform, compose(inverse(frame0), frame1))
+    assert err_m < 0.10 and err_deg < 1.0  # measured 0.01 m, 0.05 deg
+
+
+def test_a_prior_is_refined_within_its_sigma():
+    placed, seg, truth = pair(150.0)
+    off = compose(truth, np.array([0.08, -0.05, np.radians(1.0)]))
+    a = estimate_alignment(seg, placed, CFG, prior=off, prior_sigma=np.array([0.1, 0.1, np.radians(2.0)]))
+    assert a.status == "prior" and a.reason.startswith("prior refined"), a.reason
+    err_m, err_deg = transform_error(a.transform, truth)
+    assert err_m < 0.02 and err_deg < 0.1
+    # a prior 0.5 m off with a 0.02 m sigma stays within its 3 sigma: matching cannot drag it
+    far = compose(truth, np.array([0.5, 0.0, 0.0]))
+    b = estimate_alignment(seg, placed, CFG, prior=far, prior_sigma=np.array([0.02, 0.02, 0.01]))
+    assert b.status == "prior"
+    assert transform_error(b.transform, far)[0] < 0.06
+
+
+def test_a_prior_is_kept_when_the_evidence_is_thin():
+    placed, seg, truth = pair(150.0)
+    prior = compose(truth, np.array([0.05, 0.0, 0.0]))
+    a = estimate_alignment(seg[:3], placed, CFG, prior=prior, prior_sigma=np.array([0.1, 0.1, 0.05]))
+    assert a.status == "prior" and a.reason.startswith("prior kept")
+    np.testing.assert_array_equal(a.transform, prior)
+    assert estimate_alignment(seg, np.zeros((0, 2, 2)), CFG, prior=prior, prior_sigma=np.ones(3)).placed
+
+
+def test_a_current_alignment_is_kept_and_refined():
+    placed, seg, truth = pair(150.0)
+    nudged = compose(truth, np.array([0.04, 0.03, np.radians(0.3)]))
+    current = Alignment("aligned", nudged, np.full(3, 0.01), reason="earlier")
+    a = estimate_alignment(seg, placed, CFG, current=current)
+    assert a.status == "aligned" and a.reason.startswith("kept and refined"), a.reason
+    assert transform_error(a.transform, truth)[0] < 0.01
+
+
+def test_a_wrong_current_alignment_that_lost_support_is_revised():
+    placed, seg, truth = pair(150.0)
+    wrong = compose(truth, np.array([6.0, 0.0, 0.0]))  # one room along the corridor
+    a = estimate_alignment(seg, placed, CFG, current=Alignment("aligned", wrong, np.zeros(3)))
+    assert a.status == "aligned" and a.reason.startswith("revised"), a.reason
+    assert transform_error(a.transform, truth)[0] < 0.01
+
+
+def test_nothing_placed_and_tiny_maps():
+    placed, seg, _ = pair(150.0)
+    assert estimate_alignment(seg, np.zeros((0, 2, 2)), CFG).reason == "nothing placed yet"
+    tiny = estimate_alignment(seg[:2], placed, CFG)
+    assert tiny.status == "unaligned" and "robot map only" in tiny.reason
