@@ -105,12 +105,17 @@ class MapServer:
         self.rejected[what] += 1
         log.debug("rejected %s on %s: %s", what, key, exc)
 
+    def _decode(self, key: str, payload: bytes, kind: type):
+        """The message of type ``kind`` on a robot's ``key``; its robot id must be the key's."""
+        robot = self.keys.robot_of(key)
+        msg = codec.decode(payload, expect=kind)
+        if msg.robot != robot:
+            raise WireFormatError(f"robot {msg.robot!r} published on the key of {robot!r}")
+        return msg
+
     def on_map(self, key: str, payload: bytes) -> None:
         try:
-            robot = self.keys.robot_of(key)
-            msg = codec.decode(payload, expect=RobotMap)
-            if msg.robot != robot:
-                raise WireFormatError(f"robot {msg.robot!r} published on the key of {robot!r}")
+            msg = self._decode(key, payload, RobotMap)
             with self._lock:
                 done = self._assembler.add(msg)
                 if done is not None:
@@ -123,10 +128,7 @@ class MapServer:
 
     def on_pose(self, key: str, payload: bytes) -> None:
         try:
-            robot = self.keys.robot_of(key)
-            msg = codec.decode(payload, expect=PoseUpdate)
-            if msg.robot != robot:
-                raise WireFormatError(f"robot {msg.robot!r} published on the key of {robot!r}")
+            msg = self._decode(key, payload, PoseUpdate)
             with self._lock:
                 self._pose_filter.check(msg)
                 self._poses.append(msg)

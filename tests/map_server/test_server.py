@@ -1,0 +1,74 @@
+"""The server's driver without zenoh: validation at the door, counted rejections, persistence
+before publication, resume from the state directory."""
+
+import numpy as np
+
+from map_server.server import MapServer
+from map_server.store import Store
+from shared import codec
+from shared.keys import Keys
+from shared.messages import PoseUpdate
+
+KEYS = Keys()
+
+
+class FakeBus:
+    def __init__(self):
+        self.puts = []
+
+    def put(self, key, payload, reliable=True):
+        self.puts.append((key, payload))
+
+
+def robot_map(robot="robot1", seq=0, n=40, prior=(0.0, 0.0, 0.0)):
+    """A room's walls as a robot map (one particle)."""
+    t = np.linspace(0.0, 1.0, n // 4, endpoint=False)
+    seg = []
+    for (x0, y0), (x1, y1) in [((0, 0), (8, 0)), ((8, 0), (8, 6)), ((8, 6), (0, 6)), ((0, 6), (0, 0))]:
+        a = np.array([x0, y0]) + np.outer(t, [x1 - x0, y1 - y0])
+        b = a + np.array([x1 - x0, y1 - y0]) / (n // 4) * 0.9
+        seg += list(np.stack([a, b], axis=1))
+    seg = np.array(seg)
+    k = len(seg)
+    return codec.robot_map_chunks(
+        robot, "s1", seq, 10.0 + seq, np.array([1.0]), np.zeros((1, 3)), seg, np.arange(k),
+        np.ones(k, np.int64), np.full(k, 0.8), np.full(k, 10), np.full(k, 50),
+        prior=np.array(prior), prior_sigma=np.array([0.05, 0.05, 0.02]),
+    )  # fmt: skip
+
+
+def test_hostile_messages_are_counted_and_change_nothing():
+    server = MapServer(FakeBus(), KEYS)
+    server.on_map(KEYS.robot_map("robot1"), b"\xc1garbage")
+    server.on_map(KEYS.robot_map("robot2"), codec.encode(robot_map("robot1")[0]))  # someone else's key
+    server.on_map("fleet/default/elsewhere", codec.encode(robot_map()[0]))
+    server.on_pose(KEYS.robot_pose("robot1"), codec.encode(robot_map()[0]))  # a map on the pose key
+    assert server.rejected == {"map": 3, "pose": 1}
+    assert server.tick() is None and server.fleet.latest() is None
+
+
+def test_a_stale_pose_is_rejected():
+    server = MapServer(FakeBus(), KEYS)
+    for seq in (3, 2):
+        server.on_pose(
+            KEYS.robot_pose("robot1"), codec.encode(PoseUpdate("robot1", "s1", seq, 1.0, np.zeros(3)))
+        )
+    assert server.received["pose"] == 1 and server.rejected["pose"] == 1
+
+
+def test_fused_map_is_persisted_before_it_is_published_and_restored(tmp_path):
+    bus = FakeBus()
+    server = MapServer(bus, KEYS, store=Store(tmp_path))
+
+    def persisted_then_published(key, payload, reliable=True):
+        assert Store(tmp_path).load() is not None  # on disk before anyone sees it
+        bus.puts.append((key, payload))
+
+    bus.put = persisted_then_published
+    for chunk in robot_map():
+        server.on_map(KEYS.robot_map("robot1"), codec.encode(chunk))
+    fused = server.tick()
+    assert fused is not None and len(fused.seg) > 0 and bus.puts
+    assert [k for k, _ in server.answer_fused(KEYS.fused)] == [KEYS.fused]
+    again = MapServer(FakeBus(), KEYS, store=Store(tmp_path)).fleet.latest()
+    assert again.version == fused.version and np.allclose(again.seg, fused.seg, atol=1e-4)
