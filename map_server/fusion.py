@@ -109,21 +109,38 @@ def fuse_particles(m: RobotMap, cfg: FusionConfig) -> RobotLayer:
 
 
 def _candidate_pairs(seg: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs ``i < j`` whose bounding boxes, grown by ``margin_m``, intersect (chunked)."""
+    """Pairs ``i < j`` whose bounding boxes, grown by ``margin_m``, intersect, in ``(i, j)`` order.
+
+    A sweep along x: boxes sorted by their x-min; box ``a`` can only meet the boxes that start
+    before its x-max (``searchsorted``); those are tested in y, in chunks of at most
+    ``PAIR_CHUNK_ELEMENTS`` candidate pairs. (All pairs took 1.2 s for 7,300 segments, the sweep
+    9 ms, same pairs: benchmarks/bench_fleet.py.)"""
+    n = len(seg)
     lo = seg.min(axis=1) - margin_m
     hi = seg.max(axis=1) + margin_m
-    n = len(seg)
-    rows = max(1, PAIR_CHUNK_ELEMENTS // max(n, 1))
-    out_i, out_j = [], []
-    for s in range(0, n, rows):
-        a = slice(s, min(s + rows, n))
-        hit = np.all((lo[a, None] <= hi[None]) & (lo[None] <= hi[a, None]), axis=-1)
-        i, j = np.nonzero(hit)
-        i = i + s
-        keep = i < j
-        out_i.append(i[keep])
-        out_j.append(j[keep])
-    return np.concatenate(out_i), np.concatenate(out_j)
+    order = np.argsort(lo[:, 0], kind="stable")
+    lo_s, hi_s = lo[order], hi[order]
+    end = np.searchsorted(lo_s[:, 0], hi_s[:, 0], side="right")  # sorted boxes k < end[a] start in time
+    count = np.maximum(end - np.arange(n) - 1, 0)  # candidates k in (a, end[a])
+    out_i, out_j = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    cum = np.cumsum(count)
+    s = 0
+    while s < n:
+        e = max(
+            s + 1, int(np.searchsorted(cum, (cum[s - 1] if s else 0) + PAIR_CHUNK_ELEMENTS, side="right"))
+        )
+        e = min(e, n)
+        c = count[s:e]
+        a = np.repeat(np.arange(s, e), c)
+        k = np.arange(c.sum()) - np.repeat(np.cumsum(c) - c, c) + a + 1
+        ok = (lo_s[k, 1] <= hi_s[a, 1]) & (lo_s[a, 1] <= hi_s[k, 1])
+        i, j = order[a[ok]], order[k[ok]]
+        out_i.append(np.minimum(i, j))
+        out_j.append(np.maximum(i, j))
+        s = e
+    i, j = np.concatenate(out_i), np.concatenate(out_j)
+    idx = np.lexsort((j, i))
+    return i[idx], j[idx]
 
 
 def collinear_pairs(seg: np.ndarray, cfg: FusionConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -149,3 +149,22 @@ def test_merge_is_vectorized_over_many_segments():
     _, support, off, prov = merge_segments(seg, np.ones(3000), rng.integers(0, 3, 3000), CFG)
     assert support.sum() == 3000
     assert off[-1] == len(prov)
+
+
+@pytest.mark.parametrize("chunk", [7, 1_000_000])
+def test_candidate_pairs_sweep_equals_all_pairs(monkeypatch, chunk):
+    """The x-sweep finds exactly the box-overlap pairs of the all-pairs test, in the same order,
+    whatever the chunk size."""
+    from map_server import fusion
+
+    rng = np.random.default_rng(3)
+    a = rng.uniform(0.0, 40.0, (800, 2))
+    seg = np.stack([a, a + rng.normal(0.0, 2.0, (800, 2))], axis=1)
+    lo, hi = seg.min(axis=1) - 0.4, seg.max(axis=1) + 0.4
+    hit = np.all((lo[:, None] <= hi[None]) & (lo[None] <= hi[:, None]), axis=-1)
+    bi, bj = np.nonzero(np.triu(hit, 1))
+    monkeypatch.setattr(fusion, "PAIR_CHUNK_ELEMENTS", chunk)
+    i, j = fusion._candidate_pairs(seg, 0.4)
+    assert len(bi) > 1000
+    np.testing.assert_array_equal(i, bi)
+    np.testing.assert_array_equal(j, bj)
