@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+import threading
 import time
 from collections.abc import Callable
 
@@ -29,3 +30,32 @@ def wait_for(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:
             return condition()
         time.sleep(POLL_S)
     return True
+
+
+class Inbox:
+    """Thread-safe record of callback calls (zenoh callbacks run on their own threads)."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.items: list = []
+
+    def __call__(self, *args):
+        with self.lock:
+            self.items.append(args)
+
+    def snapshot(self) -> list:
+        with self.lock:
+            return list(self.items)
+
+    def __len__(self) -> int:
+        with self.lock:
+            return len(self.items)
+
+    def has(self, item) -> bool:
+        with self.lock:
+            return item in self.items
+
+    def states(self, key: str) -> list[bool]:
+        """The liveliness states reported for ``key``, in order."""
+        with self.lock:
+            return [alive for k, alive in self.items if k == key]

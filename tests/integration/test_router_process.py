@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from shared.bus import Bus, BusConfig
-from tests.netutil import loopback_endpoint, wait_for
+from tests.netutil import Inbox, loopback_endpoint, wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -58,26 +58,7 @@ def routers():
         stop(proc)
 
 
-class Received:
-    def __init__(self):
-        self.lock = threading.Lock()
-        self.items: list = []
-
-    def __call__(self, *args):
-        with self.lock:
-            self.items.append(args)
-
-    def has(self, item) -> bool:
-        with self.lock:
-            return item in self.items
-
-    def states(self, key: str) -> list[bool]:
-        """The liveliness states reported for ``key``, in order."""
-        with self.lock:
-            return [alive for k, alive in self.items if k == key]
-
-
-def delivers(pub: Bus, received: Received, key: str, payload: bytes, timeout_s: float) -> bool:
+def delivers(pub: Bus, received: Inbox, key: str, payload: bytes, timeout_s: float) -> bool:
     """Put ``payload`` on ``key`` until the subscriber has it (puts during an outage are dropped)."""
 
     def attempt() -> bool:
@@ -101,7 +82,7 @@ def test_clients_wait_for_the_router_and_survive_its_kill_and_restart(routers):
         early.join(STARTUP_S)
         assert "early" in opened, "the early client did not connect"
         with opened["early"] as pub, Bus(cfg) as sub:
-            received, presence = Received(), Received()
+            received, presence = Inbox(), Inbox()
             sub.subscribe("restart/*", received)
             sub.watch_alive("restart/alive/*", presence)
             pub.declare_alive("restart/alive/pub")

@@ -9,7 +9,7 @@ import threading
 import pytest
 
 from shared.bus import Bus, BusConfig, BusError, run_router, zenoh_config
-from tests.netutil import free_port, loopback_endpoint, wait_for
+from tests.netutil import Inbox, free_port, loopback_endpoint, wait_for
 
 
 @pytest.fixture
@@ -28,26 +28,6 @@ def clients(router, endpoint):
     """Two clients of ``router``: (publisher, subscriber)."""
     with Bus(BusConfig(connect=(endpoint,))) as a, Bus(BusConfig(connect=(endpoint,))) as b:
         yield a, b
-
-
-class Inbox:
-    """Thread-safe record of callback calls."""
-
-    def __init__(self):
-        self.lock = threading.Lock()
-        self.items: list = []
-
-    def __call__(self, *args):
-        with self.lock:
-            self.items.append(args)
-
-    def snapshot(self) -> list:
-        with self.lock:
-            return list(self.items)
-
-    def __len__(self) -> int:
-        with self.lock:
-            return len(self.items)
 
 
 def wait_routed(pub: Bus, inbox: Inbox, key: str) -> None:
