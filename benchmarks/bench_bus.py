@@ -8,15 +8,14 @@ table and writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
-import platform
-import socket
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
+from _results import save_results
 
+from fleet_slam.procs import free_port
 from shared.bus import Bus, BusConfig
 
 SIZES_BYTES = (1_000, 10_000, 50_000)
@@ -24,9 +23,7 @@ WARMUP = 50  # messages not timed: routes and buffers settle
 
 
 def free_endpoint() -> str:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{sock.getsockname()[1]}"
+    return f"tcp/127.0.0.1:{free_port()}"
 
 
 def latencies_s(n_messages: int, size: int, reliable: bool, shm: bool) -> np.ndarray:
@@ -81,19 +78,7 @@ def main(n_messages: int, out: Path) -> list[dict]:
             f"{r['size_bytes']:7d} {r['reliable']!s:>8} {r['shm']!s:>5} "
             f"{r['p50_ms']:8.3f} {r['p95_ms']:8.3f} {r['max_ms']:8.3f}"
         )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(
-        json.dumps(
-            {
-                "benchmark": "bench_bus",
-                "python": platform.python_version(),
-                "machine": platform.machine(),
-                "results": rows,
-            },
-            indent=2,
-        )
-    )
-    print(f"wrote {out}")
+    save_results(out, "bench_bus", {"results": rows})
     return rows
 
 

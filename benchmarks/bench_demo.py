@@ -12,12 +12,13 @@ A wrong merge is a merged robot whose transform is off by more than 0.3 m or 3°
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from _results import save_results  # noqa: E402
 
 from fleet_slam.demo import DemoConfig, run_demo  # noqa: E402
 
@@ -58,9 +59,11 @@ def main() -> int:
     wrong = sum(len(m["wrong_merges"]) for m in results.values())
     unaligned = sum(r["status"] == "unaligned" for m in results.values() for r in m["robots"].values())
     print(f"{len(results)} runs: {wrong} wrong merges, {unaligned} robots left unaligned")
-    out = ROOT / "benchmarks" / "results"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_demo.json").write_text(json.dumps({"args": vars(args), "runs": results}, indent=2))
+    save_results(
+        ROOT / "benchmarks" / "results" / "bench_demo.json",
+        "bench_demo",
+        {"args": vars(args), "runs": results},
+    )
     return 0
 
 

@@ -43,7 +43,6 @@ import io
 import itertools
 import json
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -59,6 +58,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from _results import save_results  # noqa: E402
 
 from shared import codec  # noqa: E402
 from shared.chunks import PER_ELEMENT  # noqa: E402
@@ -996,14 +997,6 @@ def table(title: str, rows: list[dict]) -> None:
     Console(width=200).print(t)
 
 
-def _commit() -> str:
-    try:
-        out = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True)
-        return out.stdout.decode().strip()
-    except OSError:
-        return "unknown"
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--only", choices=("fusion", "latency", "bytes"), action="append", help="repeatable")
@@ -1028,9 +1021,7 @@ def main(argv: list[str] | None = None) -> int:
     record_s = 30.0 if q else RECORD_S
     recs = recordings(args.cache, n_runs, record_s, args.refresh)
     results: dict = {
-        "benchmark": "bench_fleet", "commit": _commit(), "python": platform.python_version(),
-        "machine": platform.machine(), "cpus": os.cpu_count(), "loadavg_at_start": os.getloadavg(),
-        "quick": q,
+        "loadavg_at_start": os.getloadavg(), "quick": q,
         "recorded": [
             {"robot": r.name, "maps": len(r.maps), "final_rows": len(final_map(r).seg)} for r in recs
         ],
@@ -1050,9 +1041,7 @@ def main(argv: list[str] | None = None) -> int:
     if "bytes" in sections:
         results["bytes"] = bench_bytes(recs, 1000, rate_routes=1 if q else 2)
         print_bytes(results["bytes"])
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=1, default=float))
-    print(f"wrote {args.out}")
+    save_results(args.out, "bench_fleet", results)
     return 0
 
 

@@ -13,12 +13,11 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"  # one core, before numpy loads
 
 import argparse  # noqa: E402
-import json  # noqa: E402
-import platform  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+from _results import save_results  # noqa: E402
 
 from robot_agent.sim import (  # noqa: E402
     BUILTIN_WORLDS,
@@ -95,22 +94,12 @@ def main(n_scans: int, beams: int, out: Path) -> list[dict]:
     campus = next(r for r in rows if r["world"] == "campus")
     verdict = "meets" if campus["scans_per_s"] >= TARGET_SCANS_PER_S else "MISSES"
     print(f"campus: {campus['scans_per_s']:.0f} scans/s {verdict} the target of {TARGET_SCANS_PER_S:.0f}")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(
-        json.dumps(
-            {
-                "benchmark": "bench_sim",
-                "max_pairs_per_chunk": MAX_PAIRS_PER_CHUNK,
-                "target_scans_per_s_campus": TARGET_SCANS_PER_S,
-                "python": platform.python_version(),
-                "numpy": np.__version__,
-                "machine": platform.machine(),
-                "results": rows,
-            },
-            indent=2,
-        )
-    )
-    print(f"wrote {out}")
+    payload = {
+        "max_pairs_per_chunk": MAX_PAIRS_PER_CHUNK,
+        "target_scans_per_s_campus": TARGET_SCANS_PER_S,
+        "results": rows,
+    }
+    save_results(out, "bench_sim", payload)
     return rows
 
 

@@ -17,7 +17,6 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -25,6 +24,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from _results import save_results  # noqa: E402
 
 from robot_agent.replay import replay  # noqa: E402
 from robot_agent.sim import SimConfig, builtin_world, simulate_robot  # noqa: E402
@@ -148,9 +149,7 @@ def main(argv: list[str] | None = None) -> int:
                 "real_time_factor",
             ],
         )
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(results, indent=2, default=float))
-    print(f"wrote {args.out}")
+    save_results(args.out, "bench_slam", results)
     return 0
 
 

@@ -46,13 +46,15 @@ class DemoConfig:
         return [f"robot{i + 1}" for i in range(self.split if self.log else self.robots)]
 
 
-def _agent_args(cfg: DemoConfig, i: int, name: str, endpoint: str, agents_dir: Path, pieces) -> list[str]:
+def _agent_args(
+    cfg: DemoConfig, i: int, name: str, endpoint: str, agents_dir: Path, split: LogSplit | None
+) -> list[str]:
     args = ["--robot", name, "--connect", endpoint, "--fleet", cfg.fleet, "--out", agents_dir]
     args += ["--seed", cfg.seed * 100 + i, "--speed", cfg.speed]
     if cfg.particles is not None:
         args += ["--particles", cfg.particles]
     if cfg.log:
-        a, b = pieces[i]
+        a, b = split.pieces[i]
         return [*args, "--log", cfg.log, "--from", a, "--to", b]
     from robot_agent.sim import builtin_world
 
@@ -71,11 +73,20 @@ def log_pieces(n_scans: int, k: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in itertools.pairwise(edges)]
 
 
-def _check(cfg: DemoConfig) -> list[tuple[int, int]] | None:
+@dataclass(frozen=True)
+class LogSplit:
+    """A real log (read once) and the scan ranges of its pieces, one agent each."""
+
+    log: object  # robot_agent.sources.LaserLog
+    pieces: list[tuple[int, int]]
+
+
+def _check(cfg: DemoConfig) -> LogSplit | None:
     if cfg.log:
         from robot_agent.sources import read_log
 
-        return log_pieces(len(read_log(cfg.log, progress=False)), cfg.split)
+        log = read_log(cfg.log, progress=False)
+        return LogSplit(log, log_pieces(len(log), cfg.split))
     from robot_agent.sim import builtin_world
 
     world = builtin_world(cfg.world)
@@ -92,7 +103,7 @@ def run_demo(cfg: DemoConfig) -> dict:
     from shared.bus import Bus, BusConfig
     from shared.keys import Keys
 
-    pieces = _check(cfg)
+    split = _check(cfg)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     agents_dir = out / "agents"
@@ -121,7 +132,7 @@ def run_demo(cfg: DemoConfig) -> dict:
             t_agents = time.monotonic()
             agents = [
                 group.start(
-                    n, python_module("robot_agent", *_agent_args(cfg, i, n, endpoint, agents_dir, pieces))
+                    n, python_module("robot_agent", *_agent_args(cfg, i, n, endpoint, agents_dir, split))
                 )
                 for i, n in enumerate(names)
             ]
@@ -136,7 +147,7 @@ def run_demo(cfg: DemoConfig) -> dict:
         router.stop()
     if final is None:
         raise RuntimeError(f"no fused map was received; see {out / 'logs' / 'server.log'}")
-    metrics = write_report(cfg, out, final, updates, t_agents, agents_dir, pieces)
+    metrics = write_report(cfg, out, final, updates, t_agents, agents_dir, split)
     metrics["wall_time_s"] = time.monotonic() - t_start
     metrics["config"] = asdict(cfg)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))

@@ -8,8 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from robot_agent.replay import replay
-from robot_agent.slam.config import apply_overrides
-from robot_agent.slam.fastslam import SlamConfig
+from robot_agent.slam.config import command_line_config
 from robot_agent.sources import read_log
 from shared.metrics import read_relations, relations_error, write_poses, write_tum
 from shared.viz import PathLayer, Picture, SegmentLayer, save_geojson, save_picture, segments_geojson
@@ -32,11 +31,7 @@ def replay_to_dir(
     limit: int | None = None,
     progress: bool | None = None,
 ) -> dict:
-    cfg = apply_overrides(SlamConfig(), overrides or [])
-    if particles is not None:
-        if particles < 1:
-            raise ValueError(f"--particles must be at least 1, got {particles}")
-        cfg = apply_overrides(cfg, [f"particles={particles}"])
+    cfg = command_line_config(overrides or [], particles)
     log = read_log(log_path, progress=progress)
     rel = read_relations(relations_path) if relations_path else None
     res = replay(log, cfg, seed=seed, progress=progress, limit=limit)

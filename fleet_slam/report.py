@@ -10,6 +10,7 @@ path (no further alignment: that is what a user of the fused map gets).
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,17 @@ import numpy as np
 from fleet_slam.watch import Update
 from shared.geometry import apply_segments, compose, identity, inverse
 from shared.messages import FusedMap
-from shared.metrics import ate, map_quality, read_poses, transform_error, write_poses, write_tum
+from shared.metrics import (
+    Relations,
+    ate,
+    map_quality,
+    read_poses,
+    read_relations,
+    relations_error,
+    transform_error,
+    write_poses,
+    write_tum,
+)
 from shared.viz import (
     PathLayer,
     Picture,
@@ -53,7 +64,7 @@ def fused_geojson(final: FusedMap) -> dict:
     return segments_geojson(final.seg, props, kind="fused")
 
 
-def write_report(cfg, out: Path, final: FusedMap, updates: list[Update], t0: float, agents_dir: Path, pieces):
+def write_report(cfg, out: Path, final: FusedMap, updates: list[Update], t0: float, agents_dir: Path, split):
     names = cfg.robot_names()
     first = _first_merges(updates, t0)
     starts, world = {}, None
@@ -103,14 +114,12 @@ def write_report(cfg, out: Path, final: FusedMap, updates: list[Update], t0: flo
     wrong = [n for n, r in robots.items() if r.get("wrong_merge")]
     metrics["all_merged"] = all(r["status"] in ("reference", "prior", "aligned") for r in robots.values())
     metrics["wrong_merges"] = wrong
-    if cfg.log and all_stamps:
-        metrics.update(_log_scores(cfg, out, all_stamps, all_poses, pieces))
+    if split is not None and all_stamps:
+        metrics.update(_log_scores(cfg, out, all_stamps, all_poses, split))
     return metrics
 
 
 def json_or_empty(path: Path) -> dict:
-    import json
-
     try:
         return json.loads(path.read_text())
     except (OSError, ValueError):
@@ -152,18 +161,12 @@ def _fused_quality(world, final: FusedMap, g, agents_dir: Path, names) -> dict:
     }
 
 
-def _log_scores(cfg, out: Path, all_stamps, all_poses, pieces) -> dict:
-    from robot_agent.sources import read_log
-    from shared.metrics import read_relations, relations_error
-
+def _log_scores(cfg, out: Path, all_stamps, all_poses, split) -> dict:
     stamps = np.concatenate(all_stamps)
     poses = np.concatenate(all_poses)
     write_poses(out / "fleet.poses.txt", stamps, poses)
-    res = {"pieces": [list(p) for p in pieces]}
+    res = {"pieces": [list(p) for p in split.pieces]}
     if cfg.relations:
-        from shared.metrics import Relations
-
-        log = read_log(cfg.log, progress=False)
         rel = read_relations(cfg.relations)
         # only relations whose both ends fall in a merged piece: the others have no global pose
         spans = [(s.min(), s.max()) for s in all_stamps]
@@ -176,5 +179,5 @@ def _log_scores(cfg, out: Path, all_stamps, all_poses, pieces) -> dict:
         res["relations_scored"] = int(keep.sum())
         if keep.any():
             sub = Relations(rel.t1_s[keep], rel.t2_s[keep], rel.delta[keep])
-            res["relations"] = relations_error(stamps, poses, sub, *log.odometry_track()).summary()
+            res["relations"] = relations_error(stamps, poses, sub, *split.log.odometry_track()).summary()
     return res

@@ -49,15 +49,11 @@ class FusedWatcher:
                 self.rejected += 1
             return
         with self._lock:
-            try:
+            try:  # refuses stale versions too: e.g. the query answer after a newer put
                 done = self._assembler.add(msg)
-            except WireFormatError:  # stale or duplicate: e.g. the query answer after a newer put
+            except WireFormatError:
                 return
-            if done is None or (
-                self.latest is not None
-                and done.version <= self.latest.version
-                and done.server == self.latest.server
-            ):
+            if done is None:
                 return
             self.latest = done
             upd = Update(time.monotonic(), done, via)

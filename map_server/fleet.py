@@ -265,13 +265,28 @@ class Fleet:
         return tuple(table), arrays, {"key": key, "extra": extra}
 
     def _publish(self, now_s: float) -> FusedMap | None:
-        table, (seg, support, off, prov), info = self._build()
-        if not table or info["key"] == self._content:
+        built = self._build()
+        if not built[0] or built[2]["key"] == self._content:
             return None
-        self._content = info["key"]
         self.version += 1
+        return self._keep(built, now_s)
+
+    def _keep(self, built: tuple, stamp_s: float) -> FusedMap:
+        """Make ``built`` (from :meth:`_build`) the latest fused map, at the current version."""
+        table, (seg, support, off, prov), info = built
+        self._content = info["key"]
         self._latest = FusedMap(
-            self.server_id, self.version, max(0.0, now_s), 0, 1, table, seg, support, off, prov, info["extra"]
+            self.server_id,
+            self.version,
+            max(0.0, stamp_s),
+            0,
+            1,
+            table,
+            seg,
+            support,
+            off,
+            prov,
+            info["extra"],
         )
         return self._latest
 
@@ -297,12 +312,9 @@ class Fleet:
             r = f.robots[name] = RobotState.from_dict(name, d, maps.get(name))
             if r.map is not None:
                 r.layer = fuse_particles(r.map, cfg.fusion)
-        table, (seg, support, off, prov), info = f._build()
-        if table and meta["stamp_s"] is not None:
-            f._content = info["key"]
-            f._latest = FusedMap(
-                server_id, f.version, meta["stamp_s"], 0, 1, table, seg, support, off, prov, info["extra"]
-            )
+        built = f._build()
+        if built[0] and meta["stamp_s"] is not None:
+            f._keep(built, meta["stamp_s"])
         return f
 
 

@@ -1,8 +1,9 @@
 """The map server's driver: subscribe, validate, fuse, persist, publish, answer queries.
 
 Zenoh callbacks only decode, validate and queue (under a lock); one loop applies the queue to the
-pure :class:`map_server.fleet.Fleet`, fuses at most once per ``fuse_period_s`` (so a burst of
-updates is coalesced into one fusion), persists the state and only then publishes the fused map —
+pure :class:`map_server.fleet.Fleet`, fuses when a map is complete but at most once per
+``min_fuse_gap_s`` (a burst of maps is coalesced into one fusion), persists the state and only
+then publishes the fused map —
 what any subscriber has seen is on disk. A restarted server resumes from ``--state`` and pulls the
 latest map of every live agent (their queryables) to catch up on what it missed.
 """
@@ -12,7 +13,6 @@ from __future__ import annotations
 import logging
 import threading
 import time
-import uuid
 from collections import Counter
 from dataclasses import dataclass
 
@@ -48,9 +48,9 @@ class MapServer:
         self.bus, self.keys, self.cfg, self.store = bus, keys, cfg, store
         self.fleet_cfg = fleet_cfg or FleetConfig()
         self.server_id = server_id or "server"
-        self.session = uuid.uuid4().hex[:16]
         self.fleet = Fleet(self.fleet_cfg, self.server_id)
         self._t0 = time.monotonic()
+        self._time_offset = 0.0  # server time already spent before a restart (from the state)
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._maps: list[RobotMap] = []  # queued complete maps
@@ -61,8 +61,8 @@ class MapServer:
         self.rejected: Counter[str] = Counter()
         self.received: Counter[str] = Counter()
         self._latest: list[bytes] = []
+        self._stored: dict[str, tuple[tuple[str, int], bytes]] = {}  # robot -> ((session, seq), blob)
         self.fusions = 0
-        self.last_fusion_s = 0.0
         self._last_log_s = 0.0
         if store is not None:
             self._restore()
@@ -72,22 +72,18 @@ class MapServer:
     def now_s(self) -> float:
         return time.monotonic() - self._t0 + self._time_offset
 
-    _time_offset = 0.0
-
     def _restore(self) -> None:
         loaded = self.store.load()  # a damaged state raises StateError: reported, never loaded
         if loaded is None:
             return
         meta, blobs = loaded
-        maps = {}
-        for name, blob in blobs.items():
-            msg = codec.decode_stored_map(blob)
-            maps[name] = msg
+        maps = {name: codec.decode_stored_map(blob) for name, blob in blobs.items()}
+        self._stored = {name: ((m.session, m.seq), blobs[name]) for name, m in maps.items()}
         self.fleet = Fleet.restore(meta["fleet"], maps, self.fleet_cfg, self.server_id)
         self._time_offset = float(meta.get("now_s", 0.0))
         latest = self.fleet.latest()
         if latest is not None:
-            self._latest = [codec.encode(c) for c in codec.split_fused_map(latest)]
+            self._latest = _payloads(latest)
         log.info(
             "restored %d robots, fused version %s", len(maps), None if latest is None else latest.version
         )
@@ -96,7 +92,10 @@ class MapServer:
         if self.store is None:
             return
         meta, maps = self.fleet.snapshot()
-        blobs = {robot: codec.encode_stored_map(m) for robot, m in maps.items()}
+        for robot, m in maps.items():  # encode a robot's map only when it changed
+            if robot not in self._stored or self._stored[robot][0] != (m.session, m.seq):
+                self._stored[robot] = ((m.session, m.seq), codec.encode_stored_map(m))
+        blobs = {robot: self._stored[robot][1] for robot in maps}
         self.store.save({"fleet": meta, "now_s": self.now_s(), "server": self.server_id}, blobs)
 
     # -- bus callbacks (zenoh threads): decode, validate, queue ----------------------------------
@@ -175,14 +174,12 @@ class MapServer:
             self.fleet.put_map(m, now)
         for p in poses:
             self.fleet.put_pose(p, now)
-        t = time.perf_counter()
         fused = self.fleet.fuse(now)
         if fused is None:
             return None
-        self.last_fusion_s = time.perf_counter() - t
         self.fusions += 1
         self._persist()  # before publishing: what anyone has seen survives a crash
-        payloads = [codec.encode(c) for c in codec.split_fused_map(fused)]
+        payloads = _payloads(fused)
         with self._lock:
             self._latest = payloads
         for p in payloads:
@@ -200,12 +197,13 @@ class MapServer:
             stop.wait(max(0.0, self.cfg.min_fuse_gap_s - (time.monotonic() - t)))
         self.tick()
 
-    def stop(self) -> None:
-        """Wake the loop (used with the ``stop`` event passed to :meth:`run`)."""
-        self._wake.set()
-
     def _log_rejections(self) -> None:
         now = time.monotonic()
         if self.rejected and now - self._last_log_s >= self.cfg.log_rejections_every_s:
             self._last_log_s = now
             log.warning("rejected messages so far: %s", dict(self.rejected))
+
+
+def _payloads(fused: FusedMap) -> list[bytes]:
+    """The fused map as encoded chunks."""
+    return [codec.encode(c) for c in codec.split_fused_map(fused)]

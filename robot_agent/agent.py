@@ -17,7 +17,6 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -27,7 +26,6 @@ from robot_agent.sources.base import Scan
 from shared import codec
 from shared.keys import Keys
 from shared.messages import PoseUpdate, RobotMap
-from shared.metrics import write_poses, write_tum
 
 log = logging.getLogger("fleet_slam.agent")
 
@@ -66,7 +64,6 @@ class AgentCore:
         self.pose_seq = 0
         self.scans = 0
         self.estimate: Estimate | None = None
-        self.latest_map: list[RobotMap] = []  # chunks of the last published map
         self._fingerprint: bytes | None = None
         self._next_pose_s = -np.inf
         self._next_map_s = -np.inf
@@ -80,9 +77,9 @@ class AgentCore:
         self._last_stamp_s = max(self._last_stamp_s, float(scan.stamp_s))
         return self.estimate
 
-    def pose_message(self, force: bool = False) -> PoseUpdate | None:
+    def pose_message(self) -> PoseUpdate | None:
         """A pose update when one is due (every ``pose_period_s`` of source time)."""
-        if self.estimate is None or (not force and self._last_stamp_s < self._next_pose_s):
+        if self.estimate is None or self._last_stamp_s < self._next_pose_s:
             return None
         self._next_pose_s = self._last_stamp_s + self.cfg.pose_period_s
         msg = PoseUpdate(self.robot, self.session, self.pose_seq, self._last_stamp_s, self.estimate.pose)
@@ -99,9 +96,9 @@ class AgentCore:
         if fp == self._fingerprint and not force:
             return None
         self._fingerprint = fp
-        self.latest_map = self._chunks(arrays)
+        chunks = self._chunks(arrays)
         self.map_seq += 1
-        return self.latest_map
+        return chunks
 
     def _chunks(self, a: MapArrays) -> list[RobotMap]:
         return codec.robot_map_chunks(
@@ -109,16 +106,6 @@ class AgentCore:
             a.particle_weights, a.particle_poses, a.seg, a.element, a.members, a.trust, a.hits, a.age,
             prior=self.prior, prior_sigma=self.prior_sigma,
         )  # fmt: skip
-
-    def write_outputs(self, out_dir: str | Path) -> dict[str, Path]:
-        """``<robot>.poses.txt`` and ``<robot>.tum``: the best particle's trajectory, map frame."""
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        stamps, poses = self.slam.best_trajectory()
-        paths = {"poses": out / f"{self.robot}.poses.txt", "tum": out / f"{self.robot}.tum"}
-        write_poses(paths["poses"], stamps, poses)
-        write_tum(paths["tum"], stamps, poses)
-        return paths
 
 
 class Publisher:

@@ -65,7 +65,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 class SimSource:
     """A live simulated robot: scans, truth per scan, and (exploring) velocity from the filter."""
 
-    def __init__(self, args: argparse.Namespace):
+    def __init__(self, args: argparse.Namespace, slam: FastSLAM):
         import numpy as np
 
         from robot_agent.sim import LiveSim, builtin_world
@@ -77,7 +77,7 @@ class SimSource:
         self.truth: list[np.ndarray] = []
         self.stamps: list[float] = []
         self.explorer = None
-        self.slam: FastSLAM | None = None
+        self.slam = slam
         self._map = np.zeros((0, 2, 2))
         if args.explore:
             from robot_agent.explore import Explorer
@@ -91,7 +91,7 @@ class SimSource:
             yield scan
 
     def on_estimate(self, scan: Scan, est: Estimate) -> None:
-        if self.explorer is None or self.slam is None:
+        if self.explorer is None:
             return
         if len(self.stamps) % EXPLORER_MAP_EVERY == 1:
             gm, _ = self.slam.published_map()
@@ -115,14 +115,13 @@ def run(args: argparse.Namespace) -> int:
 
     from robot_agent.agent import AgentConfig, AgentCore, run_agent
     from robot_agent.publish import PublishConfig
-    from robot_agent.slam.config import apply_overrides
-    from robot_agent.slam.fastslam import FastSLAM, SlamConfig
+    from robot_agent.slam.config import command_line_config
+    from robot_agent.slam.fastslam import FastSLAM
     from shared.bus import Bus, BusConfig, stop_on_signals
     from shared.keys import Keys
+    from shared.metrics import write_poses, write_tum
 
-    cfg = apply_overrides(SlamConfig(), list(args.set))
-    if args.particles is not None:
-        cfg = apply_overrides(cfg, [f"particles={args.particles}"])
+    cfg = command_line_config(args.set, args.particles)
     if args.speed < 0:
         raise ValueError(f"--speed must be >= 0, got {args.speed}")
     prior = None if args.prior is None else parse_pose(args.prior, "--prior")
@@ -131,8 +130,7 @@ def run(args: argparse.Namespace) -> int:
     keys = Keys(args.fleet)
     sim = None
     if args.world is not None:
-        sim = SimSource(args)
-        sim.slam = slam
+        sim = SimSource(args, slam)
         scans, on_estimate = sim.scans(), sim.on_estimate
     else:
         from robot_agent.sources import read_log
@@ -150,10 +148,12 @@ def run(args: argparse.Namespace) -> int:
     wall = time.monotonic() - t0
     if args.out:
         out = Path(args.out)
-        core.write_outputs(out)
+        out.mkdir(parents=True, exist_ok=True)
+        stamps, poses = slam.best_trajectory()  # the best particle's, in the robot's map frame
+        write_poses(out / f"{args.robot}.poses.txt", stamps, poses)
+        write_tum(out / f"{args.robot}.tum", stamps, poses)
         if sim is not None:
             sim.write_truth(out, args.robot)
-        stamps, _ = slam.best_trajectory()
         span = float(np.ptp(stamps)) if len(stamps) else 0.0
         summary = {
             "robot": args.robot,

@@ -70,3 +70,13 @@ def apply_overrides(cfg: SlamConfig, overrides: Iterable[str]) -> SlamConfig:
             node = node.setdefault(p, {})
         node[parts[-1]] = value.strip()
     return config_from_dict(nested, cfg)
+
+
+def command_line_config(overrides: Iterable[str] = (), particles: int | None = None) -> SlamConfig:
+    """The defaults with ``--set`` overrides and ``--particles`` applied (the commands' one way)."""
+    cfg = apply_overrides(SlamConfig(), overrides)
+    if particles is not None:
+        if particles < 1:
+            raise ValueError(f"--particles must be at least 1, got {particles}")
+        cfg = apply_overrides(cfg, [f"particles={particles}"])
+    return cfg

@@ -45,9 +45,7 @@ def restored_from(state) -> FusedMap | None:
 
 
 def start_server(group: ProcGroup, endpoint: str, state, name: str = "server"):
-    proc = group.start(
-        name, python_module("map_server", "--connect", endpoint, "--state", state)
-    )
+    proc = group.start(name, python_module("map_server", "--connect", endpoint, "--state", state))
     assert proc.wait_for("running", STARTUP_S), proc.output()
     return proc
 
@@ -84,6 +82,7 @@ def test_late_subscriber_gets_the_map_at_once_then_every_update_and_survives_a_s
     with Bus(BusConfig(connect=(fleet["endpoint"],))) as bus:
         # wait until the fleet has a fused map with both robots in it
         probe = FusedWatcher(bus, keys)
+
         def has_both() -> bool:
             f = probe.fetch(0.5)
             return f is not None and len(f.seg) > 10 and sum(r.merged for r in f.robots) == 2
