@@ -10,10 +10,12 @@ latest map of every live agent (their queryables) to catch up on what it missed.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import resource
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 
 from map_server.fleet import Fleet, FleetConfig
@@ -33,6 +35,8 @@ class ServerConfig:
     idle_period_s: float = 0.5  # without new maps: poses and presence are applied this often
     pull_timeout_s: float = 3.0  # waiting for agents' latest maps at start-up
     log_rejections_every_s: float = 10.0  # rejected messages are counted; a summary is logged this often
+    status_every_s: float = 10.0  # a status line (queue depth, fusion time, memory) is logged this often
+    timing_window: int = 200  # fusion times kept for the status percentiles
 
 
 class MapServer:
@@ -58,8 +62,13 @@ class MapServer:
         self._presence: list[tuple[str, bool]] = []
         self._assembler = codec.Assembler()
         self._pose_filter = codec.SeqFilter()
-        self.rejected: Counter[str] = Counter()
+        self.rejected: Counter[str] = Counter()  # by message kind: map, pose, presence
+        self.reasons: Counter[str] = Counter()  # by "kind: reason" (the field at fault, or the chunk check)
         self.received: Counter[str] = Counter()
+        self.fuse_ms: deque[float] = deque(maxlen=cfg.timing_window)  # recent fusion times (fuse+persist)
+        self.backlog = {"maps": 0, "poses": 0, "max_maps": 0, "max_poses": 0}  # queue depth at each tick
+        self.maps_applied = 0  # complete maps applied (>= fusions: a burst is coalesced into one fusion)
+        self._last_status_s = time.monotonic()
         self._latest: list[bytes] = []
         self._stored: dict[str, tuple[tuple[str, int], bytes]] = {}  # robot -> ((session, seq), blob)
         self.fusions = 0
@@ -101,8 +110,15 @@ class MapServer:
     # -- bus callbacks (zenoh threads): decode, validate, queue ----------------------------------
 
     def _reject(self, what: str, key: str, exc: Exception) -> None:
+        """Count a refused message under its kind and reason; the first of each reason is logged as a
+        warning with its full text, the rest at debug level (a flood must not flood the log)."""
+        reason = f"{what}: {_reason(exc)}"
         self.rejected[what] += 1
-        log.debug("rejected %s on %s: %s", what, key, exc)
+        self.reasons[reason] += 1
+        if self.reasons[reason] == 1:
+            log.warning("rejected %s on %s: %s (further ones counted)", what, str(key)[:120], exc)
+        else:
+            log.debug("rejected %s on %s: %s", what, str(key)[:120], exc)
 
     def _decode(self, key: str, payload: bytes, kind: type):
         """The message of type ``kind`` on a robot's ``key``; its robot id must be the key's."""
@@ -168,6 +184,11 @@ class MapServer:
         with self._lock:
             maps, poses, presence = self._maps, self._poses, self._presence
             self._maps, self._poses, self._presence = [], [], []
+        b = self.backlog
+        b["maps"], b["poses"] = len(maps), len(poses)
+        b["max_maps"], b["max_poses"] = max(b["max_maps"], len(maps)), max(b["max_poses"], len(poses))
+        self.maps_applied += len(maps)
+        t0 = time.perf_counter()
         for robot, alive in presence:
             self.fleet.set_online(robot, alive)
         for m in maps:
@@ -178,7 +199,9 @@ class MapServer:
         if fused is None:
             return None
         self.fusions += 1
+        fused = dataclasses.replace(fused, extra={**fused.extra, **self._stats_extra()})
         self._persist()  # before publishing: what anyone has seen survives a crash
+        self.fuse_ms.append((time.perf_counter() - t0) * 1e3)
         payloads = _payloads(fused)
         with self._lock:
             self._latest = payloads
@@ -192,16 +215,89 @@ class MapServer:
             t = time.monotonic()
             self._wake.clear()
             self.tick()
-            self._log_rejections()
+            self._log_status()
             self._wake.wait(self.cfg.idle_period_s)  # a new map (or stop) ends the wait early
             stop.wait(max(0.0, self.cfg.min_fuse_gap_s - (time.monotonic() - t)))
         self.tick()
 
-    def _log_rejections(self) -> None:
+    # -- status --------------------------------------------------------------------------------
+
+    def status(self) -> dict:
+        """Health figures: queue depth (messages waiting at the last tick, and the most ever), fusion
+        time (fuse + persist, recent window), maps applied per fusion (> 1: coalescing), counts of
+        received and rejected messages, peak memory."""
+        with self._lock:
+            waiting = {"maps": len(self._maps), "poses": len(self._poses)}
+            received, rejected, reasons = dict(self.received), dict(self.rejected), dict(self.reasons)
+        ms = sorted(self.fuse_ms)
+        pick = (lambda q: ms[min(len(ms) - 1, int(q * len(ms)))]) if ms else (lambda q: 0.0)
+        return {
+            "fusions": self.fusions,
+            "maps_applied": self.maps_applied,
+            "maps_per_fusion": self.maps_applied / max(1, self.fusions),
+            "queue": dict(self.backlog, waiting_maps=waiting["maps"], waiting_poses=waiting["poses"]),
+            "fuse_ms": {
+                "last": self.fuse_ms[-1] if ms else 0.0,
+                "p50": pick(0.5),
+                "p95": pick(0.95),
+                "max": ms[-1] if ms else 0.0,
+            },
+            "received": received,
+            "rejected": rejected,
+            "reasons": reasons,
+            "peak_rss_mb": _peak_rss_mb(),
+        }
+
+    def _stats_extra(self) -> dict:
+        """The figures a subscriber sees in ``FusedMap.extra`` (named numbers)."""
+        ms = self.fuse_ms
+        return {
+            "server_fusions": float(self.fusions),
+            "server_queue_maps": float(self.backlog["maps"]),
+            "server_queue_poses": float(self.backlog["poses"]),
+            "server_fuse_ms_last": float(ms[-1]) if ms else 0.0,
+            "server_fuse_ms_max": float(max(ms)) if ms else 0.0,
+            "server_maps_per_fusion": self.maps_applied / max(1, self.fusions),
+            "server_rejected": float(sum(self.rejected.values())),
+            "server_peak_rss_mb": _peak_rss_mb(),
+        }
+
+    def _log_status(self) -> None:
         now = time.monotonic()
+        if now - self._last_status_s >= self.cfg.status_every_s:
+            self._last_status_s = now
+            st = self.status()
+            q, f = st["queue"], st["fuse_ms"]
+            log.info(
+                "status: %d fusions (%.1f maps each), queue %d maps %d poses (max %d/%d), "
+                "fusion p50 %.1f p95 %.1f max %.1f ms, peak rss %.0f MB",
+                st["fusions"],
+                st["maps_per_fusion"],
+                q["maps"],
+                q["poses"],
+                q["max_maps"],
+                q["max_poses"],
+                f["p50"],
+                f["p95"],
+                f["max"],
+                st["peak_rss_mb"],
+            )
         if self.rejected and now - self._last_log_s >= self.cfg.log_rejections_every_s:
             self._last_log_s = now
-            log.warning("rejected messages so far: %s", dict(self.rejected))
+            log.warning("rejected messages so far: %s", dict(self.reasons))
+
+
+def _reason(exc: Exception) -> str:
+    """A short, countable reason: the chunk check that refused it, or the field a decoder named."""
+    reason = getattr(exc, "reason", None)
+    if reason:
+        return str(reason)
+    head = str(exc).split(":", 1)[0].strip()
+    return head[:40] if head and len(head) <= 40 and " " not in head else "malformed"
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
 def _payloads(fused: FusedMap) -> list[bytes]:

@@ -72,3 +72,20 @@ def test_fused_map_is_persisted_before_it_is_published_and_restored(tmp_path):
     assert [k for k, _ in server.answer_fused(KEYS.fused)] == [KEYS.fused]
     again = MapServer(FakeBus(), KEYS, store=Store(tmp_path)).fleet.latest()
     assert again.version == fused.version and np.allclose(again.seg, fused.seg, atol=1e-4)
+
+
+def test_rejections_are_counted_by_reason_and_status_reports_the_queue():
+    server = MapServer(FakeBus(), KEYS)
+    server.on_map(KEYS.robot_map("robot1"), b"\xc1garbage")
+    server.on_map(KEYS.robot_map("robot1"), b"\xc1garbage")
+    server.on_map(KEYS.robot_map("robot2"), codec.encode(robot_map("robot1")[0]))
+    reasons = server.status()["reasons"]
+    assert sum(reasons.values()) == 3 and len(reasons) == 2, reasons
+    for chunk in robot_map():
+        server.on_map(KEYS.robot_map("robot1"), codec.encode(chunk))
+    assert server.status()["queue"]["waiting_maps"] == 1
+    fused = server.tick()
+    st = server.status()
+    assert st["queue"]["maps"] == 1 and st["queue"]["waiting_maps"] == 0
+    assert st["fusions"] == 1 and st["fuse_ms"]["max"] > 0
+    assert fused.extra["server_rejected"] == 3.0 and fused.extra["server_queue_maps"] == 1.0
