@@ -5,7 +5,8 @@ pure :class:`map_server.fleet.Fleet`, fuses when a map is complete but at most o
 ``min_fuse_gap_s`` (a burst of maps is coalesced into one fusion), persists the state and only
 then publishes the fused map —
 what any subscriber has seen is on disk. A restarted server resumes from ``--state`` and pulls the
-latest map of every live agent (their queryables) to catch up on what it missed.
+latest map of every live agent (their queryables) to catch up on what it missed, and so again
+for every robot that comes back online (an agent restart, or all of them after a router restart).
 """
 
 from __future__ import annotations
@@ -104,6 +105,8 @@ class MapServer:
         for robot, m in maps.items():  # encode a robot's map only when it changed
             if robot not in self._stored or self._stored[robot][0] != (m.session, m.seq):
                 self._stored[robot] = ((m.session, m.seq), codec.encode_stored_map(m))
+        for gone in set(self._stored) - set(maps):  # replaced or dropped maps
+            del self._stored[gone]
         blobs = {robot: self._stored[robot][1] for robot in maps}
         self.store.save({"fleet": meta, "now_s": self.now_s(), "server": self.server_id}, blobs)
 
@@ -195,6 +198,9 @@ class MapServer:
             self.fleet.put_map(m, now)
         for p in poses:
             self.fleet.put_pose(p, now)
+        back = sorted({robot for robot, alive in presence if alive})
+        if back:
+            self._pull_maps(back)
         fused = self.fleet.fuse(now)
         if fused is None:
             return None
@@ -208,6 +214,28 @@ class MapServer:
         for p in payloads:
             self.bus.put(self.keys.fused, p, reliable=True)
         return fused
+
+    def _pull_maps(self, robots: list[str]) -> None:
+        """Pull ``robots``' latest maps (their queryables) on a thread of its own, queued like puts.
+
+        A robot that comes (back) online may have put its last map while the server could not
+        hear it — a router restart drops every put in flight and shows every token leave and come
+        back — and an agent puts a map only when it changed. Maps the fleet already has are
+        skipped, so a re-pull is not counted as a rejected (stale) map."""
+        have = {n: (r.map.session, r.map.seq) for n, r in self.fleet.robots.items() if r.map is not None}
+
+        def pull() -> None:
+            try:
+                for robot in robots:
+                    for key, payload in self.bus.get(
+                        self.keys.robot_map(robot), timeout_s=self.cfg.pull_timeout_s
+                    ):
+                        if not _known(payload, have):
+                            self.on_map(key, payload)
+            except Exception as exc:  # e.g. the bus closed at shutdown: the next put catches up
+                log.warning("pulling the maps of %s failed: %s", robots, exc)
+
+        threading.Thread(target=pull, name="pull-maps", daemon=True).start()
 
     def run(self, stop: threading.Event) -> None:
         self.start()
@@ -294,6 +322,16 @@ def _reason(exc: Exception) -> str:
         return str(reason)
     head = str(exc).split(":", 1)[0].strip()
     return head[:40] if head and len(head) <= 40 and " " not in head else "malformed"
+
+
+def _known(payload: bytes, have: dict[str, tuple[str, int]]) -> bool:
+    """Whether a map chunk is of a map ``have`` (robot -> (session, seq)) already holds or outdates."""
+    try:
+        msg = codec.decode(payload, expect=RobotMap)
+    except WireFormatError:
+        return False  # on_map counts it
+    known = have.get(msg.robot)
+    return known is not None and known[0] == msg.session and msg.seq <= known[1]
 
 
 def _peak_rss_mb() -> float:
