@@ -25,19 +25,30 @@ Attempts are repeated only when a robot's map grew enough, the map it is matched
 or a candidate awaits confirmation. :meth:`Fleet.fuse` then merges the placed robots'
 cross-particle maps (fusion.py); the version increases only when the content (segments,
 provenance, robot statuses — not the poses) changed.
+
+A robot that restarts comes back as a new *session* in a new map frame. What the fused map held
+of its old session is not dropped: the old session's last map becomes a *retired piece*, kept in
+the fused map where it was placed (its transform frozen, its segments credited to the robot) and
+in the snapshot. The new session starts unaligned and is placed like any robot — by its prior, or
+by matching against the fused map, which holds its own old piece: a robot that re-maps the same
+place aligns to it. At most ``max_retired`` pieces are kept per robot, the oldest dropped (logged);
+an old session that was never placed had nothing in the fused map and is dropped (logged).
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from map_server.alignment import Alignment, AlignmentConfig, estimate_alignment
 from map_server.fusion import FusionConfig, fuse_particles, merge_segments
-from map_server.state import RobotState
+from map_server.state import RetiredPiece, RobotState, alignment_from_dict
 from shared.geometry import apply_segments, compose, transform_points
 from shared.messages import FusedMap, PoseUpdate, RobotMap, RobotStatus
+
+log = logging.getLogger("fleet_slam.fleet")
 
 
 @dataclass(frozen=True)
@@ -54,12 +65,16 @@ class FleetConfig:
     # (placed at 125-170 s), one with 0.4; warehouse: maps never mature below 0.15
     mature_window_s: float = 30.0
     mature_growth: float = 0.25
+    # retired pieces (module docstring) kept per robot: a robot that keeps restarting re-maps the
+    # same places, so the oldest piece is mostly covered by the newer ones; bounds memory and state
+    max_retired: int = 3
 
 
 class Fleet:
     def __init__(self, cfg: FleetConfig, server_id: str):
         self.cfg, self.server_id = cfg, server_id
         self.robots: dict[str, RobotState] = {}
+        self.retired: dict[str, list[RetiredPiece]] = {}  # per robot, oldest first
         self.reference: str | None = None
         self.frame: str | None = None  # "prior" or "reference", fixed when the first robot is placed
         self.version = 0
@@ -79,18 +94,44 @@ class Fleet:
         return self.robots[robot]
 
     def put_map(self, m: RobotMap, now_s: float) -> None:
-        """An assembled map (chunk 0 of 1). A new session replaces the old map and its alignment;
-        an older or repeated ``seq`` of the current session is ignored."""
+        """An assembled map (chunk 0 of 1). A new session replaces the old map and its alignment
+        (the old map, if placed, lives on as a retired piece); an older or repeated ``seq`` of the
+        current session is ignored."""
         r = self._robot(m.robot, now_s)
         if r.map is not None and m.session == r.map.session and m.seq <= r.map.seq:
             return
+        if any(p.session == m.session for p in self.retired.get(m.robot, ())):
+            return  # a late map of a replaced session (e.g. pulled from the state after a restart)
         if r.map is not None and m.session != r.map.session:
+            self._retire(r, now_s)
             r.new_session()
             if self.reference == m.robot:
                 self.reference = None  # its old frame lives on only through the robots placed in it
         r.map, r.layer = m, None
         if r.first_map_s is None and len(m.seg):
             r.first_map_s = now_s
+
+    def _retire(self, r: RobotState, now_s: float) -> None:
+        """Keep the replaced session's map in the fused map where it was placed (bounded)."""
+        if not r.alignment.placed:
+            if r.map is not None and len(r.map.seg):
+                log.info("%s: session %s replaced unplaced; its map is dropped", r.robot, r.map.session)
+            return
+        layer = r.layer if r.layer is not None else fuse_particles(r.map, self.cfg.fusion)
+        if len(layer) == 0:
+            return
+        t = now_s - (self.epoch_s if self.epoch_s is not None else now_s)
+        pieces = self.retired.setdefault(r.robot, [])
+        pieces.append(RetiredPiece(r.robot, r.map.session, r.map, layer, r.alignment, max(0.0, t)))
+        while len(pieces) > self.cfg.max_retired:
+            old = pieces.pop(0)
+            log.info(
+                "%s: more than %d retired sessions; the oldest (%s, %d segments) is dropped",
+                r.robot, self.cfg.max_retired, old.session, len(old.layer),
+            )  # fmt: skip
+
+    def _pieces(self) -> list[RetiredPiece]:
+        return [p for name in sorted(self.retired) for p in self.retired[name]]
 
     def put_pose(self, p: PoseUpdate, now_s: float) -> None:
         r = self._robot(p.robot, now_s)
@@ -128,7 +169,7 @@ class Fleet:
         with_map = [r for r in self._ordered() if r.layer is not None and len(r.layer)]
         if self.frame is None and with_map:
             self.frame = "prior" if any(r.map.prior is not None for r in with_map) else "reference"
-        if self.frame != "reference" or self._placed() or not with_map:
+        if self.frame != "reference" or self._placed() or self.retired or not with_map:
             return  # priors define the frame (_align_round places them), or it is defined already
         first = min(with_map, key=lambda r: (r.first_map_s, r.order))
         self.reference = first.robot
@@ -136,11 +177,13 @@ class Fleet:
         first.mark_placed(now_s - self.epoch_s)
 
     def _global_segments(self, exclude: str) -> np.ndarray:
-        """The fused map of the placed robots except ``exclude`` (what a robot is aligned to)."""
-        seg, w, owner = self._stack([r for r in self._placed() if r.robot != exclude])
+        """The fused map of the placed robots except ``exclude``, with every retired piece (its
+        own too): what a robot is aligned to."""
+        seg, w, owner = self._stack([r for r in self._placed() if r.robot != exclude] + self._pieces())
         return merge_segments(seg, w, owner, self.cfg.fusion)[0]
 
-    def _stack(self, placed: list[RobotState]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _stack(self, placed: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Placed robots' (or retired pieces') layers in the global frame, weights, owner index."""
         seg = [apply_segments(r.alignment.transform, r.layer.seg) for r in placed]
         w = [r.layer.weight for r in placed]
         owner = [np.full(len(r.layer), i) for i, r in enumerate(placed)]
@@ -160,8 +203,9 @@ class Fleet:
                 continue
             prior = r.map.prior if self.frame == "prior" else None
             others = [p for p in self._placed() if p.robot != r.robot]
-            placed_m = sum(p.layer.length_m for p in others)
-            key = _placed_key(others)
+            against = others + self._pieces()
+            placed_m = sum(p.layer.length_m for p in against)
+            key = _placed_key(against)
             if not r.due(self.cfg, placed_m, key, now_s):
                 continue
             if prior is None and not r.alignment.placed and not self._mature([r, *others], now_s):
@@ -249,7 +293,8 @@ class Fleet:
         """The fused content: robot table, merged arrays, and the key that says if it changed."""
         table = [s for s in (self._status(r) for _, r in sorted(self.robots.items())) if s is not None]
         row = {s.robot: i for i, s in enumerate(table)}
-        placed = sorted(self._placed(), key=lambda r: r.robot)
+        robots, pieces = sorted(self._placed(), key=lambda r: r.robot), self._pieces()
+        placed = robots + pieces
         seg, w, owner = self._stack(placed)
         to_row = np.array([row[r.robot] for r in placed], np.int64)
         fseg, support, off, prov = merge_segments(
@@ -261,7 +306,10 @@ class Fleet:
              s.sigma.tobytes(), s.aligned_at_s)
             for s in table
         )  # fmt: skip
-        extra = {"robots_merged": float(len(placed)), "segments_in": float(len(seg))}
+        extra = {
+            "robots_merged": float(len(robots)), "segments_in": float(len(seg)),
+            "retired_pieces": float(len(pieces)),
+        }  # fmt: skip
         return tuple(table), arrays, {"key": key, "extra": extra}
 
     def _publish(self, now_s: float) -> FusedMap | None:
@@ -298,13 +346,16 @@ class Fleet:
             version=self.version, epoch_s=self.epoch_s, reference=self.reference, frame=self.frame,
             arrivals=self._arrivals, stamp_s=None if self._latest is None else self._latest.stamp_s,
             robots={name: r.to_dict() for name, r in self.robots.items()},
+            retired={name: [p.to_dict() for p in pieces] for name, pieces in self.retired.items()},
         )  # fmt: skip
-        return meta, {name: r.map for name, r in self.robots.items() if r.map is not None}
+        maps = {name: r.map for name, r in self.robots.items() if r.map is not None}
+        maps.update((p.blob, p.map) for p in self._pieces())
+        return meta, maps
 
     @classmethod
     def restore(cls, meta: dict, maps: dict[str, RobotMap], cfg: FleetConfig, server_id: str) -> Fleet:
         """A fleet that fuses to the same map, same version (no alignment is re-attempted until
-        a map changes)."""
+        a map changes). ``maps`` holds the robots' maps and the retired pieces' (see snapshot)."""
         f = cls(cfg, server_id)
         f.version, f.epoch_s, f.reference = int(meta["version"]), meta["epoch_s"], meta["reference"]
         f.frame, f._arrivals = meta["frame"], int(meta["arrivals"])
@@ -312,6 +363,12 @@ class Fleet:
             r = f.robots[name] = RobotState.from_dict(name, d, maps.get(name))
             if r.map is not None:
                 r.layer = fuse_particles(r.map, cfg.fusion)
+        for name, pieces in meta.get("retired", {}).items():
+            for d in pieces:
+                m, a = maps[f"{name}~{d['session']}"], alignment_from_dict(d["alignment"])
+                layer = fuse_particles(m, cfg.fusion)
+                piece = RetiredPiece(name, d["session"], m, layer, a, float(d["retired_s"]))
+                f.retired.setdefault(name, []).append(piece)
         built = f._build()
         if built[0] and meta["stamp_s"] is not None:
             f._keep(built, meta["stamp_s"])

@@ -120,6 +120,28 @@ class RobotState:
         )  # fmt: skip
 
 
+@dataclass(frozen=True, eq=False)
+class RetiredPiece:
+    """The last map of a robot's replaced session (the agent restarted), kept in the fused map
+    where it was placed: its own frame died with the session, so its transform is frozen."""
+
+    robot: str
+    session: str
+    map: RobotMap
+    layer: RobotLayer
+    alignment: Alignment
+    retired_s: float  # server time (since the first message) it was replaced
+
+    @property
+    def blob(self) -> str:
+        """Its map's name in a snapshot (``~`` is never part of a robot id)."""
+        return f"{self.robot}~{self.session}"
+
+    def to_dict(self) -> dict:
+        a = alignment_to_dict(self.alignment)
+        return dict(session=self.session, retired_s=self.retired_s, alignment=a)
+
+
 # the plain fields of RobotState that a snapshot keeps as they are
 _SCALARS = (
     "order", "online", "aligned_at_s", "first_map_s", "attempt_len_m", "attempt_placed_m",

@@ -111,7 +111,7 @@ def test_version_changes_only_with_content(runs):
     assert fleet.latest() is second
 
 
-def test_a_new_session_replaces_the_robots_map(runs, fused):
+def test_a_new_session_is_unaligned_and_the_old_map_is_kept(runs, fused):
     meta, maps = fused.snapshot()
     fleet = Fleet.restore(meta, maps, FleetConfig(), "srv")
     v = fleet.latest().version
@@ -121,8 +121,10 @@ def test_a_new_session_replaces_the_robots_map(runs, fused):
     s = fm.robot("r1")
     assert s.status == "unaligned" and s.session == "s2" and s.aligned_at_s is None
     assert fleet.robots["r1"].alignment.reason.startswith("waiting for mature maps")  # a new frame
+    # its old session's map stays where it was (a retired piece, test_fleet_sessions.py)
+    assert fm.extra["retired_pieces"] == 1.0 and fm.seg.shape == fused.latest().seg.shape
     row = [x.robot for x in fm.robots].index("r1")
-    assert row not in set(fm.prov_robot.tolist())  # nothing of r1 is merged until it is re-aligned
+    assert row in set(fm.prov_robot.tolist())
 
 
 def test_the_first_robot_with_a_map_is_the_reference(runs):
