@@ -20,7 +20,7 @@ from collections import Counter, deque
 from dataclasses import dataclass
 
 from map_server.fleet import Fleet, FleetConfig
-from map_server.store import Store
+from map_server.store import StateError, Store
 from shared import codec
 from shared.keys import Keys
 from shared.messages import FusedMap, PoseUpdate, RobotMap, WireFormatError
@@ -87,16 +87,20 @@ class MapServer:
         if loaded is None:
             return
         meta, blobs = loaded
-        maps = {name: codec.decode_stored_map(blob) for name, blob in blobs.items()}
+        try:  # the checksums hold, but the content must be a state this build reads too
+            maps = {name: codec.decode_stored_map(blob) for name, blob in blobs.items()}
+            self.fleet = Fleet.restore(meta["fleet"], maps, self.fleet_cfg, self.server_id)
+            self._time_offset = float(meta.get("now_s", 0.0))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise StateError(f"{self.store.index}: cannot be restored ({type(exc).__name__}: {exc})") from exc
         self._stored = {name: ((m.session, m.seq), blobs[name]) for name, m in maps.items()}
-        self.fleet = Fleet.restore(meta["fleet"], maps, self.fleet_cfg, self.server_id)
-        self._time_offset = float(meta.get("now_s", 0.0))
         latest = self.fleet.latest()
         if latest is not None:
             self._latest = _payloads(latest)
         log.info(
-            "restored %d robots, fused version %s", len(maps), None if latest is None else latest.version
-        )
+            "restored %d robots (%d retired sessions), fused version %s", len(self.fleet.robots),
+            sum(map(len, self.fleet.retired.values())), None if latest is None else latest.version,
+        )  # fmt: skip
 
     def _persist(self) -> None:
         if self.store is None:

@@ -82,8 +82,8 @@ class Store:
         for path in self.blob_dir.glob("*.bin"):
             if path.name not in keep:
                 path.unlink(missing_ok=True)
-        for path in self.blob_dir.glob(".*.tmp"):  # left by a crash mid-write
-            path.unlink(missing_ok=True)
+        for path in [*self.blob_dir.glob(".*.tmp"), *self.dir.glob(f".{self.index.name}.*.tmp")]:
+            path.unlink(missing_ok=True)  # left by a crash mid-write
 
     def load(self) -> tuple[dict, dict[str, bytes]] | None:
         """The saved state, ``None`` if the directory holds none; :class:`StateError` if damaged."""

@@ -1,12 +1,16 @@
-"""A robot that comes back online has its latest map pulled (its queryable): after a router
-restart every token leaves and comes back, and a map put during the outage was lost."""
+"""The server's driver through faults, without zenoh: a robot that comes back online has its
+latest map pulled (after a router restart every token leaves and comes back, and a map put during
+the outage was lost); a restarted agent's old map survives a server restart; a state that does not
+restore is reported, not loaded."""
 
 import threading
 import time
 
 import numpy as np
+import pytest
 
 from map_server.server import MapServer
+from map_server.store import StateError, Store
 from shared import codec
 from shared.keys import Keys
 from tests.netutil import wait_for
@@ -67,3 +71,29 @@ def test_no_pull_without_a_robot_coming_online():
     server.on_presence(KEYS.robot_alive("robot1"), False)
     server.tick()
     assert bus.queries == []
+
+
+def test_a_restarted_agents_old_map_survives_a_server_restart(tmp_path):
+    server = MapServer(PullBus([]), KEYS, store=Store(tmp_path))
+    for session in ("s1", "s2"):  # the agent restarted: a new session
+        for c in room_chunks(session=session):
+            server.on_map(KEYS.robot_map("robot1"), codec.encode(c))
+        fused = server.tick()
+    assert fused.extra["retired_pieces"] == 1.0
+    again = MapServer(PullBus([]), KEYS, store=Store(tmp_path))
+    assert [p.session for p in again.fleet.retired["robot1"]] == ["s1"]
+    latest = again.fleet.latest()
+    assert latest.version == fused.version and np.array_equal(latest.seg, fused.seg)
+    assert latest.robot("robot1").session == "s2"
+
+
+def test_a_verified_state_that_does_not_restore_is_reported(tmp_path):
+    server = MapServer(PullBus([]), KEYS, store=Store(tmp_path))
+    for c in room_chunks():
+        server.on_map(KEYS.robot_map("robot1"), codec.encode(c))
+    server.tick()
+    meta, blobs = Store(tmp_path).load()
+    del meta["fleet"]["robots"]  # e.g. written by another build: checksums fine, content foreign
+    Store(tmp_path).save(meta, blobs)
+    with pytest.raises(StateError, match=r"state\.json: cannot be restored \(KeyError"):
+        MapServer(PullBus([]), KEYS, store=Store(tmp_path))
