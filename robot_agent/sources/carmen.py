@@ -30,6 +30,11 @@ Rules:
   ``DEFAULT_RANGE_MAX_M`` = 81 m (all a SICK LMS measures, up to 80 m, is a return).
   Intel gives 81.0 m.
 
+Hostile input: every malformed line raises :class:`LogFormatError` naming the line (1-based,
+counted by ``\n`` only, as ``grep -n`` does) and the field, never an error from deep inside; what
+a number derives (laser offset, beam angles, range limit) must be finite too. Quoted tokens in
+messages are cut to :data:`_QUOTE_CHARS`. ``tests/sources/test_carmen_fuzz.py`` holds the reader to it.
+
 Speed: the full Intel log (40,557 lines, 13,631 FLASER, 16 MB) loads in about 0.5 s (measured
 in ``tests/sources/test_carmen.py::test_full_intel_log``): one ``split`` and one ``np.array``
 per line; the bad field is searched for only after a conversion has failed.
@@ -66,6 +71,7 @@ RANGE_MAX_PARAMS = ("robot_front_laser_max", "laser_front_laser_max_range")
 FLASER_ANGLE_TOL_RAD = 1e-9
 """Beam angles this close to :func:`flaser_angles` are FLASER geometry (for the writer)."""
 _GZIP_MAGIC = b"\x1f\x8b"
+_QUOTE_CHARS = 40  # a token quoted in an error message is cut to this many characters
 _PROGRESS_EVERY_LINES = 2000
 _FLASER_TAIL = ("x", "y", "theta", "odom_x", "odom_y", "odom_theta", "ipc_timestamp")
 _ODOM_NAMES = ("x", "y", "theta", "tv", "rv", "accel", "ipc_timestamp")
@@ -247,7 +253,8 @@ def read_log(path: str | os.PathLike[str], progress: bool | None = None) -> Lase
         compressed = raw.read(2) == _GZIP_MAGIC
         raw.seek(0)
         stream = gzip.GzipFile(fileobj=raw, mode="rb") if compressed else raw
-        text = io.TextIOWrapper(stream, encoding="utf-8", errors="replace")
+        # newline="\n": a stray "\r" is whitespace inside a line, so line numbers are grep's
+        text = io.TextIOWrapper(stream, encoding="utf-8", errors="replace", newline="\n")
         show = sys.stderr.isatty() if progress is None else progress
         with _progress_bar(show, os.fstat(raw.fileno()).st_size, Path(path).name) as advance:
             try:
@@ -270,6 +277,7 @@ class _Reader:
         self.path, self.line_no = path, 0
         self.kind: str | None = None
         self.first: tuple[int, np.ndarray, np.ndarray, bool] | None = None
+        self.geometry: tuple[float, float] | None = None  # ROBOTLASER1 (start_angle, angular_res)
         self.range_max_m: float | None = None
         self.stamps: list[float] = []
         self.rows: list[np.ndarray] = []
@@ -309,12 +317,12 @@ class _Reader:
                 try:
                     float(text)
                 except ValueError:
-                    raise self.error(parts[0], names[i], f"cannot parse {text!r} as a number") from None
+                    raise self.error(parts[0], names[i], f"cannot parse {_quote(text)} as a number") from None
             values = np.array([float(text) for text in parts[a:b]])  # numpy stricter than float
         finite = np.isfinite(values[finite_from:])
         if not finite.all():
             i = finite_from + int(np.argmin(finite))
-            raise self.error(parts[0], names[i], f"value {parts[a + i]!r} is not finite")
+            raise self.error(parts[0], names[i], f"value {_quote(parts[a + i])} is not finite")
         return values
 
     def count(self, parts: list[str], index: int, field: str) -> int:
@@ -324,7 +332,7 @@ class _Reader:
         try:
             n = int(parts[index])
         except ValueError:
-            raise self.error(parts[0], field, f"cannot parse {parts[index]!r} as an integer") from None
+            raise self.error(parts[0], field, f"cannot parse {_quote(parts[index])} as an integer") from None
         if not 0 <= n <= MAX_BEAMS:
             raise self.error(parts[0], field, f"beam count {n} outside [0, {MAX_BEAMS}]")
         return n
@@ -359,7 +367,16 @@ class _Reader:
         )
         start, _, res, max_range_m, _ = self.floats(parts, 2, 7, _Names(0, _RL1_HEAD))
         if not max_range_m > 0:
-            raise self.error(parts[0], "max_range", f"{parts[5]!r} is not a positive range")
+            raise self.error(parts[0], "max_range", f"{_quote(parts[5])} is not a positive range")
+        geometry = (float(start), float(res))
+        if self.geometry is None:
+            self.geometry = geometry
+        elif geometry != self.geometry:  # the angles of the first line are used for every scan
+            i = 0 if geometry[0] != self.geometry[0] else 1
+            raise self.error(
+                parts[0], ("start_angle", "angular_res")[i],
+                f"beam geometry changed from {self.geometry[i]!r} (line {self.first[0]}) to {geometry[i]!r}",
+            )  # fmt: skip
         ranges = self.floats(parts, 9, 9 + n, _Names(n, ()), finite_from=n)
         tail = self.floats(parts, n + n_rem + 10, n + n_rem + 22, _Names(0, _RL1_TAIL))
         if self.range_max_m is None:
@@ -376,8 +393,15 @@ class _Reader:
         angles: Callable[[], np.ndarray],
     ) -> None:
         if self.first is None:
+            with np.errstate(over="ignore", invalid="ignore"):  # huge values: checked just below
+                offset, beam_angles = relative(odom, laser), angles()
+            if not np.all(np.isfinite(offset)):
+                field = "x" if kind == "FLASER" else "laser_x"
+                raise self.error(kind, field, "laser and robot poses too far apart: their offset overflows")
+            if not np.all(np.isfinite(beam_angles)):
+                raise self.error(kind, "angular_res", "beam angles overflow")
             self.kind = kind
-            self.first = (self.line_no, relative(odom, laser), angles(), bool(np.array_equal(odom, laser)))
+            self.first = (self.line_no, offset, beam_angles, bool(np.array_equal(odom, laser)))
         elif ranges.size != self.rows[0].size:
             raise self.error(
                 kind,
@@ -398,14 +422,26 @@ class _Reader:
         self.params[parts[1]] = " ".join(parts[2:-2] if len(parts) >= 5 else parts[2:3])
         self.param_lines[parts[1]] = self.line_no
 
-    def param_float(self, name: str, default: float) -> float:
+    def param_float(self, name: str, default: float, positive: bool = False) -> float:
+        """The PARAM ``name`` as a finite number (``positive``: > 0), ``default`` when absent;
+        a bad value raises naming the PARAM's line."""
         if name not in self.params:
             return default
+        text = self.params[name]
         try:
-            return float(self.params[name])
+            value = float(text)
         except ValueError:
+            value = None
+        problem = (
+            f"cannot parse {_quote(text)} as a number" if value is None
+            else f"value {_quote(text)} is not finite" if not np.isfinite(value)
+            else f"{_quote(text)} is not a positive range" if positive and not value > 0
+            else None
+        )  # fmt: skip
+        if problem is not None:
             self.line_no = self.param_lines[name]
-            raise self.error("PARAM", name, f"cannot parse {self.params[name]!r} as a number") from None
+            raise self.error("PARAM", name, problem)
+        return value
 
     def laser_offset(self) -> np.ndarray:
         _, offset, _, identical = self.first
@@ -424,7 +460,9 @@ class _Reader:
         ranges = np.stack(self.rows)
         named = [name for name in RANGE_MAX_PARAMS if name in self.params]
         if self.range_max_m is None:
-            self.range_max_m = self.param_float(named[0], 0.0) if named else infer_range_max_m(ranges)
+            self.range_max_m = (
+                self.param_float(named[0], 0.0, positive=True) if named else infer_range_max_m(ranges)
+            )
         odom = np.array(self.odom_rows).reshape(-1, 4)
         return LaserLog(
             stamps_s=np.array(self.stamps),
@@ -443,6 +481,13 @@ class _Reader:
 
 
 _LASERS = ("FLASER", "ROBOTLASER1")
+
+
+def _quote(text: str) -> str:
+    """``repr(text)``, cut to :data:`_QUOTE_CHARS` characters (a hostile token can be megabytes)."""
+    if len(text) <= _QUOTE_CHARS:
+        return repr(text)
+    return f"{text[:_QUOTE_CHARS]!r}... ({len(text)} characters)"
 
 
 class _Names:
