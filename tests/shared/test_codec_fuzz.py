@@ -1,13 +1,19 @@
 """Property tests: whatever bytes arrive, decode returns a valid message or raises WireFormatError.
 
 A decoded message is always valid (its constructor validated it) and always encodes again; the
-codec's defensive catch-all (``codec.UNEXPECTED``) must never fire. Budget: ~12,800 inputs, ~15 s.
+codec's defensive catch-all (``codec.UNEXPECTED``) must never fire. On the receiving side, streams
+of duplicated, reordered, stale and inconsistent chunks and poses go through ``Assembler`` and
+``SeqFilter``, and random keys through ``Keys.robot_of`` (the server's robot-id-vs-key check is
+fuzzed in ``tests/map_server/test_server_fuzz.py``). Budget: ~14,300 inputs, ~15 s.
 """
 
 from __future__ import annotations
 
+import functools
+import itertools
 import math
 import re
+from collections import Counter
 
 import msgpack
 import numpy as np
@@ -15,8 +21,9 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from shared import codec
-from shared.messages import MAX_CHUNK_ELEMENTS, FusedMap, PoseUpdate, RobotMap, WireFormatError
-from tests.shared.test_codec import robot_map, samples, unpacked
+from shared.keys import Keys
+from shared.messages import ID_PATTERN, MAX_CHUNK_ELEMENTS, FusedMap, PoseUpdate, RobotMap, WireFormatError
+from tests.shared.test_codec import robot_map, robot_map_fields, samples, unpacked
 
 SAMPLES = samples()
 STORED = codec.encode_stored_map(robot_map(np.random.default_rng(3), n=MAX_CHUNK_ELEMENTS + 5, k=4))
@@ -168,3 +175,141 @@ def test_valid_maps_round_trip_and_assemble(seed, n, k, prior):
     np.testing.assert_array_equal(whole.members, msg.members)
     np.testing.assert_array_equal(whole.particle_poses, msg.particle_poses)
     np.testing.assert_allclose(whole.seg, msg.seg.astype(np.float32))
+
+
+# -- the receiving side: duplicated, out-of-order, stale and inconsistent chunks ------------------
+
+
+@functools.cache
+def snapshot(robot: str, session: str, seq: int, n_chunks: int, variant: int = 0) -> tuple[bytes, ...]:
+    """The encoded chunks of one robot-map snapshot; a ``variant`` has the same identity (robot,
+    session, seq) but another header (``stamp_s``), as a forged or corrupted sender would make."""
+    rng = np.random.default_rng([hash((robot, session)) % 2**32, seq, n_chunks])
+    fields = robot_map_fields(rng, 3 * n_chunks) | {"prior": None, "prior_sigma": None}
+    chunks = codec.robot_map_chunks(robot, session, seq, 1.0 + seq + 0.5 * variant, **fields, max_elements=3)
+    assert len(chunks) == n_chunks
+    return tuple(codec.encode(c) for c in chunks)
+
+
+SESSIONS = ("s1", "s2", "s3")  # in the order a robot uses them (restarts)
+sent_chunk = st.tuples(
+    st.sampled_from(["r1", "r2"]),
+    st.integers(0, 2),
+    st.integers(0, 4),
+    st.integers(1, 3),
+    st.integers(0, 1),
+    st.integers(0, 2),
+)  # robot, session index, seq, n_chunks, variant, chunk index (clipped to n_chunks)
+
+
+@settings(max_examples=500, **FAST)
+@given(st.lists(sent_chunk, max_size=40), st.permutations(range(4)), st.data())
+def test_assembler_under_duplicated_reordered_and_stale_chunks(stream, final_order, data):
+    """Whatever arrives: every chunk is taken or refused with a counted reason; a map comes out only
+    whole, as one snapshot was sent (never chunks of two variants mixed), newer than the last one
+    of its session, never from a session already replaced; a message seen before is always
+    refused; and after all that, a restarted robot's snapshot still comes out."""
+    asm = codec.Assembler()
+    seen: set[bytes] = set()
+    refused: Counter = Counter()
+    out: list[RobotMap] = []
+    for robot, s, seq, n_chunks, variant, i in stream:
+        session = SESSIONS[s]
+        if data.draw(st.booleans()):  # mostly the sessions in order, sometimes a late old one
+            session = SESSIONS[
+                max(s, max((SESSIONS.index(m.session) for m in out if m.robot == robot), default=0))
+            ]
+        payload = snapshot(robot, session, seq, n_chunks, variant)[min(i, n_chunks - 1)]
+        again = payload in seen
+        seen.add(payload)
+        try:
+            whole = asm.add(codec.decode(payload, expect=RobotMap))
+        except codec.ChunkRejected as e:
+            assert e.reason in {"stale", "duplicate", "header", "stale_session"}, e
+            assert str(e).split(":")[0] in {"seq", "chunk", "session", "stamp_s", "n_chunks"}, str(e)
+            refused[e.reason] += 1
+            event(f"refused: {e.reason}")
+            continue
+        assert not again, "a message seen before was taken"
+        if whole is not None:
+            out.append(whole)
+    assert asm.rejected == refused
+    for m in out:  # whole, and exactly one sent snapshot
+        variants = [snapshot(m.robot, m.session, m.seq, len(m.seg) // 3, v) for v in (0, 1)]
+        joined = [codec.join([codec.decode(c) for c in chunks]) for chunks in variants]
+        assert any(codec.encode(m) == codec.encode(j) for j in joined)
+    for robot in ("r1", "r2"):  # per session increasing; a session left is never back
+        mine = [(m.session, m.seq) for m in out if m.robot == robot]
+        for (sa, a), (sb, b) in itertools.pairwise(mine):
+            assert sb != sa or b > a, mine
+        sessions = [s for s, _ in mine]
+        left = [s for i, s in enumerate(sessions) if s not in sessions[i + 1 :]]
+        assert sessions == sorted(sessions, key=left.index), mine
+    # liveness: the robot restarted (a session never seen): its snapshot, chunks in any order, comes out
+    final = snapshot("r1", "s4", 9, 4)
+    results = [asm.add(codec.decode(final[j])) for j in final_order]
+    assert all(r is None for r in results[:-1]) and results[-1].seq == 9 and len(results[-1].seg) == 12
+
+
+pose_sent = st.tuples(st.sampled_from(["r1", "r2"]), st.integers(0, 2), st.integers(0, 6))
+
+
+@settings(max_examples=500, **FAST)
+@given(st.lists(pose_sent, max_size=40))
+def test_seq_filter_under_duplicated_and_reordered_poses(stream):
+    """A pose is taken exactly when it is newer than every pose taken from its robot's session and
+    its session was not replaced; everything else is refused and counted."""
+    f = codec.SeqFilter()
+    newest: dict[tuple[str, str], int] = {}
+    current: dict[str, str] = {}
+    retired: dict[str, set] = {"r1": set(), "r2": set()}
+    refused = Counter()
+    for robot, s, seq in stream:
+        session = SESSIONS[s]
+        msg = codec.decode(codec.encode(PoseUpdate(robot, session, seq, 1.0, np.zeros(3))), expect=PoseUpdate)
+        fresh = session not in retired[robot] and seq > newest.get((robot, session), -1)
+        try:
+            f.check(msg)
+        except codec.ChunkRejected as e:
+            assert not fresh, f"refused a fresh pose: {e}"
+            refused[e.reason] += 1
+            event(f"refused: {e.reason}")
+            continue
+        assert fresh, f"took a stale pose {robot} {session} {seq}"
+        if current.get(robot, session) != session:
+            retired[robot].add(current[robot])
+            newest.pop((robot, current[robot]), None)
+        current[robot], newest[(robot, session)] = session, seq
+    assert f.rejected == refused
+
+
+@settings(max_examples=500, **FAST)
+@given(
+    st.one_of(
+        st.text(max_size=60),
+        st.tuples(
+            st.sampled_from(["fleet/default", "fleet/other", "fleet", "", "fleet/default/x"]),
+            st.sampled_from(["robots", "robot", "Robots", ""]),
+            st.one_of(
+                st.sampled_from(["r1", "robot_2", "a-b", "", "*", "**", "a b", "é"]), st.text(max_size=70)
+            ),
+            st.sampled_from(["map", "pose", "alive", "", "map/x"]),
+        ).map("/".join),
+    )
+)
+def test_robot_of_a_key(key):
+    """A key names a robot only as ``fleet/<fleet>/robots/<id>/<leaf>`` with a valid id; anything
+    else is a WireFormatError quoting the key."""
+    keys = Keys()
+    parts = key.split("/")
+    valid = (
+        len(parts) == 5
+        and parts[:3] == ["fleet", "default", "robots"]
+        and ID_PATTERN.match(parts[3]) is not None
+    )
+    try:
+        robot = keys.robot_of(key)
+    except WireFormatError as e:
+        assert not valid and str(e).startswith("key "), (key, str(e))
+        return
+    assert valid and robot == parts[3] and keys.robot_of(keys.robot_map(robot)) == robot
