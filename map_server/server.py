@@ -135,7 +135,9 @@ class MapServer:
             raise WireFormatError(f"robot {msg.robot!r} published on the key of {robot!r}")
         return msg
 
-    def on_map(self, key: str, payload: bytes) -> None:
+    def on_map(self, key: str, payload: bytes, pulled: bool = False) -> None:
+        """A map chunk put by an agent, or ``pulled`` from its queryable: a pulled chunk the server
+        already has (it came by put as well) is not a rejection."""
         try:
             msg = self._decode(key, payload, RobotMap)
             with self._lock:
@@ -145,6 +147,8 @@ class MapServer:
                     self._wake.set()
                 self.received["map_chunk"] += 1
         except WireFormatError as exc:
+            if pulled and getattr(exc, "reason", None) in ("stale", "duplicate"):
+                return
             with self._lock:
                 self._reject("map", key, exc)
 
@@ -182,7 +186,7 @@ class MapServer:
         self.bus.watch_alive(self.keys.all_alive, self.on_presence)
         self.bus.serve(self.keys.fused, self.answer_fused)
         for key, payload in self.bus.get(self.keys.all_maps, timeout_s=self.cfg.pull_timeout_s):
-            self.on_map(key, payload)
+            self.on_map(key, payload, pulled=True)
 
     def tick(self) -> FusedMap | None:
         """Apply the queued messages, fuse if anything changed, persist, publish. Returns the new
@@ -224,9 +228,7 @@ class MapServer:
 
         A robot that comes (back) online may have put its last map while the server could not
         hear it — a router restart drops every put in flight and shows every token leave and come
-        back — and an agent puts a map only when it changed. Maps the fleet already has are
-        skipped, so a re-pull is not counted as a rejected (stale) map."""
-        have = {n: (r.map.session, r.map.seq) for n, r in self.fleet.robots.items() if r.map is not None}
+        back — and an agent puts a map only when it changed."""
 
         def pull() -> None:
             try:
@@ -234,8 +236,7 @@ class MapServer:
                     for key, payload in self.bus.get(
                         self.keys.robot_map(robot), timeout_s=self.cfg.pull_timeout_s
                     ):
-                        if not _known(payload, have):
-                            self.on_map(key, payload)
+                        self.on_map(key, payload, pulled=True)
             except Exception as exc:  # e.g. the bus closed at shutdown: the next put catches up
                 log.warning("pulling the maps of %s failed: %s", robots, exc)
 
@@ -326,16 +327,6 @@ def _reason(exc: Exception) -> str:
         return str(reason)
     head = str(exc).split(":", 1)[0].strip()
     return head[:40] if head and len(head) <= 40 and " " not in head else "malformed"
-
-
-def _known(payload: bytes, have: dict[str, tuple[str, int]]) -> bool:
-    """Whether a map chunk is of a map ``have`` (robot -> (session, seq)) already holds or outdates."""
-    try:
-        msg = codec.decode(payload, expect=RobotMap)
-    except WireFormatError:
-        return False  # on_map counts it
-    known = have.get(msg.robot)
-    return known is not None and known[0] == msg.session and msg.seq <= known[1]
 
 
 def _peak_rss_mb() -> float:
