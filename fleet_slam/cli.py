@@ -83,7 +83,7 @@ def _cmd_server(args: argparse.Namespace) -> int:
 def _cmd_router(args: argparse.Namespace) -> int:
     from shared.bus import router_main
 
-    return router_main(args.listen)
+    return router_main(args.listen, args.bus_config)
 
 
 def _cmd_subscribe(args: argparse.Namespace) -> int:
@@ -145,9 +145,13 @@ def _add_fleet_commands(sub) -> None:
     sv.set_defaults(func=_cmd_server)
     ro = sub.add_parser("router", help="a zenoh router process (loopback by default)")
     ro.add_argument("--listen", action="append", default=None, help="endpoint (default tcp/127.0.0.1:7447)")
+    ro.add_argument(
+        "--bus-config", default=None, metavar="FILE", help="zenoh JSON5 config: TLS, access control (deploy/)"
+    )
     ro.set_defaults(func=_cmd_router)
     su = sub.add_parser("subscribe", help="print every fused-map update; optionally save it")
     su.add_argument("--connect", action="append", default=None, help="router endpoint (tcp/127.0.0.1:7447)")
+    su.add_argument("--bus-config", default=None, metavar="FILE", help="zenoh config file (TLS; deploy/)")
     su.add_argument("--fleet", default="default", help="fleet id")
     su.add_argument("--once", action="store_true", help="take the latest fused map by query and exit")
     su.add_argument("--save", default=None, help="write the map to FILE (.geojson or .svg) on every update")

@@ -26,7 +26,7 @@ def save(path: str, f: FusedMap) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from shared.bus import Bus, BusConfig, stop_on_signals
+    from shared.bus import Bus, client_config, stop_on_signals
     from shared.keys import Keys
 
     stop = threading.Event()
@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
             save(args.save, u.fused)
         seen.release()
 
-    bus_cfg = BusConfig(connect=tuple(args.connect)) if args.connect else BusConfig()
+    bus_cfg = client_config(args.connect, args.bus_config)
     with Bus(bus_cfg, cancel=stop) as bus:
         watcher = FusedWatcher(bus, Keys(args.fleet), on_update=None if args.once else on_update)
         if args.once:

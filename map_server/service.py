@@ -11,6 +11,7 @@ DEFAULT_FLEET = "default"  # = shared.keys.DEFAULT_FLEET (not imported: instant 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", action="append", default=None, help="router endpoint (tcp/127.0.0.1:7447)")
+    p.add_argument("--bus-config", default=None, metavar="FILE", help="zenoh config file (TLS; deploy/)")
     p.add_argument("--state", default=None, help="state directory: persist the fused state, resume from it")
     p.add_argument("--fleet", default=DEFAULT_FLEET, help="fleet id (key prefix fleet/<id>/)")
     p.add_argument("--id", dest="server_id", default="server", help="server id in the fused map")
@@ -23,7 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from map_server.server import MapServer, ServerConfig
     from map_server.store import Store
-    from shared.bus import Bus, BusConfig, stop_on_signals
+    from shared.bus import Bus, client_config, stop_on_signals
     from shared.keys import Keys
 
     logging.basicConfig(
@@ -34,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     stop_on_signals(stop)
     store = Store(args.state) if args.state else None
-    bus_cfg = BusConfig(connect=tuple(args.connect)) if args.connect else BusConfig()
+    bus_cfg = client_config(args.connect, args.bus_config)
     with Bus(bus_cfg, cancel=stop) as bus:
         server = MapServer(
             bus,

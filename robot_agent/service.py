@@ -58,6 +58,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (filter; simulated noise)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="SLAM parameter")
     p.add_argument("--connect", action="append", default=None, help="router endpoint (tcp/127.0.0.1:7447)")
+    p.add_argument("--bus-config", default=None, metavar="FILE", help="zenoh config file (TLS; deploy/)")
     p.add_argument("--fleet", default=DEFAULT_FLEET, help="fleet id (key prefix fleet/<id>/)")
     p.add_argument("--out", default=None, help="write <robot>.poses.txt, .tum (and .truth.txt) here")
 
@@ -117,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     from robot_agent.publish import PublishConfig
     from robot_agent.slam.config import command_line_config
     from robot_agent.slam.fastslam import FastSLAM
-    from shared.bus import Bus, BusConfig, stop_on_signals
+    from shared.bus import Bus, client_config, stop_on_signals
     from shared.keys import Keys
     from shared.metrics import write_poses, write_tum
 
@@ -140,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
         on_estimate = None
     stop = threading.Event()
     stop_on_signals(stop)
-    bus_cfg = BusConfig(connect=tuple(args.connect)) if args.connect else BusConfig()
+    bus_cfg = client_config(args.connect, args.bus_config)
     t0 = time.monotonic()
     with Bus(bus_cfg, cancel=stop) as bus:
         print(f"agent {args.robot}: session {core.session}, connected", flush=True)

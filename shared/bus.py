@@ -16,7 +16,12 @@ Payloads are opaque ``bytes`` here (``shared/codec.py`` gives them meaning); key
 
     run_router(listen=("tcp/127.0.0.1:7447",), stop=event)  # a router in this process, until stop is set
     router_main(["tcp/127.0.0.1:7447"])                     # the same for a CLI: signals, one status line
-    python -m shared.bus router --listen tcp/127.0.0.1:7447
+    python -m shared.bus router --listen tcp/127.0.0.1:7447 [--bus-config deploy/router.json5]
+
+Security (``deploy/README.md``): ``BusConfig.config_file`` names a zenoh JSON5 configuration file —
+TLS certificates (mutual TLS), user/password, access control — read before the fields are applied;
+every file it names is checked before zenoh sees it, so a missing certificate is an error that
+names it instead of a client silently waiting for a router that refuses it.
 
 Threads: callbacks run on zenoh's callback threads — one per declaration, so several of them run
 concurrently with each other and with the caller. State shared between callbacks and the rest of
@@ -50,12 +55,14 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import signal
 import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import zenoh
 
@@ -65,10 +72,18 @@ MODES = ("client", "peer", "router")
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 OPEN_SLICE_S = 0.5  # a client waiting for its router retries zenoh.open() this often (see _open)
 ROUTER_POLL_S = 0.1  # how often a router's wait loop looks at its stop event
+BUS_CONFIG_HELP = "zenoh JSON5 config file: TLS certificates, user/password, access control (deploy/)"
+OPEN_WARN_S = 10.0  # a client still waiting for its router after this long says so, once
 
 
 class BusError(RuntimeError):
     """A bus that cannot be configured, opened or used (bad config, no router, closed bus)."""
+
+
+class BusConfigError(BusError, ValueError):
+    """A configuration that cannot work: a bad field or endpoint, a zenoh config file that does not
+    parse or sets what the fields set, a certificate, key or password file missing or unreadable.
+    A ``ValueError`` too, so that the CLI reports it as an error rather than a crash."""
 
 
 @dataclass(frozen=True)
@@ -82,8 +97,10 @@ class BusConfig:
     ``lease_s``: how long others wait before declaring this session dead when it stops answering
     (zenoh default 10 s); it only matters for hung processes, killed ones are noticed at once.
     ``shm``: zenoh shared memory between local processes (off: slower for our message sizes).
-    ``overrides``: raw ``(config path, JSON5 value)`` pairs applied last — the hook for security
-    (``("transport/auth/usrpwd", '{user: "a", password: "b"}')``, TLS endpoints, access control).
+    ``config_file``: a zenoh JSON5 configuration file (what ``zenohd -c`` reads) applied first:
+    the place for security — TLS certificates, user/password, access control (``deploy/``). It
+    may not set differently what the fields set (mode, endpoints, scouting, ...): those come from
+    the command line. ``overrides``: raw ``(config path, JSON5 value)`` pairs applied last.
     """
 
     mode: str = "client"
@@ -93,30 +110,40 @@ class BusConfig:
     retry_ms: int = 200
     lease_s: float | None = None
     shm: bool = False
+    config_file: str | None = None
     overrides: tuple[tuple[str, str], ...] = ()
 
     def __post_init__(self):
         if self.mode not in MODES:
-            raise BusError(f"mode: expected one of {MODES}, got {self.mode!r}")
+            raise BusConfigError(f"mode: expected one of {MODES}, got {self.mode!r}")
         for name in ("connect", "listen"):
             endpoints = getattr(self, name)
             if isinstance(endpoints, str) or not all(isinstance(e, str) and e for e in endpoints):
-                raise BusError(f"{name}: expected a tuple of endpoint strings, got {endpoints!r}")
+                raise BusConfigError(f"{name}: expected a tuple of endpoint strings, got {endpoints!r}")
             object.__setattr__(self, name, tuple(endpoints))  # a list from a CLI stays hashable
         if self.mode == "client" and not self.connect:
-            raise BusError("connect: a client needs at least one endpoint (multicast scouting is off)")
+            raise BusConfigError("connect: a client needs at least one endpoint (multicast scouting is off)")
         if self.mode == "router" and not self.listen:
-            raise BusError("listen: a router needs at least one endpoint")
+            raise BusConfigError("listen: a router needs at least one endpoint")
         if self.connect_timeout_s is not None and not self.connect_timeout_s > 0:
-            raise BusError(f"connect_timeout_s: expected > 0 or None, got {self.connect_timeout_s!r}")
+            raise BusConfigError(f"connect_timeout_s: expected > 0 or None, got {self.connect_timeout_s!r}")
         if not (isinstance(self.retry_ms, int) and self.retry_ms > 0):
-            raise BusError(f"retry_ms: expected a positive integer, got {self.retry_ms!r}")
+            raise BusConfigError(f"retry_ms: expected a positive integer, got {self.retry_ms!r}")
         if self.lease_s is not None and not self.lease_s > 0:
-            raise BusError(f"lease_s: expected > 0 or None, got {self.lease_s!r}")
+            raise BusConfigError(f"lease_s: expected > 0 or None, got {self.lease_s!r}")
+        if self.config_file is not None:
+            object.__setattr__(self, "config_file", str(self.config_file))  # a Path stays hashable too
+
+
+def client_config(connect: Sequence[str] | None = None, config_file: str | None = None) -> BusConfig:
+    """A client's configuration from command-line values: ``connect`` endpoints (``None``: the
+    default endpoint) and an optional zenoh config file (``--bus-config``)."""
+    return BusConfig(connect=tuple(connect or (DEFAULT_ENDPOINT,)), config_file=config_file)
 
 
 def zenoh_config(cfg: BusConfig) -> zenoh.Config:
-    """The zenoh configuration of ``cfg``: explicit endpoints only, multicast scouting off."""
+    """The zenoh configuration of ``cfg``: explicit endpoints only, multicast scouting off; its
+    config file first, its overrides last; raises :class:`BusConfigError` naming what is wrong."""
     timeout_ms = -1 if cfg.connect_timeout_s is None else max(1, round(cfg.connect_timeout_s * 1000))
     retry = cfg.retry_ms
     entries: list[tuple[str, object]] = [
@@ -136,11 +163,12 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
     ]
     if cfg.lease_s is not None:
         entries.append(("transport/link/tx/lease", max(1, round(cfg.lease_s * 1000))))
-    conf = zenoh.Config()
+    conf = zenoh.Config() if cfg.config_file is None else _load_file(cfg.config_file, entries)
     for path, value in entries:
         _insert(conf, path, json.dumps(value))
     for path, value in cfg.overrides:
         _insert(conf, path, value)
+    check_security(conf, cfg, where=f"{cfg.config_file}: " if cfg.config_file else "")
     return conf
 
 
@@ -148,7 +176,77 @@ def _insert(conf: zenoh.Config, path: str, value_json5: str) -> None:
     try:
         conf.insert_json5(path, value_json5)
     except (zenoh.ZError, ValueError) as e:
-        raise BusError(f"zenoh config {path}: cannot set {value_json5[:200]!r}: {e}") from e
+        raise BusConfigError(f"zenoh config {path}: cannot set {value_json5[:200]!r}: {_z(e)}") from e
+
+
+def _z(e: Exception) -> str:
+    """A zenoh error's text without the Rust source location zenoh appends."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?$", "", str(e).strip())
+
+
+def _json(conf: zenoh.Config, path: str):
+    return json.loads(conf.get_json(path))
+
+
+def _load_file(path: str, entries: list[tuple[str, object]]) -> zenoh.Config:
+    """The zenoh config in the file ``path``; it must leave what ``entries`` set to them."""
+    if not Path(path).is_file():
+        raise BusConfigError(f"bus config {path!r}: no such file")
+    try:
+        conf = zenoh.Config.from_file(path)
+    except (zenoh.ZError, ValueError) as e:
+        raise BusConfigError(f"bus config {path}: {_z(e)}") from e
+    default = zenoh.Config()
+    for key, value in entries:
+        mine = _json(conf, key)
+        if mine != _json(default, key) and mine != value:
+            raise BusConfigError(
+                f"bus config {path}: sets {key} = {json.dumps(mine)}, which fleet-slam sets itself "
+                f"({json.dumps(value)}): give endpoints with --listen/--connect, drop {key} from the file"
+            )
+    return conf
+
+
+# Every file a zenoh config may name for authentication, and whether it must be PEM.
+SECURITY_FILES = {
+    "transport/link/tls/root_ca_certificate": True,
+    "transport/link/tls/listen_certificate": True,
+    "transport/link/tls/listen_private_key": True,
+    "transport/link/tls/connect_certificate": True,
+    "transport/link/tls/connect_private_key": True,
+    "transport/auth/usrpwd/dictionary_file": False,
+    "transport/auth/pubkey/public_key_file": True,
+    "transport/auth/pubkey/private_key_file": True,
+    "transport/auth/pubkey/known_keys_file": False,
+}
+
+
+def check_security(conf: zenoh.Config, cfg: BusConfig, where: str = "") -> None:
+    """Raise :class:`BusConfigError` for what would fail later and obscurely: a named certificate,
+    key or dictionary file that is missing, unreadable or not PEM; TLS endpoints without the
+    certificates they need. (zenoh itself reports a bad certificate only as a connection that
+    never opens.)"""
+    for path, pem in SECURITY_FILES.items():
+        name = _json(conf, path)
+        if name is None:
+            continue
+        try:
+            head = Path(name).read_bytes()[:65536]
+        except OSError as e:
+            raise BusConfigError(f"{where}{path}: cannot read {name!r}: {e.strerror}") from e
+        if pem and b"-----BEGIN " not in head:
+            raise BusConfigError(f"{where}{path}: {name!r} is not a PEM file")
+    tls = _json(conf, "transport/link/tls")
+    mtls = bool(tls.get("enable_mtls"))
+    need: list[str] = []
+    if cfg.mode != "client" and any(e.startswith("tls/") for e in cfg.listen):
+        need += ["listen_certificate", "listen_private_key"] + (["root_ca_certificate"] if mtls else [])
+    if cfg.mode != "router" and mtls and any(e.startswith("tls/") for e in cfg.connect):
+        need += ["connect_certificate", "connect_private_key"]
+    missing = [f"transport/link/tls/{k}" for k in need if not tls.get(k)]
+    if missing:
+        tls_eps = [e for e in (*cfg.listen, *cfg.connect) if e.startswith("tls/")]
+        raise BusConfigError(f"{where}TLS endpoint {tls_eps[0]} needs {', '.join(missing)}")
 
 
 class Handle:
@@ -375,6 +473,7 @@ def _open(cfg: BusConfig, cancel: threading.Event | None) -> zenoh.Session:
     while it waits for a router, so one long wait would delay signal handlers and ``cancel``."""
     where = ", ".join(cfg.connect if cfg.mode == "client" else cfg.listen)
     deadline = None if cfg.connect_timeout_s is None else time.monotonic() + cfg.connect_timeout_s
+    warn_at = time.monotonic() + OPEN_WARN_S
     while True:
         left_s = OPEN_SLICE_S if deadline is None else min(OPEN_SLICE_S, deadline - time.monotonic())
         started = time.monotonic()
@@ -386,6 +485,10 @@ def _open(cfg: BusConfig, cancel: threading.Event | None) -> zenoh.Session:
             if failed_fast or timed_out:
                 raise BusError(f"cannot open a zenoh {cfg.mode} session on {where}: {e}") from e
             log.debug("still waiting for %s: %s", where, e)
+            if time.monotonic() > warn_at:  # a router that refuses our certificate looks like no router
+                warn_at = float("inf")
+                secured = ", and does it accept this client's credentials" if cfg.config_file else ""
+                log.warning("no session on %s after %.0f s: is the router up%s?", where, OPEN_WARN_S, secured)
         if cancel is not None and cancel.is_set():
             raise BusError(f"cancelled while waiting for a zenoh {cfg.mode} session on {where}")
 
@@ -405,12 +508,15 @@ def run_router(
     stop: threading.Event | None = None,
     *,
     on_ready: Callable[[Bus], None] | None = None,
+    config_file: str | None = None,
 ) -> None:
     """Run a zenoh router listening on ``listen`` in this process until ``stop`` is set (forever
-    when None). ``on_ready(bus)`` is called once the router listens. Raises :class:`BusError`
-    when it cannot listen (e.g. the port is taken)."""
+    when None), with the zenoh config file ``config_file`` if given (TLS, access control).
+    ``on_ready(bus)`` is called once the router listens. Raises :class:`BusError` when it cannot
+    listen (e.g. the port is taken), :class:`BusConfigError` for a bad config."""
     stop = stop if stop is not None else threading.Event()
-    with Bus(BusConfig(mode="router", connect=(), listen=tuple(listen))) as bus:
+    cfg = BusConfig(mode="router", connect=(), listen=tuple(listen), config_file=config_file)
+    with Bus(cfg) as bus:
         if on_ready is not None:
             on_ready(bus)
         while not stop.wait(ROUTER_POLL_S):  # a bounded wait keeps the main thread responsive to signals
@@ -424,18 +530,20 @@ def stop_on_signals(stop: threading.Event) -> None:
         signal.signal(sig, lambda *_: stop.set())
 
 
-def router_main(listen: Sequence[str] | None = None) -> int:
+def router_main(listen: Sequence[str] | None = None, config_file: str | None = None) -> int:
     """The ``router`` command: run a router until SIGINT/SIGTERM; 0 on a clean stop, 1 when it
-    cannot listen. Prints one line ``router listening on <endpoints>`` once it listens."""
+    cannot listen or its config is bad. Prints one line ``router listening on <endpoints>`` once
+    it listens (followed by `` with <config_file>`` when given)."""
     listen = tuple(listen) if listen else (DEFAULT_ENDPOINT,)
     stop = threading.Event()
     stop_on_signals(stop)
 
     def ready(_bus: Bus) -> None:
-        print(f"router listening on {' '.join(listen)}", flush=True)
+        with_file = f" with {config_file}" if config_file else ""
+        print(f"router listening on {' '.join(listen)}{with_file}", flush=True)
 
     try:
-        run_router(listen, stop, on_ready=ready)
+        run_router(listen, stop, on_ready=ready, config_file=config_file)
     except BusError as e:
         print(f"router: {e}", file=sys.stderr, flush=True)
         return 1
@@ -452,9 +560,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="ENDPOINT",
         help=f"endpoint to listen on, repeatable (default {DEFAULT_ENDPOINT})",
     )
+    router.add_argument("--bus-config", metavar="FILE", help=BUS_CONFIG_HELP)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    return router_main(args.listen)
+    return router_main(args.listen, args.bus_config)
 
 
 if __name__ == "__main__":
