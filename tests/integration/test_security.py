@@ -155,6 +155,13 @@ def test_a_robot_cannot_write_another_robots_keys_or_the_fused_map(fleet):
         # (a session hears its own puts locally, forged ones included: only robot2's real pose counts)
         assert (KEYS.robot_pose("robot2"), b"robot2 pose") not in seen_by_robot1.snapshot()
 
+        # the server's pull of every map: robot1 answers for robot2 too, only its own answer arrives
+        def answer(_query: str) -> list[tuple[str, bytes]]:
+            return [(KEYS.robot_map("robot2"), b"forged reply"), (KEYS.robot_map("robot1"), b"robot1 reply")]
+
+        robot1.serve(KEYS.robot_map("robot1"), answer)
+        assert server.get(KEYS.all_maps, timeout_s=2.0) == [(KEYS.robot_map("robot1"), b"robot1 reply")]
+
 
 # -- (b) no credentials, no writing -------------------------------------------------------------------
 
