@@ -483,7 +483,7 @@ def _open(cfg: BusConfig, cancel: threading.Event | None) -> zenoh.Session:
             failed_fast = time.monotonic() - started < left_s / 2  # not a timeout: a real error
             timed_out = deadline is not None and time.monotonic() >= deadline
             if failed_fast or timed_out:
-                raise BusError(f"cannot open a zenoh {cfg.mode} session on {where}: {e}") from e
+                raise BusError(f"cannot open a zenoh {cfg.mode} session on {where}: {_z(e)}") from e
             log.debug("still waiting for %s: %s", where, e)
             if time.monotonic() > warn_at:  # a router that refuses our certificate looks like no router
                 warn_at = float("inf")

@@ -329,10 +329,13 @@ def test_bad_bus_config_files_are_errors_that_name_the_problem(tmp_path):
 
 
 def test_cli_reports_a_bad_bus_config_without_a_traceback(tmp_path):
-    from fleet_slam.cli import main
-
-    # the router: exit 1 and a message; a client command: exit 2 and a message
-    assert (
-        main(["router", "--listen", loopback_endpoint(), "--bus-config", str(tmp_path / "nope.json5")]) == 1
-    )
-    assert main(["subscribe", "--once", "--bus-config", str(tmp_path / "nope.json5")]) == 2
+    missing = str(tmp_path / "nope.json5")
+    # the router: exit 1 and a message; a client command: exit 2 and a message (own processes:
+    # the commands install signal handlers)
+    for command, code in ((["router", "--listen", loopback_endpoint()], 1), (["subscribe", "--once"], 2)):
+        run = subprocess.run(
+            python_module("fleet_slam.cli", *command, "--bus-config", missing),
+            capture_output=True, text=True, timeout=60, cwd=ROOT,
+        )  # fmt: skip
+        assert run.returncode == code, run.stderr
+        assert "nope.json5': no such file" in run.stderr and "Traceback" not in run.stderr
