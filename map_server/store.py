@@ -58,12 +58,17 @@ def _fsync_dir(path: Path) -> None:
 
 
 class Store:
-    """A state directory. ``save(meta, blobs)`` / ``load() -> (meta, blobs) | None``."""
+    """A state directory. ``save(meta, blobs)`` / ``load() -> (meta, blobs) | None``.
 
-    def __init__(self, directory: str | os.PathLike[str]):
+    Opening it verifies what it holds (``check``): a damaged state is reported at once, before a
+    server connects anywhere or waits for its router, not when it is about to be used."""
+
+    def __init__(self, directory: str | os.PathLike[str], check: bool = True):
         self.dir = Path(directory)
         self.index = self.dir / "state.json"
         self.blob_dir = self.dir / "blobs"
+        if check:
+            self.load()
 
     def save(self, meta: dict, blobs: dict[str, bytes]) -> None:
         """Persist ``meta`` (JSON-able, finite numbers) and the named binary ``blobs`` atomically."""

@@ -137,3 +137,11 @@ def test_kill_9_at_random_moments_while_saving_never_leaves_a_half_written_state
         last = meta["v"]
     assert last > 12  # it did save between the kills
     assert mid_write >= 1  # and kills did land mid-write (measured 5-8 of 12)
+
+
+def test_opening_a_damaged_state_reports_it_at_once(tmp_path):
+    Store(tmp_path).save({"v": 1}, {"a": b"x"})
+    (tmp_path / "state.json").write_bytes(b'{"format": 1, "me')
+    with pytest.raises(StateError, match=r"state\.json: not valid JSON"):
+        Store(tmp_path)
+    assert Store(tmp_path, check=False).index.exists()  # opened unchecked: nothing read yet
