@@ -95,7 +95,8 @@ def check_array(
     if kind == "f":
         if value.dtype.kind not in "fiu":
             raise WireFormatError(f"{name}: expected numbers, got dtype {value.dtype}")
-        arr = value.astype(np.float64, copy=False)
+        with np.errstate(invalid="ignore"):  # a signalling NaN warns on the cast: refused just below
+            arr = value.astype(np.float64, copy=False)
         if not np.all(np.isfinite(arr)):
             raise WireFormatError(f"{name}: contains NaN or inf")
     else:
