@@ -288,9 +288,10 @@ class MapServer:
             "server_fusions": float(self.fusions),
             "server_queue_maps": float(self.backlog["maps"]),
             "server_queue_poses": float(self.backlog["poses"]),
-            "server_fuse_ms_last": float(ms[-1]) if ms else 0.0,
+            "server_fuse_ms_last": float(ms[-1]) if ms else 0.0,  # the previous fusion (this one runs)
             "server_fuse_ms_max": float(max(ms)) if ms else 0.0,
             "server_maps_per_fusion": self.maps_applied / max(1, self.fusions),
+            "server_maps_applied": float(self.maps_applied),
             "server_rejected": float(sum(self.rejected.values())),
             "server_peak_rss_mb": _peak_rss_mb(),
         }
