@@ -417,3 +417,20 @@ def test_each_kind_of_refusal_has_its_own_reason():
     assert len(server.reasons) == 2 and not any(r.endswith(": malformed") for r in server.reasons), (
         server.reasons
     )
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=WireFormatError,
+    reason="map_server: every robot id heard (a pose is enough) stays in the fleet, and past MAX_ROBOTS "
+    "(256) building the FusedMap raises in every tick, which ends the server's loop (issue 5 item 1 report)",
+)
+def test_a_flood_of_unknown_robots_does_not_stop_the_server():
+    server = MapServer(FakeBus(), KEYS)
+    server.now_s = lambda: 1.0
+    for e in SCHEDULE[:4]:
+        run(server, [e])
+    for i in range(300):  # well-formed, each on its own key: new robots, not refused at the door
+        ghost = f"ghost{i}"
+        server.on_pose(KEYS.robot_pose(ghost), codec.encode(PoseUpdate(ghost, "g", 0, 1.0, np.zeros(3))))
+    server.tick()
