@@ -23,7 +23,7 @@ from map_server.fleet import Fleet, FleetConfig
 from map_server.store import StateError, Store
 from shared import codec
 from shared.keys import Keys
-from shared.messages import FusedMap, PoseUpdate, RobotMap, WireFormatError
+from shared.messages import MAX_ROBOTS, FusedMap, PoseUpdate, RobotMap, WireFormatError
 
 log = logging.getLogger("fleet_slam.server")
 
@@ -73,6 +73,7 @@ class MapServer:
         self._latest: list[bytes] = []
         self._stored: dict[str, tuple[tuple[str, int], bytes]] = {}  # robot -> ((session, seq), blob)
         self.fusions = 0
+        self._robot_ids: set[str] = set()  # every robot id admitted (fleet's and queued)
         self._last_log_s = 0.0
         if store is not None:
             self._restore()
@@ -94,6 +95,7 @@ class MapServer:
         except (KeyError, TypeError, ValueError) as exc:
             raise StateError(f"{self.store.index}: cannot be restored ({type(exc).__name__}: {exc})") from exc
         self._stored = {name: ((m.session, m.seq), blobs[name]) for name, m in maps.items()}
+        self._robot_ids = set(self.fleet.robots) | set(self.fleet.retired)
         latest = self.fleet.latest()
         if latest is not None:
             self._latest = _payloads(latest)
@@ -132,8 +134,16 @@ class MapServer:
         robot = self.keys.robot_of(key)
         msg = codec.decode(payload, expect=kind)
         if msg.robot != robot:
-            raise WireFormatError(f"robot {msg.robot!r} published on the key of {robot!r}")
+            raise WireFormatError(f"robot: {msg.robot!r} published on the key of {robot!r}")
         return msg
+
+    def _admit(self, robot: str) -> None:
+        """Under the lock: a robot id the fleet knows, or room for one more (a fused map holds at
+        most MAX_ROBOTS; a flood of made-up ids is refused at the door, not fused)."""
+        if robot not in self._robot_ids:
+            if len(self._robot_ids) >= MAX_ROBOTS:
+                raise WireFormatError(f"robot: {robot!r} is one robot too many (at most {MAX_ROBOTS})")
+            self._robot_ids.add(robot)
 
     def on_map(self, key: str, payload: bytes, pulled: bool = False) -> None:
         """A map chunk put by an agent, or ``pulled`` from its queryable: a pulled chunk the server
@@ -141,6 +151,7 @@ class MapServer:
         try:
             msg = self._decode(key, payload, RobotMap)
             with self._lock:
+                self._admit(msg.robot)
                 done = self._assembler.add(msg)
                 if done is not None:
                     self._maps.append(done)
@@ -156,6 +167,7 @@ class MapServer:
         try:
             msg = self._decode(key, payload, PoseUpdate)
             with self._lock:
+                self._admit(msg.robot)
                 self._pose_filter.check(msg)
                 self._poses.append(msg)
                 self.received["pose"] += 1
@@ -164,13 +176,13 @@ class MapServer:
                 self._reject("pose", key, exc)
 
     def on_presence(self, key: str, alive: bool) -> None:
-        try:
-            robot = self.keys.robot_of(key)
-        except WireFormatError as exc:
-            with self._lock:
-                self._reject("presence", key, exc)
-            return
         with self._lock:
+            try:
+                robot = self.keys.robot_of(key)
+                self._admit(robot)
+            except WireFormatError as exc:
+                self._reject("presence", key, exc)
+                return
             self._presence.append((robot, alive))
 
     def answer_fused(self, _key: str) -> list[tuple[str, bytes]]:

@@ -51,8 +51,8 @@ class Keys:
         parts = str(key).split("/")
         head = self.prefix.split("/")
         if len(parts) != len(head) + 3 or parts[: len(head)] != head or parts[len(head)] != "robots":
-            raise WireFormatError(f"key {str(key)[:120]!r} is not a robot key of fleet {self.fleet!r}")
+            raise WireFormatError(f"key: {str(key)[:120]!r} is not a robot key of fleet {self.fleet!r}")
         robot = parts[len(head) + 1]
         if not ID_PATTERN.match(robot):
-            raise WireFormatError(f"key {str(key)[:120]!r}: bad robot id")
+            raise WireFormatError(f"key: {str(key)[:120]!r} has a bad robot id")
         return robot
