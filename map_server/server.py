@@ -16,6 +16,7 @@ import logging
 import resource
 import threading
 import time
+import uuid
 from collections import Counter, deque
 from dataclasses import dataclass
 
@@ -73,6 +74,7 @@ class MapServer:
         self._latest: list[bytes] = []
         self._stored: dict[str, tuple[tuple[str, int], bytes]] = {}  # robot -> ((session, seq), blob)
         self.fusions = 0
+        self.session = uuid.uuid4().hex[:16]  # this process: receivers see a restart, not stale versions
         self._robot_ids: set[str] = set()  # every robot id admitted (fleet's and queued)
         self._last_log_s = 0.0
         if store is not None:
@@ -98,7 +100,7 @@ class MapServer:
         self._robot_ids = set(self.fleet.robots) | set(self.fleet.retired)
         latest = self.fleet.latest()
         if latest is not None:
-            self._latest = _payloads(latest)
+            self._latest = self._payloads(latest)
         log.info(
             "restored %d robots (%d retired sessions), fused version %s", len(self.fleet.robots),
             sum(map(len, self.fleet.retired.values())), None if latest is None else latest.version,
@@ -228,7 +230,7 @@ class MapServer:
         fused = dataclasses.replace(fused, extra={**fused.extra, **self._stats_extra()})
         self._persist()  # before publishing: what anyone has seen survives a crash
         self.fuse_ms.append((time.perf_counter() - t0) * 1e3)
-        payloads = _payloads(fused)
+        payloads = self._payloads(fused)
         with self._lock:
             self._latest = payloads
         for p in payloads:
@@ -264,6 +266,11 @@ class MapServer:
             self._wake.wait(self.cfg.idle_period_s)  # a new map (or stop) ends the wait early
             stop.wait(max(0.0, self.cfg.min_fuse_gap_s - (time.monotonic() - t)))
         self.tick()
+
+    def _payloads(self, fused: FusedMap) -> list[bytes]:
+        """The fused map as encoded chunks, stamped with this server process's session."""
+        fused = dataclasses.replace(fused, session=self.session)
+        return [codec.encode(c) for c in codec.split_fused_map(fused)]
 
     # -- status --------------------------------------------------------------------------------
 
@@ -344,8 +351,3 @@ def _reason(exc: Exception) -> str:
 
 def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
-
-
-def _payloads(fused: FusedMap) -> list[bytes]:
-    """The fused map as encoded chunks."""
-    return [codec.encode(c) for c in codec.split_fused_map(fused)]

@@ -85,11 +85,13 @@ def robot_map_chunks(
 def fused_map_chunks(
     server: str, version: int, stamp_s: float, robots: tuple[RobotStatus, ...] | list[RobotStatus],
     seg: np.ndarray, support: np.ndarray, prov_offsets: np.ndarray, prov_robot: np.ndarray,
-    extra: dict | None = None, max_elements: int = MAX_CHUNK_ELEMENTS,
+    extra: dict | None = None, max_elements: int = MAX_CHUNK_ELEMENTS, session: str = "",
 ) -> list[FusedMap]:  # fmt: skip
     """One fused map snapshot as validated chunks (fields as in :class:`FusedMap`)."""
     robots, extra = tuple(robots), dict(extra or {})
-    whole = FusedMap(server, version, stamp_s, 0, 1, robots, seg, support, prov_offsets, prov_robot, extra)
+    whole = FusedMap(
+        server, version, stamp_s, 0, 1, robots, seg, support, prov_offsets, prov_robot, extra, session
+    )
     return split(whole, max_elements)
 
 
@@ -171,7 +173,7 @@ class _Senders:
 def _identity(msg: Message) -> tuple[tuple, str, int, str]:
     """(sender key, session, snapshot number, the snapshot number's field name)."""
     if isinstance(msg, FusedMap):
-        return ("FusedMap", msg.server), "", msg.version, "version"
+        return ("FusedMap", msg.server), msg.session, msg.version, "version"
     return (type(msg).__name__, msg.robot), msg.session, msg.seq, "seq"
 
 

@@ -76,7 +76,7 @@ KEYS = {
     "pose": ("robot", "session", "seq", "stamp_s", "pose"),
     "fused_map": (
         "server", "version", "stamp_s", "chunk", "n_chunks", "robots", "n_segments", "n_prov",
-        "seg", "support", "prov_offsets", "prov_robot", "extra",
+        "seg", "support", "prov_offsets", "prov_robot", "extra", "session",
     ),
     "robot_status": (
         "robot", "status", "online", "session", "map_seq", "n_elements", "transform", "sigma", "pose",
@@ -176,7 +176,7 @@ def _encode_fused_map(m: FusedMap) -> dict:
         "robots": [_encode_status(r) for r in m.robots],
         "n_segments": len(m.seg), "n_prov": len(m.prov_robot),
         **_arrays(m, "seg", "support", "prov_offsets", "prov_robot"),
-        "extra": {k: float(v) for k, v in m.extra.items()},
+        "extra": {k: float(v) for k, v in m.extra.items()}, "session": m.session,
     }  # fmt: skip
 
 
@@ -349,7 +349,7 @@ def _decode_fused_map(r: _Reader) -> FusedMap:
         robots=tuple(_decode_status(i, item) for i, item in enumerate(robots)),
         seg=r.array("seg", (m, 2, 2)), support=r.array("support", (m,)),
         prov_offsets=r.array("prov_offsets", (m + 1,)), prov_robot=r.array("prov_robot", (n_prov,)),
-        extra=r.mapping("extra"),
+        extra=r.mapping("extra"), session=r.text("session"),
     )  # fmt: skip
 
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: FusedMap.session
 
 MAX_CHUNK_ELEMENTS = 2048  # elements (segments) per chunk: ~64 KB per message
 MAX_CHUNKS = 64  # chunks per map
@@ -269,7 +269,10 @@ class FusedMap:
     ``seg (M,2,2)`` segments, ``support (M,)`` how many robot-map elements were merged into each,
     provenance as CSR: the robots (indices into ``robots``) that contributed to segment ``i`` are
     ``prov_robot[prov_offsets[i]:prov_offsets[i+1]]``. ``robots`` (every chunk carries the full
-    table) and ``version`` (increases with every change) identify the snapshot.
+    table) and ``version`` (increases with every change) identify the snapshot. ``session`` names
+    the server process that made it (new at every start): a server restarted without its state
+    counts versions from 1 again, and receivers take a new session as a restart, not as stale
+    versions ("" only for maps never sent, e.g. the persisted copy).
     """
 
     server: str
@@ -283,9 +286,12 @@ class FusedMap:
     prov_offsets: np.ndarray
     prov_robot: np.ndarray
     extra: dict = field(default_factory=dict)  # up to 32 named numbers (e.g. fusion time)
+    session: str = ""
 
     def __post_init__(self) -> None:
         check_id("server", self.server)
+        if self.session != "":
+            check_id("session", self.session)
         check_int("version", self.version)
         check_float("stamp_s", self.stamp_s, lo=0.0)
         n_chunks = check_int("n_chunks", self.n_chunks, 1, MAX_CHUNKS)

@@ -89,3 +89,13 @@ def test_rejections_are_counted_by_reason_and_status_reports_the_queue():
     assert st["queue"]["maps"] == 1 and st["queue"]["waiting_maps"] == 0
     assert st["fusions"] == 1 and st["fuse_ms"]["max"] > 0
     assert fused.extra["server_rejected"] == 3.0 and fused.extra["server_queue_maps"] == 1.0
+
+
+def test_published_maps_carry_the_server_process_session():
+    first, second = MapServer(FakeBus(), KEYS), MapServer(FakeBus(), KEYS)
+    for server in (first, second):
+        for chunk in robot_map():
+            server.on_map(KEYS.robot_map("robot1"), codec.encode(chunk))
+        server.tick()
+    sessions = [codec.decode(s.bus.puts[-1][1]).session for s in (first, second)]
+    assert sessions == [first.session, second.session] and sessions[0] != sessions[1]

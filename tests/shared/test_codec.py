@@ -339,6 +339,20 @@ def test_new_session_replaces_the_old_one_and_late_old_chunks_are_refused():
     assert asm.rejected == {"stale_session": 1}
 
 
+def test_a_server_restarted_without_state_is_a_new_session_not_stale_versions():
+    rng = np.random.default_rng(11)
+    asm = Assembler()
+    before = dataclasses.replace(fused_map(rng, version=40), session="run1")
+    assert asm.add(decode(encode(before))) is not None
+    again = dataclasses.replace(fused_map(rng, version=1), session="run2")  # versions from 1 again
+    assert decode(encode(again)).session == "run2"
+    assert asm.add(decode(encode(again))).version == 1
+    with pytest.raises(ChunkRejected, match="stale session 'run1'"):
+        asm.add(dataclasses.replace(before, version=41))  # a late map of the old process
+    with pytest.raises(ChunkRejected, match="version: stale"):
+        asm.add(dataclasses.replace(again, version=1))
+
+
 def test_single_chunk_passes_through_but_obeys_the_rules():
     asm = Assembler()
     msg = robot_map(np.random.default_rng(9), seq=3)
@@ -482,7 +496,8 @@ def test_refuses_a_top_level_that_is_not_a_map(obj, what):
 @pytest.mark.parametrize(
     "schema, match",
     [
-        (2, "schema: unknown schema version 2, this build speaks 1"),
+        (3, "schema: unknown schema version 3, this build speaks 2"),
+        (1, "schema: unknown schema version 1, this build speaks 2"),
         (0, "schema: unknown schema version 0"),
         ("1", "schema: unknown schema version '1'"),
         (True, "schema: unknown schema version True"),

@@ -312,7 +312,7 @@ def test_robot_of_a_key(key):
     try:
         robot = keys.robot_of(key)
     except WireFormatError as e:
-        assert not valid and str(e).startswith("key "), (key, str(e))
+        assert not valid and str(e).startswith("key: "), (key, str(e))
         return
     assert valid and robot == parts[3] and keys.robot_of(keys.robot_map(robot)) == robot
 
