@@ -222,6 +222,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, OSError) as exc:  # domain errors derive from ValueError
         print(f"fleet-slam {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except RuntimeError as exc:
+        from shared.bus import BusError  # here, not at the top: --help stays instant (no zenoh import)
+
+        if not isinstance(exc, BusError):
+            raise
+        # no router in time, or a signal while waiting for it: a message, not a traceback
+        print(f"fleet-slam {args.command}: {exc}", file=sys.stderr)
+        return 130 if "cancelled" in str(exc) else 2
 
 
 if __name__ == "__main__":
