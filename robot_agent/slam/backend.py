@@ -1,0 +1,281 @@
+"""Pose-graph back end: loop closures that correct the past trajectory, not only the present.
+
+The filter's trajectory is locally accurate (a few cm over a minute) but drifts globally: a
+loop closure fixes the current pose and leaves the surviving particle's past as it was. The
+back end takes that trajectory as the odometry of a pose graph and adds loop edges:
+
+1. keyframes every ``keyframe_m`` / ``keyframe_rad`` of the trajectory; each keeps its scan points;
+2. chain edges: the trajectory's relative motion between consecutive keyframes;
+3. loop edges: a keyframe's points (with its recent neighbours) matched against the local
+   cloud of an old keyframe nearby (its neighbours in time, locally consistent) by correlative
+   search over a likelihood field (Olson 2009), refined by ICP; kept only when verified (enough
+   overlap, no rival peak — the check of map_server/alignment.py);
+4. sparse Gauss-Newton with a robust kernel on the loop edges (posegraph.py); loop edges that
+   still disagree after it are dropped and the graph solved again;
+5. every scan follows its keyframe rigidly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt
+from scipy.spatial import cKDTree
+
+from robot_agent.slam import posegraph
+from shared.geometry import apply_points, compose, relative, wrap_angle
+
+
+@dataclass(frozen=True)
+class BackendConfig:
+    enabled: bool = True
+    keyframe_m: float = 0.5  # a keyframe every this much travel ...
+    keyframe_rad: float = np.radians(15.0)  # ... or this much turning
+    cloud_neighbours: int = 4  # an old keyframe's cloud: its scan and this many on each side
+    query_neighbours: int = 2  # the query: a keyframe's scan and this many before it
+    voxel_m: float = 0.05  # clouds thinned to one point per voxel
+    query_points: int = 200  # query thinned to at most this many points
+    min_gap_s: float = 30.0  # loop candidates: older than this ...
+    min_gap_keyframes: int = 20  # ... and this many keyframes back ...
+    candidate_radius_m: float = 2.5  # ... and within this distance in the current estimate
+    candidates: int = 2  # old keyframes tried per query
+    check_every: int = 2  # every this many keyframes a query is tried
+    search_xy_m: float = 0.8  # correlative search window (half width) ...
+    search_theta_rad: float = np.radians(8.0)
+    search_step_m: float = 0.05
+    search_step_rad: float = np.radians(1.0)
+    field_sigma_m: float = 0.05  # likelihood field: exp(-d^2 / 2 sigma^2)
+    rival_xy_m: float = 0.3  # a peak this far from the best ...
+    rival_theta_rad: float = np.radians(4.0)
+    max_rival_ratio: float = 0.85  # ... scoring above this share of the best: ambiguous
+    min_score: float = 0.4  # mean likelihood of the query at the best pose
+    icp_iterations: int = 8
+    icp_max_m: float = 0.15
+    inlier_m: float = 0.05
+    min_inlier_share: float = 0.6  # verified overlap after ICP
+    loop_sigma_xy_m: float = 0.05
+    loop_sigma_theta_rad: float = np.radians(1.0)
+    robust_k: float = 3.0  # Cauchy kernel width (in sigmas) on loop edges
+    max_loop_chi: float = 5.0  # loop edges with a normalized residual above are dropped
+    chain: posegraph.ChainNoise = field(default_factory=posegraph.ChainNoise)
+
+
+def select_keyframes(poses: np.ndarray, cfg: BackendConfig) -> np.ndarray:
+    """Indices ``(K,)`` into ``poses (S,3)``: the first pose, then one each keyframe_m / _rad."""
+    keep = [0]
+    last = poses[0]
+    for i in range(1, len(poses)):
+        d = relative(last, poses[i])
+        if np.hypot(d[0], d[1]) >= cfg.keyframe_m or abs(d[2]) >= cfg.keyframe_rad:
+            keep.append(i)
+            last = poses[i]
+    return np.asarray(keep)
+
+
+def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    if len(points) == 0:
+        return points
+    key = np.floor(points / voxel_m).astype(np.int64)
+    _, first = np.unique(key[:, 0] * 1_000_003 + key[:, 1], return_index=True)
+    return points[np.sort(first)]
+
+
+def local_cloud(kf_poses: np.ndarray, kf_points: list[np.ndarray], centre: int, lo: int, hi: int) -> np.ndarray:
+    """Points of keyframes ``lo..hi`` (inclusive) in keyframe ``centre``'s frame."""
+    parts = []
+    for m in range(max(lo, 0), min(hi, len(kf_points) - 1) + 1):
+        rel = relative(kf_poses[centre], kf_poses[m])
+        parts.append(apply_points(rel, kf_points[m]))
+    return np.vstack(parts) if parts else np.zeros((0, 2))
+
+
+@dataclass(frozen=True)
+class Field:
+    values: np.ndarray  # (W,H) likelihood
+    origin: np.ndarray  # (2,) xy of cell (0,0)
+    res_m: float
+
+
+def likelihood_field(points: np.ndarray, res_m: float, sigma_m: float, margin_m: float) -> Field:
+    lo = points.min(axis=0) - margin_m
+    shape = np.ceil((points.max(axis=0) + margin_m - lo) / res_m).astype(int) + 1
+    occ = np.zeros(shape, bool)
+    c = np.round((points - lo) / res_m).astype(int)
+    occ[c[:, 0], c[:, 1]] = True
+    d = distance_transform_edt(~occ) * res_m
+    return Field(np.exp(-0.5 * (d / sigma_m) ** 2), lo, res_m)
+
+
+def correlative_search(fld: Field, query: np.ndarray, guess: np.ndarray, cfg: BackendConfig):
+    """Scores ``(A,T)`` of the query points ``(N,2)`` at every pose of the window around
+    ``guess``; also the angles ``(A,)`` and translation offsets ``(T,2)`` [m]."""
+    n_xy = int(round(cfg.search_xy_m / cfg.search_step_m))
+    n_th = int(round(cfg.search_theta_rad / cfg.search_step_rad))
+    angles = guess[2] + cfg.search_step_rad * np.arange(-n_th, n_th + 1)
+    steps = int(round(cfg.search_step_m / fld.res_m))
+    o = steps * np.arange(-n_xy, n_xy + 1)
+    ox, oy = np.meshgrid(o, o, indexing="ij")
+    ox, oy = ox.ravel(), oy.ravel()
+    w, h = fld.values.shape
+    flat = fld.values.ravel()
+    scores = np.empty((len(angles), len(ox)))
+    for a, th in enumerate(angles):
+        c, s = np.cos(th), np.sin(th)
+        px = c * query[:, 0] - s * query[:, 1] + guess[0]
+        py = s * query[:, 0] + c * query[:, 1] + guess[1]
+        cx = np.round((px - fld.origin[0]) / fld.res_m).astype(int)
+        cy = np.round((py - fld.origin[1]) / fld.res_m).astype(int)
+        ix = cx[None, :] + ox[:, None]
+        iy = cy[None, :] + oy[:, None]
+        ok = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
+        v = np.where(ok, flat[np.where(ok, ix * h + iy, 0)], 0.0)
+        scores[a] = v.mean(axis=1)
+    return scores, angles, np.column_stack([ox, oy]) * fld.res_m
+
+
+def icp(target: cKDTree, target_pts: np.ndarray, query: np.ndarray, pose: np.ndarray, cfg: BackendConfig):
+    """Point-to-point ICP of ``query`` onto the target from ``pose``; the pose and inlier share."""
+    x = pose.copy()
+    for _ in range(cfg.icp_iterations):
+        p = apply_points(x, query)
+        d, j = target.query(p, distance_upper_bound=cfg.icp_max_m)
+        ok = np.isfinite(d)
+        if ok.sum() < 10:
+            break
+        a, b = p[ok], target_pts[j[ok]]
+        ma, mb = a.mean(axis=0), b.mean(axis=0)
+        hmat = (a - ma).T @ (b - mb)
+        th = np.arctan2(hmat[0, 1] - hmat[1, 0], hmat[0, 0] + hmat[1, 1])
+        c, s = np.cos(th), np.sin(th)
+        t = mb - np.array([c * ma[0] - s * ma[1], s * ma[0] + c * ma[1]])
+        x = compose(np.array([t[0], t[1], th]), x)
+    d, _ = target.query(apply_points(x, query), distance_upper_bound=cfg.inlier_m)
+    return x, float(np.mean(np.isfinite(d)))
+
+
+@dataclass(frozen=True)
+class Loop:
+    old: int  # keyframe index
+    new: int
+    z: np.ndarray  # (3,) pose of new in old's frame
+    score: float
+    rival_ratio: float
+    inliers: float
+
+
+def match_loop(
+    kf_poses: np.ndarray, kf_points: list[np.ndarray], old: int, new: int, cfg: BackendConfig, stats: dict
+) -> Loop | None:
+    """Verified relative pose of keyframe ``new`` in keyframe ``old``'s frame, or None."""
+    w = cfg.cloud_neighbours
+    cloud = voxel_thin(local_cloud(kf_poses, kf_points, old, old - w, old + w), cfg.voxel_m)
+    query = voxel_thin(local_cloud(kf_poses, kf_points, new, new - cfg.query_neighbours, new), cfg.voxel_m)
+    if len(cloud) < 30 or len(query) < 30:
+        return None
+    if len(query) > cfg.query_points:
+        query = query[np.linspace(0, len(query) - 1, cfg.query_points).astype(int)]
+    guess = relative(kf_poses[old], kf_poses[new])
+    fld = likelihood_field(cloud, cfg.search_step_m / 2, cfg.field_sigma_m, cfg.search_xy_m + 1.0)
+    scores, angles, offs = correlative_search(fld, query, guess, cfg)
+    stats["matches"] = stats.get("matches", 0) + 1
+    a, t = np.unravel_index(np.argmax(scores), scores.shape)
+    best = float(scores[a, t])
+    if best < cfg.min_score:
+        return None
+    far = (np.abs(angles - angles[a])[:, None] > cfg.rival_theta_rad) | (
+        np.hypot(*(offs - offs[t]).T)[None, :] > cfg.rival_xy_m
+    )
+    rival = float(np.max(np.where(far, scores, 0.0)))
+    if rival > cfg.max_rival_ratio * best:
+        stats["ambiguous"] = stats.get("ambiguous", 0) + 1
+        return None
+    pose0 = np.array([guess[0] + offs[t, 0], guess[1] + offs[t, 1], angles[a]])
+    tree = cKDTree(cloud)
+    z, share = icp(tree, cloud, query, pose0, cfg)
+    if share < cfg.min_inlier_share:
+        stats["low_overlap"] = stats.get("low_overlap", 0) + 1
+        return None
+    z[2] = wrap_angle(z[2])
+    return Loop(old, new, z, best, rival / best, share)
+
+
+def find_loops(kf_stamps: np.ndarray, kf_poses: np.ndarray, kf_points: list[np.ndarray], cfg: BackendConfig):
+    """Verified loops over every keyframe (offline: the whole trajectory at once)."""
+    loops: list[Loop] = []
+    stats: dict = {}
+    for new in range(0, len(kf_poses), cfg.check_every):
+        old_ok = (kf_stamps <= kf_stamps[new] - cfg.min_gap_s) & (np.arange(len(kf_poses)) <= new - cfg.min_gap_keyframes)
+        if not old_ok.any():
+            continue
+        d = np.hypot(*(kf_poses[:, :2] - kf_poses[new, :2]).T)
+        cand = np.flatnonzero(old_ok & (d < cfg.candidate_radius_m))
+        if len(cand) == 0:
+            continue
+        dth = np.abs(wrap_angle(kf_poses[cand, 2] - kf_poses[new, 2]))
+        order = cand[np.argsort(d[cand] + 1.0 * dth)]
+        picked: list[int] = []
+        for c in order:  # distinct places: not two neighbours of one old pass
+            if all(abs(c - p) > 2 * cfg.cloud_neighbours for p in picked):
+                picked.append(int(c))
+            if len(picked) >= cfg.candidates:
+                break
+        for old in picked:
+            loop = match_loop(kf_poses, kf_points, old, new, cfg, stats)
+            if loop is not None:
+                loops.append(loop)
+    stats["loops"] = len(loops)
+    return loops, stats
+
+
+def optimize(kf_poses: np.ndarray, loops: list[Loop], cfg: BackendConfig, stats: dict) -> np.ndarray:
+    """Keyframe poses ``(K,3)`` after the pose graph (chain + verified loops, robust)."""
+    a, b, z, info = posegraph.chain_edges(kf_poses, cfg.chain)
+    if not loops:
+        return kf_poses.copy()
+    la = np.array([lp.old for lp in loops])
+    lb = np.array([lp.new for lp in loops])
+    lz = np.array([lp.z for lp in loops])
+    li = np.tile(1.0 / np.array([cfg.loop_sigma_xy_m, cfg.loop_sigma_xy_m, cfg.loop_sigma_theta_rad]) ** 2, (len(la), 1))
+    keep = np.ones(len(la), bool)
+    x = kf_poses.copy()
+    for _round in range(3):
+        x = posegraph.optimize(
+            kf_poses,
+            np.concatenate([a, la[keep]]),
+            np.concatenate([b, lb[keep]]),
+            np.vstack([z, lz[keep]]),
+            np.vstack([info, li[keep]]),
+            iterations=10,
+            robust_from=len(a),
+            robust_k=cfg.robust_k,
+        )
+        r = relative(x[la], x[lb]) - lz
+        r[:, 2] = wrap_angle(r[:, 2])
+        chi = np.sqrt(np.sum(r**2 * li, axis=1) / 3.0)
+        new_keep = chi <= cfg.max_loop_chi
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    stats["loops_kept"] = int(keep.sum())
+    return x
+
+
+def correct_trajectory(poses: np.ndarray, kf_index: np.ndarray, kf_old: np.ndarray, kf_new: np.ndarray) -> np.ndarray:
+    """Every pose ``(S,3)`` moved rigidly with the last keyframe at or before it."""
+    owner = np.searchsorted(kf_index, np.arange(len(poses)), side="right") - 1
+    return compose(kf_new[owner], relative(kf_old[owner], poses))
+
+
+def run_backend(
+    stamps_s: np.ndarray, poses: np.ndarray, scan_points_robot: list[np.ndarray], cfg: BackendConfig
+) -> tuple[np.ndarray, dict]:
+    """The corrected trajectory ``(S,3)`` and statistics, offline over the whole trajectory.
+    ``scan_points_robot[i]`` are scan ``i``'s points in the robot frame."""
+    kf = select_keyframes(poses, cfg)
+    kf_poses = poses[kf]
+    kf_points = [voxel_thin(scan_points_robot[i], cfg.voxel_m) for i in kf]
+    loops, stats = find_loops(stamps_s[kf], kf_poses, kf_points, cfg)
+    stats["keyframes"] = len(kf)
+    new = optimize(kf_poses, loops, cfg, stats)
+    return correct_trajectory(poses, kf, kf_poses, new), stats
