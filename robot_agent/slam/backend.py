@@ -59,15 +59,28 @@ class BackendConfig:
     robust_k: float = 3.0  # Cauchy kernel width (in sigmas) on loop edges
     max_loop_chi: float = 5.0  # loop edges with a normalized residual above are dropped
     chain: posegraph.ChainNoise = field(default_factory=posegraph.ChainNoise)
+    jump_m: float = 0.5  # a scan-to-scan motion off odometry by this much is a relocalization jump:
+    jump_rad: float = np.radians(8.0)  # its chain edge takes the odometry instead, loosely held
+    jump_sigma_xy_m: float = 0.3
+    jump_sigma_theta_rad: float = np.radians(5.0)
 
 
-def select_keyframes(poses: np.ndarray, cfg: BackendConfig) -> np.ndarray:
-    """Indices ``(K,)`` into ``poses (S,3)``: the first pose, then one each keyframe_m / _rad."""
+def find_jumps(poses: np.ndarray, odometry: np.ndarray, cfg: BackendConfig) -> np.ndarray:
+    """Mask ``(S,)``: scan ``i`` is reached from scan ``i-1`` by a jump of the filter (a
+    relocalization), not by motion — the step disagrees with odometry by jump_m / jump_rad."""
+    d = relative(poses[:-1], poses[1:]) - relative(odometry[:-1], odometry[1:])
+    big = (np.hypot(d[:, 0], d[:, 1]) > cfg.jump_m) | (np.abs(wrap_angle(d[:, 2])) > cfg.jump_rad)
+    return np.concatenate([[False], big])
+
+
+def select_keyframes(poses: np.ndarray, cfg: BackendConfig, jumps: np.ndarray | None = None) -> np.ndarray:
+    """Indices ``(K,)`` into ``poses (S,3)``: the first pose, then one each keyframe_m / _rad,
+    and one right after every jump."""
     keep = [0]
     last = poses[0]
     for i in range(1, len(poses)):
         d = relative(last, poses[i])
-        if np.hypot(d[0], d[1]) >= cfg.keyframe_m or abs(d[2]) >= cfg.keyframe_rad:
+        if jumps is not None and jumps[i] or np.hypot(d[0], d[1]) >= cfg.keyframe_m or abs(d[2]) >= cfg.keyframe_rad:
             keep.append(i)
             last = poses[i]
     return np.asarray(keep)
@@ -228,10 +241,16 @@ def find_loops(kf_stamps: np.ndarray, kf_poses: np.ndarray, kf_points: list[np.n
     return loops, stats
 
 
-def optimize(kf_poses: np.ndarray, loops: list[Loop], cfg: BackendConfig, stats: dict) -> np.ndarray:
-    """Keyframe poses ``(K,3)`` after the pose graph (chain + verified loops, robust)."""
+def optimize(
+    kf_poses: np.ndarray, loops: list[Loop], cfg: BackendConfig, stats: dict, jump_edges: dict | None = None
+) -> np.ndarray:
+    """Keyframe poses ``(K,3)`` after the pose graph (chain + verified loops, robust).
+    ``jump_edges``: chain edge index -> motion to use instead, loosely held."""
     a, b, z, info = posegraph.chain_edges(kf_poses, cfg.chain)
-    if not loops:
+    for e, motion in (jump_edges or {}).items():
+        z[e] = motion
+        info[e] = 1.0 / np.array([cfg.jump_sigma_xy_m, cfg.jump_sigma_xy_m, cfg.jump_sigma_theta_rad]) ** 2
+    if not loops and not jump_edges:
         return kf_poses.copy()
     la = np.array([lp.old for lp in loops])
     lb = np.array([lp.new for lp in loops])
@@ -268,14 +287,25 @@ def correct_trajectory(poses: np.ndarray, kf_index: np.ndarray, kf_old: np.ndarr
 
 
 def run_backend(
-    stamps_s: np.ndarray, poses: np.ndarray, scan_points_robot: list[np.ndarray], cfg: BackendConfig
+    stamps_s: np.ndarray,
+    poses: np.ndarray,
+    odometry: np.ndarray,
+    scan_points_robot: list[np.ndarray],
+    cfg: BackendConfig,
 ) -> tuple[np.ndarray, dict]:
     """The corrected trajectory ``(S,3)`` and statistics, offline over the whole trajectory.
-    ``scan_points_robot[i]`` are scan ``i``'s points in the robot frame."""
-    kf = select_keyframes(poses, cfg)
+    ``odometry (S,3)``: the raw odometry of every scan; ``scan_points_robot[i]``: scan ``i``'s
+    points in the robot frame."""
+    jumps = find_jumps(poses, odometry, cfg)
+    kf = select_keyframes(poses, cfg, jumps)
+    jump_edges = {}
+    for i in np.flatnonzero(jumps):  # keyframe e+1 starts at the jump: edge e bridges it by odometry
+        e = int(np.searchsorted(kf, i)) - 1
+        jump_edges[e] = compose(relative(poses[kf[e]], poses[i - 1]), relative(odometry[i - 1], odometry[i]))
     kf_poses = poses[kf]
     kf_points = [voxel_thin(scan_points_robot[i], cfg.voxel_m) for i in kf]
     loops, stats = find_loops(stamps_s[kf], kf_poses, kf_points, cfg)
     stats["keyframes"] = len(kf)
-    new = optimize(kf_poses, loops, cfg, stats)
+    stats["jumps"] = len(jump_edges)
+    new = optimize(kf_poses, loops, cfg, stats, jump_edges)
     return correct_trajectory(poses, kf, kf_poses, new), stats
