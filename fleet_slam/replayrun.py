@@ -69,10 +69,15 @@ def replay_to_dir(
         "peak_rss_mb": res.peak_rss_bytes / 2**20,
         "map_segments": int(keep.sum()),
         "filter": dict(slam.stats),
+        "backend_s": res.backend_s,
+        "backend": res.backend_stats,
     }
     if rel is not None:
         rel = rel.until(res.stamps_s.max() + 1e-6)  # --limit: only relations inside the run
         err = relations_error(res.stamps_s, res.poses, rel, *log.odometry_track())
         metrics["relations"] = err.summary()
+        if res.backend_stats is not None:
+            raw = relations_error(res.stamps_s, res.filter_poses, rel, *log.odometry_track())
+            metrics["relations_filter_only"] = raw.summary()
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics

@@ -9,17 +9,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robot_agent.slam.backend import run_backend
+from robot_agent.slam.extraction import scan_points
 from robot_agent.slam.fastslam import FastSLAM, SlamConfig
 from robot_agent.sources import LaserLog
+from shared.geometry import apply_points
 
 
 @dataclass
 class ReplayResult:
     stamps_s: np.ndarray  # (S,) every scan's own timestamp
-    poses: np.ndarray  # (S,3) final best particle's trajectory
+    poses: np.ndarray  # (S,3) final best particle's trajectory, corrected by the back end
     slam: FastSLAM
     wall_s: float
     peak_rss_bytes: int
+    filter_poses: np.ndarray | None = None  # (S,3) the same before the back end
+    backend_s: float = 0.0
+    backend_stats: dict | None = None
 
     @property
     def scans(self) -> int:
@@ -56,10 +62,18 @@ def replay(
     else:
         for i in range(n):
             _step(slam, log, i)
-    wall = time.perf_counter() - t0
     stamps, poses = slam.best_trajectory()
+    t1 = time.perf_counter()
+    corrected, stats = poses, None
+    if cfg.backend.enabled and len(poses) > 1:
+        pts = [
+            apply_points(log.laser_offset, scan_points(log.ranges_m[i], log.angles_rad, cfg.extraction, log.range_max_m))
+            for i in range(n)
+        ]
+        corrected, stats = run_backend(stamps, poses, log.odometry[:n], pts, cfg.backend)
+    wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
-    return ReplayResult(stamps, poses, slam, wall, peak)
+    return ReplayResult(stamps, corrected, slam, wall, peak, poses, time.perf_counter() - t1, stats)
 
 
 def _step(slam: FastSLAM, log: LaserLog, i: int) -> None:

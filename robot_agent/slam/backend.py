@@ -43,9 +43,9 @@ class BackendConfig:
     check_every: int = 2  # every this many keyframes a query is tried
     search_xy_m: float = 0.8  # correlative search window (half width) ...
     search_theta_rad: float = np.radians(8.0)
-    search_step_m: float = 0.05
-    search_step_rad: float = np.radians(1.0)
-    field_sigma_m: float = 0.05  # likelihood field: exp(-d^2 / 2 sigma^2)
+    search_step_m: float = 0.1
+    search_step_rad: float = np.radians(2.0)
+    field_sigma_m: float = 0.08  # likelihood field: exp(-d^2 / 2 sigma^2)
     rival_xy_m: float = 0.3  # a peak this far from the best ...
     rival_theta_rad: float = np.radians(4.0)
     max_rival_ratio: float = 0.85  # ... scoring above this share of the best: ambiguous
@@ -189,7 +189,7 @@ def match_loop(
     if len(query) > cfg.query_points:
         query = query[np.linspace(0, len(query) - 1, cfg.query_points).astype(int)]
     guess = relative(kf_poses[old], kf_poses[new])
-    fld = likelihood_field(cloud, cfg.search_step_m / 2, cfg.field_sigma_m, cfg.search_xy_m + 1.0)
+    fld = likelihood_field(cloud, cfg.search_step_m, cfg.field_sigma_m, 4.0 * cfg.field_sigma_m)
     scores, angles, offs = correlative_search(fld, query, guess, cfg)
     stats["matches"] = stats.get("matches", 0) + 1
     a, t = np.unravel_index(np.argmax(scores), scores.shape)

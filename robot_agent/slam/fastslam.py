@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from robot_agent.slam import consensus as consensus_mod
+from robot_agent.slam.backend import BackendConfig
 from robot_agent.slam import relocalize as reloc_mod
 from robot_agent.slam.association import AssociationConfig, associate, match_log_likelihood, observe
 from robot_agent.slam.extraction import ExtractionConfig, ScanSegments, extract_segments, scan_points
@@ -78,6 +79,7 @@ class SlamConfig:
     filter: FilterConfig = field(default_factory=FilterConfig)
     consensus: consensus_mod.ConsensusConfig = field(default_factory=consensus_mod.ConsensusConfig)
     relocalization: reloc_mod.RelocalizationConfig = field(default_factory=reloc_mod.RelocalizationConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)  # pose graph over the output path
 
 
 @dataclass(frozen=True)
