@@ -66,11 +66,11 @@ def replay(
     t1 = time.perf_counter()
     corrected, stats = poses, None
     if cfg.backend.enabled and len(poses) > 1:
-        pts = [
-            apply_points(log.laser_offset, scan_points(log.ranges_m[i], log.angles_rad, cfg.extraction, log.range_max_m))
-            for i in range(n)
-        ]
-        corrected, stats = run_backend(stamps, poses, log.odometry[:n], pts, cfg.backend)
+        def points(i: int) -> np.ndarray:
+            xy = scan_points(log.ranges_m[i], log.angles_rad, cfg.extraction, log.range_max_m)
+            return apply_points(log.laser_offset, xy)
+
+        corrected, stats = run_backend(stamps, poses, log.odometry[:n], points, cfg.backend)
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
     return ReplayResult(stamps, corrected, slam, wall, peak, poses, time.perf_counter() - t1, stats)

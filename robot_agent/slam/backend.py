@@ -17,6 +17,7 @@ back end takes that trajectory as the odometry of a pose graph and adds loop edg
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -290,12 +291,12 @@ def run_backend(
     stamps_s: np.ndarray,
     poses: np.ndarray,
     odometry: np.ndarray,
-    scan_points_robot: list[np.ndarray],
+    scan_points_robot: Callable[[int], np.ndarray],
     cfg: BackendConfig,
 ) -> tuple[np.ndarray, dict]:
     """The corrected trajectory ``(S,3)`` and statistics, offline over the whole trajectory.
-    ``odometry (S,3)``: the raw odometry of every scan; ``scan_points_robot[i]``: scan ``i``'s
-    points in the robot frame."""
+    ``odometry (S,3)``: the raw odometry of every scan; ``scan_points_robot(i)``: scan ``i``'s
+    points in the robot frame (asked for keyframes only)."""
     jumps = find_jumps(poses, odometry, cfg)
     kf = select_keyframes(poses, cfg, jumps)
     jump_edges = {}
@@ -303,7 +304,7 @@ def run_backend(
         e = int(np.searchsorted(kf, i)) - 1
         jump_edges[e] = compose(relative(poses[kf[e]], poses[i - 1]), relative(odometry[i - 1], odometry[i]))
     kf_poses = poses[kf]
-    kf_points = [voxel_thin(scan_points_robot[i], cfg.voxel_m) for i in kf]
+    kf_points = [voxel_thin(scan_points_robot(int(i)), cfg.voxel_m) for i in kf]
     loops, stats = find_loops(stamps_s[kf], kf_poses, kf_points, cfg)
     stats["keyframes"] = len(kf)
     stats["jumps"] = len(jump_edges)
