@@ -57,7 +57,8 @@ class BackendConfig:
     min_inlier_share: float = 0.6  # verified overlap after ICP
     loop_sigma_xy_m: float = 0.05
     loop_sigma_theta_rad: float = np.radians(1.0)
-    robust_k: float = 3.0  # Cauchy kernel width (in sigmas) on loop edges
+    robust_k: float = 3.0  # Cauchy kernel width (in sigmas) on loop edges ...
+    robust_wide_k: float = 100.0  # ... reached from this wide one (and their geometric mean)
     max_loop_chi: float = 5.0  # loop edges with a normalized residual above are dropped
     chain: posegraph.ChainNoise = field(default_factory=posegraph.ChainNoise)
     jump_m: float = 0.5  # a scan-to-scan motion off odometry by this much is a relocalization jump:
@@ -260,16 +261,20 @@ def optimize(
     keep = np.ones(len(la), bool)
     x = kf_poses.copy()
     for _round in range(3):
-        x = posegraph.optimize(
-            kf_poses,
-            np.concatenate([a, la[keep]]),
-            np.concatenate([b, lb[keep]]),
-            np.vstack([z, lz[keep]]),
-            np.vstack([info, li[keep]]),
-            iterations=10,
-            robust_from=len(a),
-            robust_k=cfg.robust_k,
-        )
+        # a wide kernel first, then narrower: loops far from the initial path (a large drift)
+        # must pull it before the narrow kernel may call the ones that still disagree outliers
+        x = kf_poses.copy()
+        for k in (cfg.robust_wide_k, np.sqrt(cfg.robust_wide_k * cfg.robust_k), cfg.robust_k):
+            x = posegraph.optimize(
+                x,
+                np.concatenate([a, la[keep]]),
+                np.concatenate([b, lb[keep]]),
+                np.vstack([z, lz[keep]]),
+                np.vstack([info, li[keep]]),
+                iterations=10,
+                robust_from=len(a),
+                robust_k=k,
+            )
         r = relative(x[la], x[lb]) - lz
         r[:, 2] = wrap_angle(r[:, 2])
         chi = np.sqrt(np.sum(r**2 * li, axis=1) / 3.0)

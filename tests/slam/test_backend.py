@@ -1,0 +1,100 @@
+"""Pose-graph back end: the graph (chain, loops, robust kernel), the verified scan match, jumps."""
+
+import numpy as np
+
+from robot_agent.slam import backend as be
+from robot_agent.slam.posegraph import ChainNoise, chain_edges, optimize
+from shared.geometry import apply_points, compose, inverse, relative
+
+
+def _square(drift_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    u = np.array(([[0.1, 0.0, 0.0]] * 100 + [[0.0, 0.0, np.pi / 2]]) * 4)
+    true, drifted = [np.zeros(3)], [np.zeros(3)]
+    for d in u:
+        true.append(compose(true[-1], d))
+        drifted.append(compose(drifted[-1], d + np.array([0.0, 0.0, drift_rad])))
+    return np.array(true), np.array(drifted)
+
+
+def test_pose_graph_closes_a_drifted_square():
+    true, drifted = _square(0.002)
+    a, b, z, info = chain_edges(drifted, ChainNoise())
+    loop_z = relative(true[0], true[-1])
+    x = optimize(drifted, np.append(a, 0), np.append(b, len(drifted) - 1), np.vstack([z, loop_z]),
+                 np.vstack([info, [1e4, 1e4, 1e5]]))
+    before = np.max(np.hypot(*(drifted[:, :2] - true[:, :2]).T))
+    after = np.max(np.hypot(*(x[:, :2] - true[:, :2]).T))
+    assert before > 4.0
+    assert after < 0.7  # the loop is closed; a uniform heading bias is only partly recovered
+    np.testing.assert_allclose(relative(x[0], x[-1]), loop_z, atol=0.01)
+    np.testing.assert_allclose(x[0], drifted[0])  # node 0 holds the map frame
+
+
+def test_pose_graph_without_loops_keeps_the_chain():
+    _, drifted = _square(0.002)
+    a, b, z, info = chain_edges(drifted, ChainNoise())
+    np.testing.assert_allclose(optimize(drifted, a, b, z, info), drifted, atol=1e-9)
+
+
+def test_backend_optimize_drops_a_false_loop():
+    true, drifted = _square(0.002)
+    kf = np.arange(0, len(true), 5)
+    good = [be.Loop(0, len(kf) - 1, relative(true[kf[0]], true[kf[-1]]), 1.0, 0.5, 1.0)]
+    good += [be.Loop(2, len(kf) - 3, relative(true[kf[2]], true[kf[-3]]), 1.0, 0.5, 1.0)]
+    false = be.Loop(10, 50, relative(true[kf[10]], true[kf[50]]) + np.array([1.5, -0.8, 0.3]), 1.0, 0.5, 1.0)
+    stats: dict = {}
+    cfg = be.BackendConfig()
+    x = be.optimize(drifted[kf], good + [false], cfg, stats)
+    assert stats["loops_kept"] == 2
+    honest = be.optimize(drifted[kf], good, cfg, {})
+    np.testing.assert_allclose(x, honest, atol=1e-3)  # the false loop left no trace
+    assert np.max(np.hypot(*(x[:, :2] - true[kf, :2]).T)) < 0.7
+
+
+def _room_points(pose: np.ndarray, rng: np.random.Generator, walls: np.ndarray) -> np.ndarray:
+    """Points on ``walls (W,2,2)`` seen from ``pose`` (no occlusion), in the robot frame."""
+    pts = []
+    for (p, q) in walls:
+        n = int(np.hypot(*(q - p)) / 0.05)
+        t = rng.uniform(0, 1, n)[:, None]
+        pts.append(p + t * (q - p))
+    world = np.vstack(pts) + rng.normal(0, 0.01, (sum(len(p) for p in pts), 2))
+    return apply_points(inverse(pose), world)
+
+
+ROOM = np.array([[[0, 0], [6, 0]], [[6, 0], [6, 4]], [[6, 4], [0, 4]], [[0, 4], [0, 0]],
+                 [[2, 2], [3.5, 2]], [[3.5, 2], [3.5, 3]]], float)
+CORRIDOR = np.array([[[-20, 0], [20, 0]], [[-20, 2], [20, 2]]], float)
+
+
+def _match(walls: np.ndarray, error: np.ndarray):
+    rng = np.random.default_rng(1)
+    true = np.array([[1.0, 1.0, 0.1], [4.5, 1.2, 2.0]])
+    est = true.copy()
+    est[1] = compose(true[1], error)  # the estimate of the new keyframe is off by ``error``
+    points = [_room_points(p, rng, walls) for p in true]
+    stats: dict = {}
+    loop = be.match_loop(est, points, 0, 1, be.BackendConfig(cloud_neighbours=0, query_neighbours=0), stats)
+    return loop, relative(true[0], true[1]), stats
+
+
+def test_match_loop_finds_a_known_offset():
+    loop, z_true, _ = _match(ROOM, np.array([0.35, -0.25, np.radians(5.0)]))
+    assert loop is not None
+    assert np.hypot(*(loop.z[:2] - z_true[:2])) < 0.02
+    assert abs(loop.z[2] - z_true[2]) < np.radians(0.5)
+
+
+def test_match_loop_refuses_a_featureless_corridor():
+    loop, _, stats = _match(CORRIDOR, np.array([0.3, 0.0, 0.0]))
+    assert loop is None and stats.get("ambiguous", 0) == 1
+
+
+def test_jumps_are_found_and_start_a_keyframe():
+    odo = np.column_stack([np.arange(50) * 0.05, np.zeros(50), np.zeros(50)])
+    poses = odo.copy()
+    poses[30:, 1] += 1.0  # relocalization moved the filter by 1 m at scan 30
+    cfg = be.BackendConfig()
+    jumps = be.find_jumps(poses, odo, cfg)
+    assert np.flatnonzero(jumps).tolist() == [30]
+    assert 30 in be.select_keyframes(poses, cfg, jumps)
