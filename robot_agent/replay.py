@@ -66,6 +66,7 @@ def replay(
     t1 = time.perf_counter()
     corrected, stats = poses, None
     if cfg.backend.enabled and len(poses) > 1:
+
         def points(i: int) -> np.ndarray:
             xy = scan_points(log.ranges_m[i], log.angles_rad, cfg.extraction, log.range_max_m)
             return apply_points(log.laser_offset, xy)

@@ -82,7 +82,11 @@ def select_keyframes(poses: np.ndarray, cfg: BackendConfig, jumps: np.ndarray | 
     last = poses[0]
     for i in range(1, len(poses)):
         d = relative(last, poses[i])
-        if jumps is not None and jumps[i] or np.hypot(d[0], d[1]) >= cfg.keyframe_m or abs(d[2]) >= cfg.keyframe_rad:
+        if (
+            (jumps is not None and jumps[i])
+            or np.hypot(d[0], d[1]) >= cfg.keyframe_m
+            or abs(d[2]) >= cfg.keyframe_rad
+        ):
             keep.append(i)
             last = poses[i]
     return np.asarray(keep)
@@ -96,7 +100,9 @@ def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return points[np.sort(first)]
 
 
-def local_cloud(kf_poses: np.ndarray, kf_points: list[np.ndarray], centre: int, lo: int, hi: int) -> np.ndarray:
+def local_cloud(
+    kf_poses: np.ndarray, kf_points: list[np.ndarray], centre: int, lo: int, hi: int
+) -> np.ndarray:
     """Points of keyframes ``lo..hi`` (inclusive) in keyframe ``centre``'s frame."""
     parts = []
     for m in range(max(lo, 0), min(hi, len(kf_points) - 1) + 1):
@@ -125,10 +131,10 @@ def likelihood_field(points: np.ndarray, res_m: float, sigma_m: float, margin_m:
 def correlative_search(fld: Field, query: np.ndarray, guess: np.ndarray, cfg: BackendConfig):
     """Scores ``(A,T)`` of the query points ``(N,2)`` at every pose of the window around
     ``guess``; also the angles ``(A,)`` and translation offsets ``(T,2)`` [m]."""
-    n_xy = int(round(cfg.search_xy_m / cfg.search_step_m))
-    n_th = int(round(cfg.search_theta_rad / cfg.search_step_rad))
+    n_xy = round(cfg.search_xy_m / cfg.search_step_m)
+    n_th = round(cfg.search_theta_rad / cfg.search_step_rad)
     angles = guess[2] + cfg.search_step_rad * np.arange(-n_th, n_th + 1)
-    steps = int(round(cfg.search_step_m / fld.res_m))
+    steps = round(cfg.search_step_m / fld.res_m)
     o = steps * np.arange(-n_xy, n_xy + 1)
     ox, oy = np.meshgrid(o, o, indexing="ij")
     ox, oy = ox.ravel(), oy.ravel()
@@ -220,7 +226,9 @@ def find_loops(kf_stamps: np.ndarray, kf_poses: np.ndarray, kf_points: list[np.n
     loops: list[Loop] = []
     stats: dict = {}
     for new in range(0, len(kf_poses), cfg.check_every):
-        old_ok = (kf_stamps <= kf_stamps[new] - cfg.min_gap_s) & (np.arange(len(kf_poses)) <= new - cfg.min_gap_keyframes)
+        old_ok = (kf_stamps <= kf_stamps[new] - cfg.min_gap_s) & (
+            np.arange(len(kf_poses)) <= new - cfg.min_gap_keyframes
+        )
         if not old_ok.any():
             continue
         d = np.hypot(*(kf_poses[:, :2] - kf_poses[new, :2]).T)
@@ -257,7 +265,10 @@ def optimize(
     la = np.array([lp.old for lp in loops])
     lb = np.array([lp.new for lp in loops])
     lz = np.array([lp.z for lp in loops])
-    li = np.tile(1.0 / np.array([cfg.loop_sigma_xy_m, cfg.loop_sigma_xy_m, cfg.loop_sigma_theta_rad]) ** 2, (len(la), 1))
+    li = np.tile(
+        1.0 / np.array([cfg.loop_sigma_xy_m, cfg.loop_sigma_xy_m, cfg.loop_sigma_theta_rad]) ** 2,
+        (len(la), 1),
+    )
     keep = np.ones(len(la), bool)
     x = kf_poses.copy()
     for _round in range(3):
@@ -286,7 +297,9 @@ def optimize(
     return x
 
 
-def correct_trajectory(poses: np.ndarray, kf_index: np.ndarray, kf_old: np.ndarray, kf_new: np.ndarray) -> np.ndarray:
+def correct_trajectory(
+    poses: np.ndarray, kf_index: np.ndarray, kf_old: np.ndarray, kf_new: np.ndarray
+) -> np.ndarray:
     """Every pose ``(S,3)`` moved rigidly with the last keyframe at or before it."""
     owner = np.searchsorted(kf_index, np.arange(len(poses)), side="right") - 1
     return compose(kf_new[owner], relative(kf_old[owner], poses))

@@ -21,9 +21,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from robot_agent.slam import consensus as consensus_mod
-from robot_agent.slam.backend import BackendConfig
 from robot_agent.slam import relocalize as reloc_mod
 from robot_agent.slam.association import AssociationConfig, associate, match_log_likelihood, observe
+from robot_agent.slam.backend import BackendConfig
 from robot_agent.slam.extraction import ExtractionConfig, ScanSegments, extract_segments, scan_points
 from robot_agent.slam.motion import MotionConfig, odometry_increment, predict, sample_gaussian, walk_slip
 from robot_agent.slam.particles import ParticleSet, SegmentMaps

@@ -20,8 +20,13 @@ def test_pose_graph_closes_a_drifted_square():
     true, drifted = _square(0.002)
     a, b, z, info = chain_edges(drifted, ChainNoise())
     loop_z = relative(true[0], true[-1])
-    x = optimize(drifted, np.append(a, 0), np.append(b, len(drifted) - 1), np.vstack([z, loop_z]),
-                 np.vstack([info, [1e4, 1e4, 1e5]]))
+    x = optimize(
+        drifted,
+        np.append(a, 0),
+        np.append(b, len(drifted) - 1),
+        np.vstack([z, loop_z]),
+        np.vstack([info, [1e4, 1e4, 1e5]]),
+    )
     before = np.max(np.hypot(*(drifted[:, :2] - true[:, :2]).T))
     after = np.max(np.hypot(*(x[:, :2] - true[:, :2]).T))
     assert before > 4.0
@@ -44,7 +49,7 @@ def test_backend_optimize_drops_a_false_loop():
     false = be.Loop(10, 50, relative(true[kf[10]], true[kf[50]]) + np.array([1.5, -0.8, 0.3]), 1.0, 0.5, 1.0)
     stats: dict = {}
     cfg = be.BackendConfig()
-    x = be.optimize(drifted[kf], good + [false], cfg, stats)
+    x = be.optimize(drifted[kf], [*good, false], cfg, stats)
     assert stats["loops_kept"] == 2
     honest = be.optimize(drifted[kf], good, cfg, {})
     np.testing.assert_allclose(x, honest, atol=1e-3)  # the false loop left no trace
@@ -54,7 +59,7 @@ def test_backend_optimize_drops_a_false_loop():
 def _room_points(pose: np.ndarray, rng: np.random.Generator, walls: np.ndarray) -> np.ndarray:
     """Points on ``walls (W,2,2)`` seen from ``pose`` (no occlusion), in the robot frame."""
     pts = []
-    for (p, q) in walls:
+    for p, q in walls:
         n = int(np.hypot(*(q - p)) / 0.05)
         t = rng.uniform(0, 1, n)[:, None]
         pts.append(p + t * (q - p))
@@ -62,8 +67,17 @@ def _room_points(pose: np.ndarray, rng: np.random.Generator, walls: np.ndarray) 
     return apply_points(inverse(pose), world)
 
 
-ROOM = np.array([[[0, 0], [6, 0]], [[6, 0], [6, 4]], [[6, 4], [0, 4]], [[0, 4], [0, 0]],
-                 [[2, 2], [3.5, 2]], [[3.5, 2], [3.5, 3]]], float)
+ROOM = np.array(
+    [
+        [[0, 0], [6, 0]],
+        [[6, 0], [6, 4]],
+        [[6, 4], [0, 4]],
+        [[0, 4], [0, 0]],
+        [[2, 2], [3.5, 2]],
+        [[3.5, 2], [3.5, 3]],
+    ],
+    float,
+)
 CORRIDOR = np.array([[[-20, 0], [20, 0]], [[-20, 2], [20, 2]]], float)
 
 
