@@ -40,6 +40,8 @@ def replay_to_dir(
     name = robot_name_of(log_path)
     write_poses(out / f"{name}.poses.txt", res.stamps_s, res.poses)
     write_tum(out / f"{name}.tum", res.stamps_s, res.poses)
+    if res.filter_poses is not None:  # the filter's own path, before the back end
+        write_poses(out / f"{name}.filter.poses.txt", res.stamps_s, res.filter_poses)
 
     slam = res.slam
     gm, keep = slam.published_map()
