@@ -60,6 +60,7 @@ class BackendConfig:
     robust_k: float = 3.0  # Cauchy kernel width (in sigmas) on loop edges ...
     robust_wide_k: float = 100.0  # ... reached from this wide one (and their geometric mean)
     max_loop_chi: float = 5.0  # loop edges with a normalized residual above are dropped
+    passes: int = 2  # loop search passes, each from the path the previous one corrected
     chain: posegraph.ChainNoise = field(default_factory=posegraph.ChainNoise)
     jump_m: float = 0.5  # a scan-to-scan motion off odometry by this much is a relocalization jump:
     jump_rad: float = np.radians(8.0)  # its chain edge takes the odometry instead, loosely held
@@ -186,9 +187,17 @@ class Loop:
 
 
 def match_loop(
-    kf_poses: np.ndarray, kf_points: list[np.ndarray], old: int, new: int, cfg: BackendConfig, stats: dict
+    kf_poses: np.ndarray,
+    kf_points: list[np.ndarray],
+    old: int,
+    new: int,
+    cfg: BackendConfig,
+    stats: dict,
+    estimate: np.ndarray | None = None,
 ) -> Loop | None:
-    """Verified relative pose of keyframe ``new`` in keyframe ``old``'s frame, or None."""
+    """Verified relative pose of keyframe ``new`` in keyframe ``old``'s frame, or None. The
+    clouds are built with ``kf_poses (K,3)`` (the filter's path: locally right); the search
+    starts from ``estimate (K,3)`` when given (the path corrected so far)."""
     w = cfg.cloud_neighbours
     cloud = voxel_thin(local_cloud(kf_poses, kf_points, old, old - w, old + w), cfg.voxel_m)
     query = voxel_thin(local_cloud(kf_poses, kf_points, new, new - cfg.query_neighbours, new), cfg.voxel_m)
@@ -196,7 +205,8 @@ def match_loop(
         return None
     if len(query) > cfg.query_points:
         query = query[np.linspace(0, len(query) - 1, cfg.query_points).astype(int)]
-    guess = relative(kf_poses[old], kf_poses[new])
+    est = kf_poses if estimate is None else estimate
+    guess = relative(est[old], est[new])
     fld = likelihood_field(cloud, cfg.search_step_m, cfg.field_sigma_m, 4.0 * cfg.field_sigma_m)
     scores, angles, offs = correlative_search(fld, query, guess, cfg)
     stats["matches"] = stats.get("matches", 0) + 1
@@ -221,21 +231,32 @@ def match_loop(
     return Loop(old, new, z, best, rival / best, share)
 
 
-def find_loops(kf_stamps: np.ndarray, kf_poses: np.ndarray, kf_points: list[np.ndarray], cfg: BackendConfig):
-    """Verified loops over every keyframe (offline: the whole trajectory at once)."""
+def find_loops(
+    kf_stamps: np.ndarray,
+    kf_poses: np.ndarray,
+    kf_points: list[np.ndarray],
+    cfg: BackendConfig,
+    stats: dict,
+    estimate: np.ndarray | None = None,
+    skip: set | None = None,
+) -> list[Loop]:
+    """Verified loops over every keyframe (offline: the whole trajectory at once); candidates
+    near in ``estimate`` (default ``kf_poses``); queries in ``skip`` are not tried."""
     loops: list[Loop] = []
-    stats: dict = {}
+    est = kf_poses if estimate is None else estimate
     for new in range(0, len(kf_poses), cfg.check_every):
+        if skip is not None and new in skip:
+            continue
         old_ok = (kf_stamps <= kf_stamps[new] - cfg.min_gap_s) & (
             np.arange(len(kf_poses)) <= new - cfg.min_gap_keyframes
         )
         if not old_ok.any():
             continue
-        d = np.hypot(*(kf_poses[:, :2] - kf_poses[new, :2]).T)
+        d = np.hypot(*(est[:, :2] - est[new, :2]).T)
         cand = np.flatnonzero(old_ok & (d < cfg.candidate_radius_m))
         if len(cand) == 0:
             continue
-        dth = np.abs(wrap_angle(kf_poses[cand, 2] - kf_poses[new, 2]))
+        dth = np.abs(wrap_angle(est[cand, 2] - est[new, 2]))
         order = cand[np.argsort(d[cand] + 1.0 * dth)]
         picked: list[int] = []
         for c in order:  # distinct places: not two neighbours of one old pass
@@ -244,11 +265,10 @@ def find_loops(kf_stamps: np.ndarray, kf_poses: np.ndarray, kf_points: list[np.n
             if len(picked) >= cfg.candidates:
                 break
         for old in picked:
-            loop = match_loop(kf_poses, kf_points, old, new, cfg, stats)
+            loop = match_loop(kf_poses, kf_points, old, new, cfg, stats, estimate)
             if loop is not None:
                 loops.append(loop)
-    stats["loops"] = len(loops)
-    return loops, stats
+    return loops
 
 
 def optimize(
@@ -323,8 +343,18 @@ def run_backend(
         jump_edges[e] = compose(relative(poses[kf[e]], poses[i - 1]), relative(odometry[i - 1], odometry[i]))
     kf_poses = poses[kf]
     kf_points = [voxel_thin(scan_points_robot(int(i)), cfg.voxel_m) for i in kf]
-    loops, stats = find_loops(stamps_s[kf], kf_poses, kf_points, cfg)
-    stats["keyframes"] = len(kf)
-    stats["jumps"] = len(jump_edges)
-    new = optimize(kf_poses, loops, cfg, stats, jump_edges)
+    stats: dict = {"keyframes": len(kf), "jumps": len(jump_edges)}
+    loops: list[Loop] = []
+    new = kf_poses
+    for p in range(cfg.passes):  # later passes search from the corrected path: drift the first
+        # pass could not bridge is now within the window where its loops pulled the path
+        found = find_loops(
+            stamps_s[kf], kf_poses, kf_points, cfg, stats, new if p else None, {lp.new for lp in loops}
+        )
+        stats[f"loops_pass{p}"] = len(found)
+        if p and not found:
+            break
+        loops += found
+        new = optimize(kf_poses, loops, cfg, stats, jump_edges)
+    stats["loops"] = len(loops)
     return correct_trajectory(poses, kf, kf_poses, new), stats
