@@ -60,7 +60,10 @@ class BackendConfig:
     robust_k: float = 3.0  # Cauchy kernel width (in sigmas) on loop edges ...
     robust_wide_k: float = 100.0  # ... reached from this wide one (and their geometric mean)
     max_loop_chi: float = 5.0  # loop edges with a normalized residual above are dropped
-    passes: int = 2  # loop search passes, each from the path the previous one corrected
+    passes: int = 5  # loop search passes, each from the path the previous one corrected ...
+    min_pass_loops: int = 10  # ... until one finds fewer new loops than this
+    pass_moved_m: float = 0.1  # a later pass queries only keyframes moved this much ...
+    pass_moved_rad: float = np.radians(1.0)  # ... or this much by the previous one
     chain: posegraph.ChainNoise = field(default_factory=posegraph.ChainNoise)
     jump_m: float = 0.5  # a scan-to-scan motion off odometry by this much is a relocalization jump:
     jump_rad: float = np.radians(8.0)  # its chain edge takes the odometry instead, loosely held
@@ -345,16 +348,19 @@ def run_backend(
     kf_points = [voxel_thin(scan_points_robot(int(i)), cfg.voxel_m) for i in kf]
     stats: dict = {"keyframes": len(kf), "jumps": len(jump_edges)}
     loops: list[Loop] = []
-    new = kf_poses
+    new = searched = kf_poses
+    skip: set = set()
     for p in range(cfg.passes):  # later passes search from the corrected path: drift the first
         # pass could not bridge is now within the window where its loops pulled the path
-        found = find_loops(
-            stamps_s[kf], kf_poses, kf_points, cfg, stats, new if p else None, {lp.new for lp in loops}
-        )
+        found = find_loops(stamps_s[kf], kf_poses, kf_points, cfg, stats, new if p else None, skip)
         stats[f"loops_pass{p}"] = len(found)
-        if p and not found:
-            break
         loops += found
-        new = optimize(kf_poses, loops, cfg, stats, jump_edges)
+        if p and len(found) < cfg.min_pass_loops:
+            break
+        searched, new = new, optimize(kf_poses, loops, cfg, stats, jump_edges)
+        # the next pass queries keyframes without a loop whose estimate this pass moved
+        d = relative(searched, new)
+        still = (np.hypot(d[:, 0], d[:, 1]) < cfg.pass_moved_m) & (np.abs(d[:, 2]) < cfg.pass_moved_rad)
+        skip = {lp.new for lp in loops} | set(np.flatnonzero(still).tolist())
     stats["loops"] = len(loops)
     return correct_trajectory(poses, kf, kf_poses, new), stats
