@@ -285,9 +285,9 @@ def optimize(
         info[e] = 1.0 / np.array([cfg.jump_sigma_xy_m, cfg.jump_sigma_xy_m, cfg.jump_sigma_theta_rad]) ** 2
     if not loops and not jump_edges:
         return kf_poses.copy()
-    la = np.array([lp.old for lp in loops])
-    lb = np.array([lp.new for lp in loops])
-    lz = np.array([lp.z for lp in loops])
+    la = np.array([lp.old for lp in loops], dtype=int)
+    lb = np.array([lp.new for lp in loops], dtype=int)
+    lz = np.array([lp.z for lp in loops], dtype=float).reshape(-1, 3)
     li = np.tile(
         1.0 / np.array([cfg.loop_sigma_xy_m, cfg.loop_sigma_xy_m, cfg.loop_sigma_theta_rad]) ** 2,
         (len(la), 1),

@@ -112,3 +112,13 @@ def test_jumps_are_found_and_start_a_keyframe():
     jumps = be.find_jumps(poses, odo, cfg)
     assert np.flatnonzero(jumps).tolist() == [30]
     assert 30 in be.select_keyframes(poses, cfg, jumps)
+
+
+def test_a_jump_without_loops_is_bridged_by_odometry():
+    odo = np.column_stack([np.arange(50) * 0.05, np.zeros(50), np.zeros(50)])
+    poses = odo.copy()
+    poses[30:, 1] += 1.0
+    points = lambda i: np.zeros((0, 2))  # noqa: E731 — no scan: no loop can be found
+    out, stats = be.run_backend(np.arange(50.0), poses, odo, points, be.BackendConfig())
+    assert stats["jumps"] == 1 and stats["loops"] == 0
+    np.testing.assert_allclose(relative(out[29], out[30]), relative(odo[29], odo[30]), atol=1e-6)
