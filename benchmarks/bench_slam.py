@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_slam.py [--log intel.clf --relations intel.relations]
         [--particles 30] [--seeds 0 1 2] [--worlds office warehouse] [--duration 300]
-        [--ablations all no-proposal no-consensus no-relocalization] [--limit N]
+        [--ablations all no-proposal no-consensus no-relocalization no-backend] [--limit N]
 
 Prints one table per source and writes ``benchmarks/results/bench_slam.json``. One core.
 Real logs: Kümmerle relations error and real-time factor. Simulation: ATE RMSE, map precision
@@ -40,6 +40,7 @@ ABLATIONS = {
     "no-proposal": ["proposal.enabled=false"],
     "no-consensus": ["consensus.enabled=false"],
     "no-relocalization": ["relocalization.enabled=false"],
+    "no-backend": ["backend.enabled=false"],
 }
 DEFAULT_INTEL = ROOT.parent / "shared" / "datasets" / "intel"
 
