@@ -68,7 +68,7 @@ def run_sim(world_name: str, seed: int, duration_s: float, cfg: SlamConfig) -> d
     r = run_log(log, None, cfg, seed, None)
     res = r.pop("_res")
     gm, keep = res.slam.published_map()
-    score = score_run(sim, world, res.stamps_s, res.poses, gm.seg[keep])
+    score = score_run(sim, world, res.stamps_s, res.poses, gm.seg[keep], map_poses=res.filter_poses)
     return r | score.as_dict()
 
 

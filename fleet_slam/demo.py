@@ -24,6 +24,10 @@ from fleet_slam.watch import FusedWatcher, Update
 STARTUP_TIMEOUT_S = 60.0
 SETTLE_QUIET_S = 3.0  # after the agents end: the fused map is final when quiet this long
 SETTLE_TIMEOUT_S = 30.0
+# --log: pieces replayed at full speed end within a minute or so, before the server calls their
+# maps mature (grown <= 25 % over 30 s of its time) and confirms a match (two attempts ~10 s
+# apart); the demo then waits this long at most for every piece to be placed
+LOG_LINGER_S = 120.0
 
 
 @dataclass(frozen=True)
@@ -140,6 +144,9 @@ def run_demo(cfg: DemoConfig) -> dict:
             failed = [a.name for a in agents if a.popen.wait() != 0]
             if failed:
                 raise RuntimeError(f"agents failed: {failed}; see {out / 'logs'}")
+            if cfg.log:
+                everyone = len(names)
+                watcher.wait_for(lambda f: sum(r.merged for r in f.robots) == everyone, LOG_LINGER_S)
             final = watcher.wait_quiet(SETTLE_QUIET_S, SETTLE_TIMEOUT_S)
             final = watcher.fetch(2.0) or final
             updates = list(watcher.updates)

@@ -62,6 +62,17 @@ class FusedWatcher:
         if self.on_update is not None:
             self.on_update(upd)
 
+    def wait_for(self, done: Callable[[FusedMap], bool], timeout_s: float) -> FusedMap | None:
+        """Wait until the latest map satisfies ``done`` (or ``timeout_s`` passed); the latest map."""
+        end = time.monotonic() + timeout_s
+        with self._lock:
+            while not (self.latest is not None and done(self.latest)):
+                left = end - time.monotonic()
+                if left <= 0:
+                    break
+                self.changed.wait(min(1.0, left))
+            return self.latest
+
     def wait_quiet(self, quiet_s: float, timeout_s: float) -> FusedMap | None:
         """Wait until no update arrived for ``quiet_s`` (or ``timeout_s`` passed); the latest map."""
         end = time.monotonic() + timeout_s

@@ -77,12 +77,17 @@ def score_run(
     segments: np.ndarray,
     lidar: LidarConfig | None = None,
     loop_tolerance_m: float = 0.2,
+    map_poses: np.ndarray | None = None,
 ) -> SimScore:
-    """Score the estimated ``poses (S,3)`` (one per scan of ``sim``) and mapped ``segments``."""
+    """Score the estimated ``poses (S,3)`` (one per scan of ``sim``) and mapped ``segments``. The
+    map is put in the world frame by the best fit of ``map_poses`` — the trajectory in the map's
+    own frame (the filter's, when ``poses`` were corrected afterwards by the back end) — to the
+    truth; default ``poses``."""
     if len(poses) != len(sim.stamps_s):
         raise ValueError(f"poses must have one row per scan ({len(sim.stamps_s)}), got {len(poses)}")
     a = ate(stamps_s, poses, sim.stamps_s, sim.truth)
-    mapped = apply_segments(a.alignment, np.asarray(segments, dtype=float).reshape(-1, 2, 2))
+    frame = a if map_poses is None else ate(stamps_s, map_poses, sim.stamps_s, sim.truth)
+    mapped = apply_segments(frame.alignment, np.asarray(segments, dtype=float).reshape(-1, 2, 2))
     seen = seen_wall_points(world, sim.truth, lidar or LidarConfig())
     q = map_quality(mapped, world.walls, seen_points=seen)
     rev = revisit_errors(sim.truth, sim.stamps_s, poses)

@@ -18,7 +18,7 @@ def office_run():
     log = sim.to_log()
     res = replay(log, SlamConfig(), seed=0, progress=False)
     gm, keep = res.slam.published_map()
-    return sim, score_run(sim, world, res.stamps_s, res.poses, gm.seg[keep])
+    return sim, score_run(sim, world, res.stamps_s, res.poses, gm.seg[keep], map_poses=res.filter_poses)
 
 
 def test_office_accuracy_map_and_loop(office_run):
