@@ -217,6 +217,8 @@ class Fleet:
             a = estimate_alignment(
                 r.layer.seg, self._global_segments(r.robot), self.cfg.alignment, prior, sigma, current
             )
+            if not r.alignment.placed or a.status != r.alignment.status:  # why a robot is (not) placed
+                log.info("%s: attempt at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
             if a.status == "aligned" and not r.alignment.placed:
                 fresh.append((r, a, placed_m, key))
                 continue
