@@ -13,7 +13,8 @@ from robot_agent.slam.backend import run_backend
 from robot_agent.slam.extraction import scan_points
 from robot_agent.slam.fastslam import FastSLAM, SlamConfig
 from robot_agent.sources import LaserLog
-from shared.geometry import apply_points
+from shared.geometry import apply_points, compose
+from shared.metrics import align_se2
 
 
 @dataclass
@@ -64,17 +65,32 @@ def replay(
             _step(slam, log, i)
     stamps, poses = slam.best_trajectory()
     t1 = time.perf_counter()
-    corrected, stats = poses, None
-    if cfg.backend.enabled and len(poses) > 1:
-
-        def points(i: int) -> np.ndarray:
-            xy = scan_points(log.ranges_m[i], log.angles_rad, cfg.extraction, log.range_max_m)
-            return apply_points(log.laser_offset, xy)
-
-        corrected, stats = run_backend(stamps, poses, log.odometry[:n], points, cfg.backend)
+    corrected, stats = correct_trajectory(log, 0, stamps, poses, cfg)
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
     return ReplayResult(stamps, corrected, slam, wall, peak, poses, time.perf_counter() - t1, stats)
+
+
+def correct_trajectory(
+    log: LaserLog, first: int, stamps: np.ndarray, poses: np.ndarray, cfg: SlamConfig
+) -> tuple[np.ndarray, dict | None]:
+    """The back end (pose graph) over ``poses (S,3)``, the trajectory of scans ``first ..
+    first + S - 1`` of ``log``: the corrected poses and the back end's statistics (``poses`` and
+    ``None`` when it is disabled)."""
+    if not cfg.backend.enabled or len(poses) < 2:
+        return poses, None
+
+    def points(i: int) -> np.ndarray:
+        xy = scan_points(log.ranges_m[first + i], log.angles_rad, cfg.extraction, log.range_max_m)
+        return apply_points(log.laser_offset, xy)
+
+    odometry = log.odometry[first : first + len(poses)]
+    corrected, stats = run_backend(stamps, poses, odometry, points, cfg.backend)
+    # the pose graph holds the first pose fixed, an arbitrary gauge: the map (built along the
+    # filter's trajectory) is in the frame that fits the filter's trajectory best, so that is where
+    # the corrected trajectory is put (relative motions, what relations score, are unchanged)
+    gauge = align_se2(corrected[:, :2], poses[:, :2])
+    return compose(np.broadcast_to(gauge, corrected.shape), corrected), stats
 
 
 def _step(slam: FastSLAM, log: LaserLog, i: int) -> None:

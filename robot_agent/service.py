@@ -151,6 +151,12 @@ def run(args: argparse.Namespace) -> int:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         stamps, poses = slam.best_trajectory()  # the best particle's, in the robot's map frame
+        backend = None
+        if sim is None:  # a log piece: the same pose-graph back end as `replay` (scans are at hand)
+            from robot_agent.replay import correct_trajectory
+
+            write_poses(out / f"{args.robot}.filter.poses.txt", stamps, poses)
+            poses, backend = correct_trajectory(laser_log, args.first, stamps, poses, cfg)
         write_poses(out / f"{args.robot}.poses.txt", stamps, poses)
         write_tum(out / f"{args.robot}.tum", stamps, poses)
         if sim is not None:
@@ -168,6 +174,7 @@ def run(args: argparse.Namespace) -> int:
             "map_seq": core.map_seq,
             "prior": None if prior is None else prior.tolist(),
             "filter": dict(slam.stats),
+            "backend": backend,
         }
         (out / f"{args.robot}.agent.json").write_text(json.dumps(summary, indent=2))
     print(f"agent {args.robot}: {core.scans} scans, {pub.bytes_sent['map']} map bytes, done", flush=True)
