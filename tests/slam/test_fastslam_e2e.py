@@ -61,3 +61,34 @@ def test_seeded_runs_are_reproducible(intel_head):
     a = replay(log, cfg, seed=5, progress=False, limit=300)  # 300 scans are enough to tell
     b = replay(log, cfg, seed=5, progress=False, limit=300)
     np.testing.assert_array_equal(a.poses, b.poses)
+
+
+def test_the_back_end_keeps_the_trajectory_in_the_maps_frame(intel_head, default_run):
+    """The corrected trajectory is put where the filter's fits best (the frame of the map the
+    server aligns), and a piece of the log is corrected with its own scans and odometry."""
+    from robot_agent.replay import correct_trajectory
+
+    log, _ = intel_head
+    res, _ = default_run
+    gap = np.hypot(*(res.poses[:, :2] - res.filter_poses[:, :2]).T)
+    assert gap.mean() < 0.05, gap.mean()  # the excerpt's filter is good: the frames coincide
+    first = 600
+    piece, _ = correct_trajectory(log, first, res.stamps_s[first:], res.filter_poses[first:], SlamConfig())
+    assert piece.shape == (len(log) - first, 3) and np.all(np.isfinite(piece))
+    assert np.hypot(*(piece[:, :2] - res.filter_poses[first:, :2]).T).mean() < 0.05
+
+
+def test_the_back_ends_gauge_is_the_filters(intel_head, default_run, monkeypatch):
+    """Whatever pose the graph holds fixed, the output is put in the frame that fits the filter's
+    trajectory: a back end that returned the trajectory moved rigidly changes nothing."""
+    import robot_agent.replay as replay_mod
+    from shared.geometry import compose
+
+    log, _ = intel_head
+    res, _ = default_run
+    moved = np.array([3.0, -2.0, 0.7])
+    monkeypatch.setattr(
+        replay_mod, "run_backend", lambda s, p, o, pts, c: (compose(np.broadcast_to(moved, p.shape), p), {})
+    )
+    out, _ = replay_mod.correct_trajectory(log, 0, res.stamps_s, res.filter_poses, SlamConfig())
+    np.testing.assert_allclose(out[:, :2], res.filter_poses[:, :2], atol=1e-6)
