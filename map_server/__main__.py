@@ -1,15 +1,10 @@
-"""``python -m map_server`` = ``fleet-slam server`` (what the container runs)."""
+"""``python -m map_server`` = ``fleet-slam server`` (what the container runs): the same parser and the same
+error handling (a message and exit 2 or 130, never a traceback, for bad input, a missing router
+or a signal while waiting for it)."""
 
-import argparse
 import sys
 
-from map_server.service import add_arguments, run
+from fleet_slam.cli import main
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(prog="python -m map_server", description="the fleet-slam map server")
-    add_arguments(parser)
-    try:
-        sys.exit(run(parser.parse_args()))
-    except (ValueError, OSError) as exc:
-        print(f"map_server: error: {exc}", file=sys.stderr)
-        sys.exit(2)
+    sys.exit(main(["server", *sys.argv[1:]]))

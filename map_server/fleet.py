@@ -43,9 +43,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from map_server.alignment import Alignment, AlignmentConfig, estimate_alignment
+from map_server.candidates import mean_displacement
 from map_server.fusion import FusionConfig, fuse_particles, merge_segments
-from map_server.state import RetiredPiece, RobotState, alignment_from_dict
-from shared.geometry import apply_segments, compose, transform_points
+from map_server.state import RetiredPiece, RobotState
+from shared.geometry import apply_segments, compose
 from shared.messages import FusedMap, PoseUpdate, RobotMap, RobotStatus
 
 log = logging.getLogger("fleet_slam.fleet")
@@ -254,7 +255,7 @@ class Fleet:
     def _moved(self, r: RobotState, a: Alignment, b: Alignment) -> bool:
         """Whether ``a`` and ``b`` put the robot's map at different places."""
         pts = 0.5 * (r.layer.seg[:, 0] + r.layer.seg[:, 1])
-        return _mean_move(a.transform, b.transform, pts) > self.cfg.same_place_m
+        return mean_displacement(a.transform, b.transform, pts) > self.cfg.same_place_m
 
     def _confirm(self, r: RobotState, a: Alignment, current: Alignment | None) -> Alignment:
         """A new alignment (or a revision) counts once ``confirmations`` attempts in a row put the
@@ -366,11 +367,7 @@ class Fleet:
             if r.map is not None:
                 r.layer = fuse_particles(r.map, cfg.fusion)
         for name, pieces in meta.get("retired", {}).items():
-            for d in pieces:
-                m, a = maps[f"{name}~{d['session']}"], alignment_from_dict(d["alignment"])
-                layer = fuse_particles(m, cfg.fusion)
-                piece = RetiredPiece(name, d["session"], m, layer, a, float(d["retired_s"]))
-                f.retired.setdefault(name, []).append(piece)
+            f.retired[name] = [RetiredPiece.from_dict(name, d, maps, cfg.fusion) for d in pieces]
         built = f._build()
         if built[0] and meta["stamp_s"] is not None:
             f._keep(built, meta["stamp_s"])
@@ -385,10 +382,3 @@ def _placed_key(placed: list[RobotState]) -> str:
         for r in placed
     )
 
-
-def _mean_move(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:
-    """Mean distance [m] between ``points`` moved by ``a`` and by ``b``."""
-    if len(points) == 0:
-        return 0.0
-    d = transform_points(a, points) - transform_points(b, points)
-    return float(np.mean(np.hypot(d[:, 0], d[:, 1])))

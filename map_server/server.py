@@ -301,18 +301,19 @@ class MapServer:
         }
 
     def _stats_extra(self) -> dict:
-        """The figures a subscriber sees in ``FusedMap.extra`` (named numbers)."""
-        ms = self.fuse_ms
+        """The figures of :meth:`status` a subscriber sees in ``FusedMap.extra`` (named numbers);
+        the fusion time is the previous fusion's (this one is still running)."""
+        st = self.status()
         return {
-            "server_fusions": float(self.fusions),
-            "server_queue_maps": float(self.backlog["maps"]),
-            "server_queue_poses": float(self.backlog["poses"]),
-            "server_fuse_ms_last": float(ms[-1]) if ms else 0.0,  # the previous fusion (this one runs)
-            "server_fuse_ms_max": float(max(ms)) if ms else 0.0,
-            "server_maps_per_fusion": self.maps_applied / max(1, self.fusions),
-            "server_maps_applied": float(self.maps_applied),
-            "server_rejected": float(sum(self.rejected.values())),
-            "server_peak_rss_mb": _peak_rss_mb(),
+            "server_fusions": float(st["fusions"]),
+            "server_queue_maps": float(st["queue"]["maps"]),
+            "server_queue_poses": float(st["queue"]["poses"]),
+            "server_fuse_ms_last": float(st["fuse_ms"]["last"]),
+            "server_fuse_ms_max": float(st["fuse_ms"]["max"]),
+            "server_maps_per_fusion": float(st["maps_per_fusion"]),
+            "server_maps_applied": float(st["maps_applied"]),
+            "server_rejected": float(sum(st["rejected"].values())),
+            "server_peak_rss_mb": st["peak_rss_mb"],
         }
 
     def _log_status(self) -> None:

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from map_server.alignment import Alignment
-from map_server.fusion import RobotLayer
+from map_server.fusion import FusionConfig, RobotLayer, fuse_particles
 from shared.messages import PoseUpdate, RobotMap
 
 if TYPE_CHECKING:
@@ -134,12 +134,23 @@ class RetiredPiece:
 
     @property
     def blob(self) -> str:
-        """Its map's name in a snapshot (``~`` is never part of a robot id)."""
-        return f"{self.robot}~{self.session}"
+        return retired_blob(self.robot, self.session)
 
     def to_dict(self) -> dict:
         a = alignment_to_dict(self.alignment)
         return dict(session=self.session, retired_s=self.retired_s, alignment=a)
+
+    @classmethod
+    def from_dict(cls, robot: str, d: dict, maps: dict[str, RobotMap], fusion: FusionConfig) -> RetiredPiece:
+        """The piece of :meth:`to_dict`, its map taken from a snapshot's ``maps`` by its blob name."""
+        m = maps[retired_blob(robot, d["session"])]
+        a = alignment_from_dict(d["alignment"])
+        return cls(robot, d["session"], m, fuse_particles(m, fusion), a, float(d["retired_s"]))
+
+
+def retired_blob(robot: str, session: str) -> str:
+    """A retired piece's map name in a snapshot (``~`` is never part of a robot id)."""
+    return f"{robot}~{session}"
 
 
 # the plain fields of RobotState that a snapshot keeps as they are

@@ -90,7 +90,7 @@ def correct_trajectory(
     # filter's trajectory) is in the frame that fits the filter's trajectory best, so that is where
     # the corrected trajectory is put (relative motions, what relations score, are unchanged)
     gauge = align_se2(corrected[:, :2], poses[:, :2])
-    return compose(np.broadcast_to(gauge, corrected.shape), corrected), stats
+    return compose(gauge, corrected), stats
 
 
 def _step(slam: FastSLAM, log: LaserLog, i: int) -> None:

@@ -293,7 +293,6 @@ def optimize(
         (len(la), 1),
     )
     keep = np.ones(len(la), bool)
-    x = kf_poses.copy()
     for _round in range(3):
         # a wide kernel first, then narrower: loops far from the initial path (a large drift)
         # must pull it before the narrow kernel may call the ones that still disagree outliers
@@ -320,7 +319,7 @@ def optimize(
     return x
 
 
-def correct_trajectory(
+def follow_keyframes(
     poses: np.ndarray, kf_index: np.ndarray, kf_old: np.ndarray, kf_new: np.ndarray
 ) -> np.ndarray:
     """Every pose ``(S,3)`` moved rigidly with the last keyframe at or before it."""
@@ -348,7 +347,7 @@ def run_backend(
     kf_points = [voxel_thin(scan_points_robot(int(i)), cfg.voxel_m) for i in kf]
     stats: dict = {"keyframes": len(kf), "jumps": len(jump_edges)}
     loops: list[Loop] = []
-    new = searched = kf_poses
+    new = kf_poses
     skip: set = set()
     for p in range(cfg.passes):  # later passes search from the corrected path: drift the first
         # pass could not bridge is now within the window where its loops pulled the path
@@ -363,4 +362,4 @@ def run_backend(
         still = (np.hypot(d[:, 0], d[:, 1]) < cfg.pass_moved_m) & (np.abs(d[:, 2]) < cfg.pass_moved_rad)
         skip = {lp.new for lp in loops} | set(np.flatnonzero(still).tolist())
     stats["loops"] = len(loops)
-    return correct_trajectory(poses, kf, kf_poses, new), stats
+    return follow_keyframes(poses, kf, kf_poses, new), stats

@@ -11,11 +11,15 @@ from fleet_slam.procs import free_port
 
 
 @pytest.mark.timeout(60)
-@pytest.mark.parametrize("command", ["server", "subscribe"])
+@pytest.mark.parametrize(
+    "command",
+    [["fleet_slam.cli", "server"], ["fleet_slam.cli", "subscribe"], ["map_server"], ["robot_agent"]],
+)
 def test_sigterm_while_waiting_for_the_router(command):
     endpoint = f"tcp/127.0.0.1:{free_port()}"  # nobody listens there
+    extra = ["--robot", "robot1", "--world", "office"] if command == ["robot_agent"] else []
     proc = subprocess.Popen(
-        [sys.executable, "-m", "fleet_slam.cli", command, "--connect", endpoint],
+        [sys.executable, "-m", *command, "--connect", endpoint, *extra],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
