@@ -160,7 +160,14 @@ def test_a_robot_cannot_write_another_robots_keys_or_the_fused_map(fleet):
             return [(KEYS.robot_map("robot2"), b"forged reply"), (KEYS.robot_map("robot1"), b"robot1 reply")]
 
         robot1.serve(KEYS.robot_map("robot1"), answer)
-        assert server.get(KEYS.all_maps, timeout_s=2.0) == [(KEYS.robot_map("robot1"), b"robot1 reply")]
+        replies: list = []  # the queryable's declaration reaches the router a moment after serve()
+
+        def pulled() -> bool:
+            replies[:] = server.get(KEYS.all_maps, timeout_s=2.0)
+            return bool(replies)
+
+        assert wait_for(pulled, DELIVERY_S)
+        assert replies == [(KEYS.robot_map("robot1"), b"robot1 reply")]
 
 
 # -- (b) no credentials, no writing -------------------------------------------------------------------
