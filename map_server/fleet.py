@@ -381,4 +381,3 @@ def _placed_key(placed: list[RobotState]) -> str:
         f"{r.robot}:{r.layer.length_m:.3f}:" + ":".join(f"{v:.5f}" for v in r.alignment.transform)
         for r in placed
     )
-

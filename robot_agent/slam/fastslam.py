@@ -102,7 +102,8 @@ class FastSLAM:
         self.step_index = 0
         self._last_odo: np.ndarray | None = None
         self.global_map: consensus_mod.GlobalMap | None = None
-        self.stats = {"resamples": 0, "injections": 0, "relocalizations": 0}
+        self.stats = {"resamples": 0, "injections": 0, "relocalizations": 0, "relocalization_candidates": 0}
+        self._reloc_pending: reloc_mod.Pending | None = None
 
     # -- the loop ---------------------------------------------------------------------------
 
@@ -209,7 +210,9 @@ class FastSLAM:
             self.global_map = consensus_mod.build_global_map(ps, k, cfg.trust, cfg.consensus)
             consensus_mod.refresh_particles(ps, self.global_map, k, cfg.consensus)
         if cfg.relocalization.enabled and k % cfg.relocalization.every == 0 and len(segs):
-            self._maybe_relocalize(segs, facing, k)
+            usable = min(cfg.extraction.max_usable_range_m, range_max_m)
+            rays = reloc_mod.ScanRays(ranges_m, angles_rad, laser_offset, usable, cfg.update)
+            self._maybe_relocalize(segs, facing, k, rays)
         self._last_odo = odometry
         best = ps.best()
         return Estimate(stamp_s, ps.poses[best].copy(), True, ess, len(segs))
@@ -260,13 +263,21 @@ class FastSLAM:
         prop = align_points(mean, cov, pts, local, cfg.proposal)
         return relative(ps.poses[best], prop.mean[0])
 
-    def _maybe_relocalize(self, segs: ScanSegments, facing: np.ndarray, k: int) -> None:
+    def _maybe_relocalize(
+        self, segs: ScanSegments, facing: np.ndarray, k: int, rays: reloc_mod.ScanRays
+    ) -> None:
         ps = self.particles
         gm = self.global_map
         if gm is None or k - gm.step >= self.cfg.consensus.every:  # relocalization needs no consensus step
             gm = self.global_map = consensus_mod.build_global_map(ps, k, self.cfg.trust, self.cfg.consensus)
-        result = reloc_mod.relocalize(ps, gm, segs, facing, k, self.cfg.relocalization)
+        result = reloc_mod.relocalize(ps, gm, segs, facing, k, self.cfg.relocalization, rays)
         if result is None:
+            return
+        self.stats["relocalization_candidates"] += 1
+        ok, self._reloc_pending = reloc_mod.confirm(
+            self._reloc_pending, result, ps.poses[ps.best()], k, self.cfg.relocalization
+        )
+        if not ok:
             return
         self.stats["relocalizations"] += 1
         targets, sources = reloc_mod.inject(ps, result)

@@ -8,6 +8,11 @@ non-parallel segments: corners and near-corners, shared/matching.py), scored by 
 scan they explain, and the best few that explain clearly more than the current estimate are
 injected as particles (report: "in practice, one each"), replacing the weakest ones. They carry
 the best particle's map and get an even chance: later scans keep them or kill them.
+
+A hypothesis must also not contradict the map: the scan's beams, cast from it, may pass through
+no more of those old reliable elements than from the current estimate. In a repetitive building
+(a corridor of alike doors) a shifted pose explains the nearby segments as well as the true one,
+but its beams run through the end wall or the far rooms' walls.
 """
 
 from __future__ import annotations
@@ -19,7 +24,8 @@ import numpy as np
 from robot_agent.slam.consensus import GlobalMap
 from robot_agent.slam.extraction import ScanSegments
 from robot_agent.slam.particles import ParticleSet
-from shared.geometry import point_segment_distance, relative
+from robot_agent.slam.update import UpdateConfig, visibility
+from shared.geometry import compose, inverse, point_segment_distance, relative
 from shared.matching import MatchingConfig, cluster_poses, overlap_scores, pose_hypotheses
 
 
@@ -42,7 +48,55 @@ class RelocalizationConfig:
     # included) by this factor: in repetitive places (aisles, rows of doors) aliases score alike
     distinct_radius_m: float = 1.0  # hypotheses farther apart than this are distinct places
     inject: int = 2  # particles replaced per relocalization
+    confirm_steps: int = 15  # a large correction is injected only when found again within this
+    # many steps (0: at once): a lone large jump is more often an alias than a loop closure ...
+    confirm_beyond_m: float = 1.0  # ... large: farther than this or turning more than
+    confirm_beyond_rad: float = np.radians(10.0)
+    confirm_m: float = 0.25  # ... the second finding within this distance and angle of the first
+    confirm_rad: float = np.radians(3.0)
+    max_extra_through: int = 1  # old elements a hypothesis's beams may pass through beyond the
+    # current estimate's count
     matching: MatchingConfig = field(default_factory=MatchingConfig)
+
+
+@dataclass(frozen=True)
+class ScanRays:
+    """The raw scan, for the negative evidence: ranges ``(B,)`` at ``angles_rad (B,)`` from the
+    laser at ``laser_offset (3,)`` in the robot frame; readings at or beyond ``usable_range_m``
+    are no return."""
+
+    ranges_m: np.ndarray
+    angles_rad: np.ndarray
+    laser_offset: np.ndarray
+    usable_range_m: float
+    update: UpdateConfig = field(default_factory=UpdateConfig)
+
+
+def through_counts(
+    poses: np.ndarray, seg: np.ndarray, alpha: np.ndarray, facing: np.ndarray, rays: ScanRays
+) -> np.ndarray:
+    """``(H,)``: how many of the elements ``seg (G,2,2)`` the scan's beams pass through (at two
+    or more sample points) when cast from each robot pose of ``poses (H,3)``."""
+    h, g = len(poses), len(seg)
+    if g == 0:
+        return np.zeros(h, int)
+    maps = _Elements(
+        np.broadcast_to(seg, (h, g, 2, 2)),
+        np.broadcast_to(alpha, (h, g)),
+        np.broadcast_to(facing, (h, g)),
+        np.ones((h, g), bool),
+    )
+    laser = compose(poses, rays.laser_offset)
+    through, _ = visibility(maps, laser, rays.ranges_m, rays.angles_rad, rays.usable_range_m, rays.update)
+    return np.sum(through >= 2, axis=1)
+
+
+@dataclass(frozen=True)
+class _Elements:  # the fields of SegmentMaps that visibility() reads
+    seg: np.ndarray
+    alpha: np.ndarray
+    facing: np.ndarray
+    valid: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -59,8 +113,10 @@ def relocalize(
     facing: np.ndarray,
     step: int,
     cfg: RelocalizationConfig,
+    rays: ScanRays | None = None,
 ) -> Relocalization | None:
-    """Hypotheses clearly better than the current estimate, or None."""
+    """Hypotheses clearly better than the current estimate (and, given the raw scan ``rays``,
+    contradicting the old map no more than it), or None."""
     if step % cfg.every or len(gm) == 0:
         return None
     pose = ps.poses[ps.best()]
@@ -90,6 +146,12 @@ def relocalize(
     if not _unique(hyp, scores, best, pose, current, cfg):
         return None
     hyp, scores = hyp[good], scores[good]
+    if rays is not None:
+        through = through_counts(np.vstack([pose, hyp]), map_ends, gm.alpha[old], map_facing, rays)
+        ok = through[1:] <= through[0] + cfg.max_extra_through
+        if not ok[np.argmax(scores)]:  # the best is refuted: the place is ambiguous, wait
+            return None
+        hyp, scores = hyp[ok], scores[ok]
     keep = cluster_poses(hyp, scores, 0.2, np.radians(3.0))[: cfg.inject]
     return Relocalization(hyp[keep], scores[keep], current)
 
@@ -108,6 +170,34 @@ def _unique(
     far = np.hypot(*(others[:, :2] - hyp[best, :2]).T) > cfg.distinct_radius_m
     rival = float(other_scores[far].max(initial=0.0))
     return scores[best] >= cfg.unique_ratio * rival
+
+
+@dataclass(frozen=True)
+class Pending:
+    """A correction found once, awaiting confirmation: the map-frame transform ``correction (3,)``
+    that takes the estimate then onto the best hypothesis, found at ``step``."""
+
+    correction: np.ndarray
+    step: int
+
+
+def confirm(
+    pending: Pending | None, result: Relocalization, pose: np.ndarray, step: int, cfg: RelocalizationConfig
+) -> tuple[bool, Pending]:
+    """Whether ``result`` (found with the estimate at ``pose (3,)``) may be injected: a small
+    correction at once, a large one only if it repeats the ``pending``
+    correction — a hypothesis of it within ``confirm_m``/``confirm_rad`` of where that correction
+    puts the estimate now — and the new pending correction (this result's best)."""
+    new = Pending(compose(result.poses[0], inverse(pose)), step)
+    jump = relative(pose, result.poses[0])
+    small = np.hypot(jump[0], jump[1]) <= cfg.confirm_beyond_m and abs(jump[2]) <= cfg.confirm_beyond_rad
+    if cfg.confirm_steps <= 0 or small:
+        return True, new
+    if pending is None or step - pending.step > cfg.confirm_steps:
+        return False, new
+    d = relative(compose(pending.correction, pose), result.poses)
+    agree = (np.hypot(d[:, 0], d[:, 1]) <= cfg.confirm_m) & (np.abs(d[:, 2]) <= cfg.confirm_rad)
+    return bool(np.any(agree)), new
 
 
 def inject(ps: ParticleSet, reloc: Relocalization) -> tuple[np.ndarray, np.ndarray]:

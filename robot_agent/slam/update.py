@@ -28,6 +28,7 @@ class UpdateConfig:
     min_incidence_rad: float = np.radians(25.0)  # grazing beams are not evidence
     through_miss: float = 1.0  # misses added when seen through
     unmatched_miss: float = 0.25  # misses added when fully in view and unmatched
+    min_view_beams: int = 8  # "in view" only if the element spans this many beams (and not grazing)
 
 
 def merge_matches(
@@ -100,7 +101,9 @@ def visibility(
 
     Returns ``through (P,C)`` — number of sample points the beams passed through (the element
     should have stopped them) — and ``in_view (P,C)`` — all sample points inside the field of
-    view and range, with the beam ending at the element (it was visible and unoccluded).
+    view and range, seen from the element's free side and not at a grazing angle, with the beam
+    ending at the element (it was visible and unoccluded), the element spanning at least
+    ``cfg.min_view_beams`` beams: a scan that could not have made a segment of it is no miss.
     """
     t = VISIBILITY_SAMPLES[None, None, :, None]
     pts = maps.seg[:, :, None, 0, :] * (1 - t) + maps.seg[:, :, None, 1, :] * t  # (P,C,3,2)
@@ -118,8 +121,16 @@ def visibility(
     steep = cos_inc > np.sin(cfg.min_incidence_rad)
     margin = cfg.through_margin_m + cfg.through_margin_rel * dist
     seen_through = inside & steep & ((measured > dist + margin) | ~has_return) & maps.valid[..., None]
-    ends_here = inside & has_return & (np.abs(measured - dist) <= margin)
-    return seen_through.sum(axis=-1), np.all(ends_here, axis=-1) & maps.valid
+    # the sensor must be on the element's free side: the far face of a thin wall (0.15 m behind
+    # the near face, inside the margin) is not "in view and missed" from the near side
+    front = np.cos(maps.facing)[..., None] * rel[..., 0] + np.sin(maps.facing)[..., None] * rel[..., 1] < 0
+    ends_here = inside & front & steep & has_return & (np.abs(measured - dist) <= margin)
+    # ... and wide enough in the scan that the extraction would have made a segment of it
+    span = np.abs(wrap_angle(bearing[..., 2] - bearing[..., 0])) / (
+        VISIBILITY_SAMPLES[2] - VISIBILITY_SAMPLES[0]
+    )
+    wide = span >= cfg.min_view_beams * abs(da)
+    return seen_through.sum(axis=-1), np.all(ends_here, axis=-1) & wide & maps.valid
 
 
 def apply_misses(

@@ -59,11 +59,7 @@ def restored_from(state) -> FusedMap | None:
 
 
 def both_merged(f: FusedMap | None, min_segments: int = 10) -> bool:
-    return (
-        f is not None
-        and len(f.seg) >= min_segments
-        and sum(r.merged and r.online for r in f.robots) == 2
-    )
+    return f is not None and len(f.seg) >= min_segments and sum(r.merged and r.online for r in f.robots) == 2
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,16 @@ from robot_agent.slam.consensus import GlobalMap
 from robot_agent.slam.extraction import extract_segments
 from robot_agent.slam.lines import fit_lines, moments_of
 from robot_agent.slam.particles import ParticleSet
-from robot_agent.slam.relocalize import Relocalization, RelocalizationConfig, inject, relocalize
+from robot_agent.slam.relocalize import (
+    Pending,
+    Relocalization,
+    RelocalizationConfig,
+    ScanRays,
+    confirm,
+    inject,
+    relocalize,
+    through_counts,
+)
 from shared.geometry import compose, wrap_angle
 from tests.rooms import ANGLES, L_FACING, L_ROOM, TRUE_POSE
 
@@ -159,3 +168,84 @@ def test_no_relocalization_where_places_repeat():
     # the uniqueness test is what refuses it: without it the (right) room would be injected
     loose = RelocalizationConfig(search_radius_m=25.0, unique_ratio=0.0)
     assert relocalize(particles(OFF_POSE), twin_map, segs, facing, STEP, loose) is not None
+
+
+# --- negative evidence and confirmation ------------------------------------------------------
+
+
+def rays_at(pose):
+    """The raw scan from ``pose`` in L_ROOM (laser = robot frame)."""
+    ranges = cast_rays(pose[None, :2], (pose[2] + ANGLES)[None], L_ROOM, 30.0)[0]
+    return ScanRays(ranges, ANGLES, np.zeros(3), 20.0)
+
+
+def element(a, b, facing):
+    seg = np.array([[a, b]], float)
+    d = seg[0, 1] - seg[0, 0]
+    return seg, np.array([np.arctan2(d[0], -d[1])]), np.array([facing])
+
+
+def test_through_counts_the_elements_the_beams_pass_from_each_pose():
+    rays = rays_at(TRUE_POSE)
+    # 0.8 m below the truth, 1.2 m short of the wall there: the true pose's beams cross it
+    seg, alpha, facing = element((2.5, -2.2), (3.5, -2.2), np.pi / 2)
+    np.testing.assert_array_equal(
+        through_counts(np.array([TRUE_POSE, OFF_POSE]), seg, alpha, facing, rays), [1, 0]
+    )
+    # the room's own walls stop the beams: never seen through from the pose the scan was taken at
+    walls = global_map()
+    assert through_counts(TRUE_POSE[None], walls.seg, walls.alpha, walls.facing, rays)[0] == 0
+    assert through_counts(TRUE_POSE[None], seg[:0], alpha[:0], facing[:0], rays).shape == (1,)
+
+
+def test_a_hypothesis_whose_beams_cross_old_walls_is_not_injected():
+    """Old elements in the true pose's free space: the true pose is refuted by the scan (its
+    beams run through 4 of them, the current estimate's through 2 of the room's walls), so
+    nothing is injected; the controls without the rays, or with a looser tolerance, inject it."""
+    segs, facing = scan_at(TRUE_POSE)
+    ghosts = [
+        ((-0.5, 0.0), (0.5, 0.0)),
+        ((2.0, 2.5), (3.0, 2.5)),
+        ((3.0, -2.5), (4.0, -2.5)),
+        ((0.0, -2.5), (1.0, -2.5)),
+    ]
+    gm = global_map(
+        walls=np.concatenate([L_ROOM, np.array(ghosts, float)]),
+        facing=np.concatenate([L_FACING, np.full(len(ghosts), np.pi / 2)]),
+    )
+    rays = rays_at(TRUE_POSE)
+    counts = through_counts(np.array([OFF_POSE, TRUE_POSE]), gm.seg, gm.alpha, gm.facing, rays)
+    np.testing.assert_array_equal(counts, [2, 4])
+    cfg = RelocalizationConfig()  # at most 1 more than the current estimate
+    assert relocalize(particles(OFF_POSE), gm, segs, facing, STEP, cfg, rays) is None
+    assert relocalize(particles(OFF_POSE), gm, segs, facing, STEP, cfg) is not None
+    loose = RelocalizationConfig(max_extra_through=2)
+    res = relocalize(particles(OFF_POSE), gm, segs, facing, STEP, loose, rays)
+    assert res is not None and np.hypot(*(res.poses[0, :2] - TRUE_POSE[:2])) < 0.05
+
+
+def result_at(*poses):
+    poses = np.array(poses, float)
+    return Relocalization(poses, np.full(len(poses), 10.0), 2.0)
+
+
+def test_confirm_small_corrections_at_once_large_ones_when_found_again():
+    cfg = RelocalizationConfig()
+    pose = np.array([1.0, 2.0, 0.3])
+    small = compose(pose, np.array([0.5, 0.3, np.radians(4.0)]))
+    ok, pending = confirm(None, result_at(small), pose, 100, cfg)
+    assert ok and isinstance(pending, Pending) and pending.step == 100
+    # 4.2 m along a corridor: an alias as often as a loop closure, so it waits for a repeat
+    big = compose(pose, np.array([4.2, 0.0, 0.0]))
+    ok, pending = confirm(None, result_at(big), pose, 100, cfg)
+    assert not ok
+    # 5 steps later the robot moved 0.6 m ahead; the same correction is found again: injected
+    moved = compose(pose, np.array([0.6, 0.0, 0.0]))
+    again = compose(pending.correction, moved) + np.array([0.05, -0.05, 0.01])
+    other = compose(moved, np.array([-4.2, 0.0, 0.0]))  # listed too: any agreeing hypothesis counts
+    assert confirm(pending, result_at(other, again), moved, 105, cfg)[0]
+    # a different correction the second time, or the same one too late, is not a confirmation
+    assert not confirm(pending, result_at(other), moved, 105, cfg)[0]
+    assert not confirm(pending, result_at(again), moved, 100 + cfg.confirm_steps + 5, cfg)[0]
+    # confirm_steps=0: every correction at once
+    assert confirm(None, result_at(big), pose, 100, RelocalizationConfig(confirm_steps=0))[0]

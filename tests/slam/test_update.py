@@ -228,6 +228,24 @@ def test_visibility_depends_on_each_particles_laser_pose():
     np.testing.assert_array_equal(through[:, 0], [0, 3])
 
 
+def test_in_view_only_from_the_free_side_not_grazing_and_wide_enough_to_be_extracted():
+    """An element missed while "in view" loses trust; it must really have been in view: the far
+    face of a thin wall (0.15 m behind the seen face, inside the range margin), a wall along the
+    beams at a grazing angle, and an element spanning fewer beams than a segment needs are not."""
+    ranges = scan_of_wall_at(5.0)
+    maps = SegmentMaps.empty(1, 5)
+    put_element(maps, 0, hline(-1, 1, 5.0, 21), DOWN)  # the seen face: in view
+    put_element(maps, 1, hline(-1, 1, 5.15, 21), UP)  # its back face, facing away from the laser
+    put_element(maps, 2, hline(-1, 1, 5.15, 21), DOWN)  # the same place facing the laser: in view
+    put_element(maps, 3, hline(0.0, 0.3, 5.0, 5), DOWN)  # 0.3 m at 5 m: about 3.4 beams of 1°
+    put_element(maps, 4, np.c_[np.full(21, 0.3), np.linspace(4.9, 5.0, 21)], LEFT)  # along the beam
+    _, in_view = visibility(maps, LASER_UP[None], ranges, ANGLES, 20.0, UpdateConfig())
+    np.testing.assert_array_equal(in_view[0], [True, False, True, False, False])
+    # with the span rule off the short element counts
+    _, in_view = visibility(maps, LASER_UP[None], ranges, ANGLES, 20.0, UpdateConfig(min_view_beams=0))
+    np.testing.assert_array_equal(in_view[0], [True, False, True, True, False])
+
+
 def test_apply_misses_counts_strong_and_weak_evidence():
     maps = SegmentMaps.empty(1, 4)
     maps.valid[:] = True
