@@ -104,6 +104,8 @@ class FastSLAM:
         self.global_map: consensus_mod.GlobalMap | None = None
         self.stats = {"resamples": 0, "injections": 0, "relocalizations": 0, "relocalization_candidates": 0}
         self._reloc_pending: reloc_mod.Pending | None = None
+        self._odometer_m = 0.0  # distance driven (odometry), and at the last relocalization
+        self._anchor_m = 0.0
 
     # -- the loop ---------------------------------------------------------------------------
 
@@ -134,6 +136,7 @@ class FastSLAM:
             u = np.zeros(3)
         self.step_index += 1
         k = self.step_index
+        self._odometer_m += float(np.hypot(u[0], u[1]))
 
         # 1. segments, in the robot frame
         segs = extract_segments(ranges_m, angles_rad, cfg.extraction, range_max_m).transformed(laser_offset)
@@ -270,7 +273,8 @@ class FastSLAM:
         gm = self.global_map
         if gm is None or k - gm.step >= self.cfg.consensus.every:  # relocalization needs no consensus step
             gm = self.global_map = consensus_mod.build_global_map(ps, k, self.cfg.trust, self.cfg.consensus)
-        result = reloc_mod.relocalize(ps, gm, segs, facing, k, self.cfg.relocalization, rays)
+        traveled = self._odometer_m - self._anchor_m
+        result = reloc_mod.relocalize(ps, gm, segs, facing, k, self.cfg.relocalization, rays, traveled)
         if result is None:
             return
         self.stats["relocalization_candidates"] += 1
@@ -280,6 +284,7 @@ class FastSLAM:
         if not ok:
             return
         self.stats["relocalizations"] += 1
+        self._anchor_m = self._odometer_m
         targets, sources = reloc_mod.inject(ps, result)
         self.stats["injections"] += len(targets)
         self.trajectory.inherit(targets, sources)

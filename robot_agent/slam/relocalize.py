@@ -26,7 +26,7 @@ from robot_agent.slam.extraction import ScanSegments
 from robot_agent.slam.particles import ParticleSet
 from robot_agent.slam.update import UpdateConfig, visibility
 from shared.geometry import compose, inverse, point_segment_distance, relative
-from shared.matching import MatchingConfig, cluster_poses, overlap_scores, pose_hypotheses
+from shared.matching import MatchingConfig, cluster_poses, overlap_lengths, pose_hypotheses
 
 
 @dataclass(frozen=True)
@@ -40,7 +40,12 @@ class RelocalizationConfig:
     min_old_elements: int = 3  # this many old reliable elements nearby make a loop closure
     min_jump_m: float = 0.15  # closer hypotheses are already covered by the proposal
     min_jump_rad: float = np.radians(2.0)
-    max_jump_m: float = 6.0  # drift between loop closures stays below this
+    max_jump_m: float = 6.0  # drift between loop closures stays below this ...
+    jump_base_m: float = 1.0  # ... and below this plus ...
+    jump_per_m: float = 0.03  # ... this share of the distance driven since the last relocalization
+    # when the estimate itself explains at least anchored_m of the scan with old elements: a
+    # corridor of alike doors offers its whole period as a jump to a robot that is not lost
+    anchored_m: float = 2.0
     max_jump_rad: float = np.radians(30.0)
     min_score_m: float = 4.0  # a hypothesis must explain at least this much scan length ...
     score_gain_m: float = 1.5  # ... and this much more than the current estimate
@@ -104,6 +109,7 @@ class Relocalization:
     poses: np.ndarray  # (H,3) hypotheses to inject, best first
     scores: np.ndarray  # (H,) explained length [m]
     current_score: float
+    lost_m: np.ndarray | None = None  # (H,) scan length the estimate explains and each does not
 
 
 def relocalize(
@@ -114,9 +120,11 @@ def relocalize(
     step: int,
     cfg: RelocalizationConfig,
     rays: ScanRays | None = None,
+    traveled_m: float = np.inf,
 ) -> Relocalization | None:
     """Hypotheses clearly better than the current estimate (and, given the raw scan ``rays``,
-    contradicting the old map no more than it), or None."""
+    contradicting the map no more than it), within the drift possible over ``traveled_m`` driven
+    since the last relocalization; or None."""
     if step % cfg.every or len(gm) == 0:
         return None
     pose = ps.poses[ps.best()]
@@ -135,25 +143,34 @@ def relocalize(
     d = relative(pose, hyp)
     dist, dang = np.hypot(d[:, 0], d[:, 1]), np.abs(d[:, 2])
     far_enough = (dist >= cfg.min_jump_m) | (dang >= cfg.min_jump_rad)
-    plausible = (dist <= cfg.max_jump_m) & (dang <= cfg.max_jump_rad)
     # every hypothesis is scored: implausible ones still count as rivals (aliases)
-    scores = overlap_scores(np.vstack([pose, hyp]), segs.endpoints, facing, map_ends, map_facing, mc)
+    lengths = overlap_lengths(np.vstack([pose, hyp]), segs.endpoints, facing, map_ends, map_facing, mc)
+    scores = lengths.sum(axis=1)
     current, scores = float(scores[0]), scores[1:]
+    max_jump = cfg.max_jump_m
+    if current >= cfg.anchored_m:  # the estimate fits the old map: only drift-sized jumps
+        max_jump = min(max_jump, cfg.jump_base_m + cfg.jump_per_m * traveled_m)
+    plausible = (dist <= max_jump) & (dang <= cfg.max_jump_rad)
+    # what the estimate explains and a hypothesis does not: ~0 after real drift (the estimate
+    # explains no old element), the old elements the estimate does see when it is an alias
+    lost = np.sum(np.maximum(lengths[0] - lengths[1:], 0.0), axis=1)
     good = far_enough & plausible & (scores >= cfg.min_score_m) & (scores >= current + cfg.score_gain_m)
     if not np.any(good):
         return None
     best = int(np.argmax(np.where(good, scores, -np.inf)))
     if not _unique(hyp, scores, best, pose, current, cfg):
         return None
-    hyp, scores = hyp[good], scores[good]
+    hyp, scores, lost = hyp[good], scores[good], lost[good]
     if rays is not None:
-        through = through_counts(np.vstack([pose, hyp]), map_ends, gm.alpha[old], map_facing, rays)
+        # all reliable elements: an alias runs through the young ones the estimate is consistent
+        # with; after real drift the estimate's beams run through old ones as much
+        through = through_counts(np.vstack([pose, hyp]), gm.seg[near], gm.alpha[near], gm.facing[near], rays)
         ok = through[1:] <= through[0] + cfg.max_extra_through
         if not ok[np.argmax(scores)]:  # the best is refuted: the place is ambiguous, wait
             return None
-        hyp, scores = hyp[ok], scores[ok]
+        hyp, scores, lost = hyp[ok], scores[ok], lost[ok]
     keep = cluster_poses(hyp, scores, 0.2, np.radians(3.0))[: cfg.inject]
-    return Relocalization(hyp[keep], scores[keep], current)
+    return Relocalization(hyp[keep], scores[keep], current, lost[keep])
 
 
 def _unique(

@@ -249,3 +249,18 @@ def test_confirm_small_corrections_at_once_large_ones_when_found_again():
     assert not confirm(pending, result_at(again), moved, 100 + cfg.confirm_steps + 5, cfg)[0]
     # confirm_steps=0: every correction at once
     assert confirm(None, result_at(big), pose, 100, RelocalizationConfig(confirm_steps=0))[0]
+
+
+def test_a_robot_that_fits_the_old_map_only_jumps_by_drift_sized_amounts():
+    """The estimate 0.8 m off still explains part of the scan with old elements: the truth is
+    injected only if 0.8 m is drift the distance driven since the last relocalization allows
+    (1 m + 3 % of it); an estimate that explains nothing old may jump up to max_jump_m."""
+    segs, facing = scan_at(TRUE_POSE)
+    cfg = RelocalizationConfig(jump_base_m=0.5, anchored_m=0.0)  # 0.5 m + 3 % of the distance
+    assert relocalize(particles(OFF_POSE), global_map(), segs, facing, STEP, cfg, None, 5.0) is None
+    res = relocalize(particles(OFF_POSE), global_map(), segs, facing, STEP, cfg, None, 15.0)
+    assert res is not None and np.hypot(*(res.poses[0, :2] - TRUE_POSE[:2])) < 0.05
+    # anchored only when the estimate explains anchored_m of old elements
+    current = res.current_score
+    lost = RelocalizationConfig(jump_base_m=0.5, anchored_m=current + 0.5)
+    assert relocalize(particles(OFF_POSE), global_map(), segs, facing, STEP, lost, None, 5.0) is not None
