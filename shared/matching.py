@@ -114,25 +114,13 @@ def overlap_scores(
     on (offset ≤ ``score_perp_m``, facing within ``score_angle_rad``); the best map segment per
     observed segment counts once.
     """
-    return overlap_lengths(poses, obs_ends, obs_facing, map_ends, map_facing, cfg).sum(axis=1)
-
-
-def overlap_lengths(
-    poses: np.ndarray,
-    obs_ends: np.ndarray,
-    obs_facing: np.ndarray,
-    map_ends: np.ndarray,
-    map_facing: np.ndarray,
-    cfg: MatchingConfig,
-) -> np.ndarray:
-    """Per pose and observed segment ``(H,O)``: the length [m] of :func:`overlap_scores`."""
     if len(poses) == 0 or len(obs_ends) == 0 or len(map_ends) == 0:
-        return np.zeros((len(poses), len(obs_ends)))
+        return np.zeros(len(poses))
     chunk = max(1, SCORE_CHUNK_ELEMENTS // (len(obs_ends) * len(map_ends)))
     if len(poses) > chunk:
         return np.concatenate(
             [
-                overlap_lengths(poses[s : s + chunk], obs_ends, obs_facing, map_ends, map_facing, cfg)
+                overlap_scores(poses[s : s + chunk], obs_ends, obs_facing, map_ends, map_facing, cfg)
                 for s in range(0, len(poses), chunk)
             ]
         )
@@ -151,7 +139,7 @@ def overlap_lengths(
     dang = np.abs(wrap_angle(facing[:, :, None] - map_facing[None, None, :]))
     ok = (np.max(np.abs(perp), axis=-1) <= cfg.score_perp_m) & (dang <= cfg.score_angle_rad)
     ok &= overlap > cfg.score_overlap_m
-    return np.max(np.where(ok, overlap, 0.0), axis=2)
+    return np.sum(np.max(np.where(ok, overlap, 0.0), axis=2), axis=1)
 
 
 def cluster_poses(

@@ -26,7 +26,7 @@ from robot_agent.slam.extraction import ScanSegments
 from robot_agent.slam.particles import ParticleSet
 from robot_agent.slam.update import UpdateConfig, visibility
 from shared.geometry import compose, inverse, point_segment_distance, relative
-from shared.matching import MatchingConfig, cluster_poses, overlap_lengths, pose_hypotheses
+from shared.matching import MatchingConfig, cluster_poses, overlap_scores, pose_hypotheses
 
 
 @dataclass(frozen=True)
@@ -109,7 +109,6 @@ class Relocalization:
     poses: np.ndarray  # (H,3) hypotheses to inject, best first
     scores: np.ndarray  # (H,) explained length [m]
     current_score: float
-    lost_m: np.ndarray | None = None  # (H,) scan length the estimate explains and each does not
 
 
 def relocalize(
@@ -144,23 +143,19 @@ def relocalize(
     dist, dang = np.hypot(d[:, 0], d[:, 1]), np.abs(d[:, 2])
     far_enough = (dist >= cfg.min_jump_m) | (dang >= cfg.min_jump_rad)
     # every hypothesis is scored: implausible ones still count as rivals (aliases)
-    lengths = overlap_lengths(np.vstack([pose, hyp]), segs.endpoints, facing, map_ends, map_facing, mc)
-    scores = lengths.sum(axis=1)
+    scores = overlap_scores(np.vstack([pose, hyp]), segs.endpoints, facing, map_ends, map_facing, mc)
     current, scores = float(scores[0]), scores[1:]
     max_jump = cfg.max_jump_m
     if current >= cfg.anchored_m:  # the estimate fits the old map: only drift-sized jumps
         max_jump = min(max_jump, cfg.jump_base_m + cfg.jump_per_m * traveled_m)
     plausible = (dist <= max_jump) & (dang <= cfg.max_jump_rad)
-    # what the estimate explains and a hypothesis does not: ~0 after real drift (the estimate
-    # explains no old element), the old elements the estimate does see when it is an alias
-    lost = np.sum(np.maximum(lengths[0] - lengths[1:], 0.0), axis=1)
     good = far_enough & plausible & (scores >= cfg.min_score_m) & (scores >= current + cfg.score_gain_m)
     if not np.any(good):
         return None
     best = int(np.argmax(np.where(good, scores, -np.inf)))
     if not _unique(hyp, scores, best, pose, current, cfg):
         return None
-    hyp, scores, lost = hyp[good], scores[good], lost[good]
+    hyp, scores = hyp[good], scores[good]
     if rays is not None:
         # all reliable elements: an alias runs through the young ones the estimate is consistent
         # with; after real drift the estimate's beams run through old ones as much
@@ -168,9 +163,9 @@ def relocalize(
         ok = through[1:] <= through[0] + cfg.max_extra_through
         if not ok[np.argmax(scores)]:  # the best is refuted: the place is ambiguous, wait
             return None
-        hyp, scores, lost = hyp[ok], scores[ok], lost[ok]
+        hyp, scores = hyp[ok], scores[ok]
     keep = cluster_poses(hyp, scores, 0.2, np.radians(3.0))[: cfg.inject]
-    return Relocalization(hyp[keep], scores[keep], current, lost[keep])
+    return Relocalization(hyp[keep], scores[keep], current)
 
 
 def _unique(
