@@ -65,14 +65,19 @@ def replay(
             _step(slam, log, i)
     stamps, poses = slam.best_trajectory()
     t1 = time.perf_counter()
-    corrected, stats = correct_trajectory(log, 0, stamps, poses, cfg)
+    corrected, stats = correct_trajectory(log, 0, stamps, poses, cfg, slam.loop_hints)
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
     return ReplayResult(stamps, corrected, slam, wall, peak, poses, time.perf_counter() - t1, stats)
 
 
 def correct_trajectory(
-    log: LaserLog, first: int, stamps: np.ndarray, poses: np.ndarray, cfg: SlamConfig
+    log: LaserLog,
+    first: int,
+    stamps: np.ndarray,
+    poses: np.ndarray,
+    cfg: SlamConfig,
+    hints: list[tuple[int, np.ndarray]] | None = None,
 ) -> tuple[np.ndarray, dict | None]:
     """The back end (pose graph) over ``poses (S,3)``, the trajectory of scans ``first ..
     first + S - 1`` of ``log``: the corrected poses and the back end's statistics (``poses`` and
@@ -85,7 +90,7 @@ def correct_trajectory(
         return apply_points(log.laser_offset, xy)
 
     odometry = log.odometry[first : first + len(poses)]
-    corrected, stats = run_backend(stamps, poses, odometry, points, cfg.backend)
+    corrected, stats = run_backend(stamps, poses, odometry, points, cfg.backend, hints)
     # the pose graph holds the first pose fixed, an arbitrary gauge: the map (built along the
     # filter's trajectory) is in the frame that fits the filter's trajectory best, so that is where
     # the corrected trajectory is put (relative motions, what relations score, are unchanged)

@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
             from robot_agent.replay import correct_trajectory
 
             write_poses(out / f"{args.robot}.filter.poses.txt", stamps, poses)
-            poses, backend = correct_trajectory(laser_log, args.first, stamps, poses, cfg)
+            poses, backend = correct_trajectory(laser_log, args.first, stamps, poses, cfg, slam.loop_hints)
         write_poses(out / f"{args.robot}.poses.txt", stamps, poses)
         write_tum(out / f"{args.robot}.tum", stamps, poses)
         if sim is not None:

@@ -274,6 +274,39 @@ def find_loops(
     return loops
 
 
+def hinted_loops(
+    kf_stamps: np.ndarray,
+    kf_poses: np.ndarray,
+    kf_points: list[np.ndarray],
+    owner: np.ndarray,
+    poses: np.ndarray,
+    hints: list[tuple[int, np.ndarray]],
+    cfg: BackendConfig,
+    stats: dict,
+) -> list[Loop]:
+    """Verified loops at the filter's relocalizations: ``hints`` are ``(scan i, pose (3,))`` —
+    where the filter found scan ``i`` to be among old elements, ``poses[i]`` being where its path
+    says it was (``owner (S,)``: each scan's keyframe). The search starts from the hinted pose:
+    the drift a relocalization bridges is larger than the window around the path."""
+    loops: list[Loop] = []
+    for i, pose in hints:
+        new = int(owner[i])
+        est = kf_poses.copy()
+        est[new] = compose(pose, relative(poses[i], kf_poses[new]))
+        old_ok = (kf_stamps <= kf_stamps[new] - cfg.min_gap_s) & (
+            np.arange(len(kf_poses)) <= new - cfg.min_gap_keyframes
+        )
+        d = np.hypot(*(est[:, :2] - est[new, :2]).T)
+        cand = np.flatnonzero(old_ok & (d < cfg.candidate_radius_m))
+        for old in cand[np.argsort(d[cand])][: cfg.candidates]:
+            loop = match_loop(kf_poses, kf_points, int(old), new, cfg, stats, est)
+            if loop is not None:
+                loops.append(loop)
+                break
+    stats["loops_hinted"] = len(loops)
+    return loops
+
+
 def optimize(
     kf_poses: np.ndarray, loops: list[Loop], cfg: BackendConfig, stats: dict, jump_edges: dict | None = None
 ) -> np.ndarray:
@@ -333,10 +366,12 @@ def run_backend(
     odometry: np.ndarray,
     scan_points_robot: Callable[[int], np.ndarray],
     cfg: BackendConfig,
+    hints: list[tuple[int, np.ndarray]] | None = None,
 ) -> tuple[np.ndarray, dict]:
     """The corrected trajectory ``(S,3)`` and statistics, offline over the whole trajectory.
     ``odometry (S,3)``: the raw odometry of every scan; ``scan_points_robot(i)``: scan ``i``'s
-    points in the robot frame (asked for keyframes only)."""
+    points in the robot frame (asked for keyframes only); ``hints``: the filter's relocalizations
+    (:func:`hinted_loops`)."""
     jumps = find_jumps(poses, odometry, cfg)
     kf = select_keyframes(poses, cfg, jumps)
     jump_edges = {}
@@ -346,7 +381,8 @@ def run_backend(
     kf_poses = poses[kf]
     kf_points = [voxel_thin(scan_points_robot(int(i)), cfg.voxel_m) for i in kf]
     stats: dict = {"keyframes": len(kf), "jumps": len(jump_edges)}
-    loops: list[Loop] = []
+    owner = np.searchsorted(kf, np.arange(len(poses)), side="right") - 1
+    loops = hinted_loops(stamps_s[kf], kf_poses, kf_points, owner, poses, hints or [], cfg, stats)
     new = kf_poses
     skip: set = set()
     for p in range(cfg.passes):  # later passes search from the corrected path: drift the first

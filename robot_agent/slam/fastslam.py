@@ -106,6 +106,9 @@ class FastSLAM:
         self._reloc_pending: reloc_mod.Pending | None = None
         self._odometer_m = 0.0  # distance driven (odometry), and at the last relocalization
         self._anchor_m = 0.0
+        # (scan index, pose (3,)): where each confirmed relocalization put the robot, for the
+        # back end — its loop search window is too small for the drift a relocalization bridges
+        self.loop_hints: list[tuple[int, np.ndarray]] = []
 
     # -- the loop ---------------------------------------------------------------------------
 
@@ -285,6 +288,7 @@ class FastSLAM:
             return
         self.stats["relocalizations"] += 1
         self._anchor_m = self._odometer_m
+        self.loop_hints.append((len(self.trajectory) - 1, result.poses[0].copy()))
         targets, sources = reloc_mod.inject(ps, result)
         self.stats["injections"] += len(targets)
         self.trajectory.inherit(targets, sources)

@@ -122,3 +122,24 @@ def test_a_jump_without_loops_is_bridged_by_odometry():
     out, stats = be.run_backend(np.arange(50.0), poses, odo, points, be.BackendConfig())
     assert stats["jumps"] == 1 and stats["loops"] == 0
     np.testing.assert_allclose(relative(out[29], out[30]), relative(odo[29], odo[30]), atol=1e-6)
+
+
+def test_a_relocalization_hint_finds_a_loop_beyond_the_search_window():
+    rng = np.random.default_rng(2)
+    true = np.array([[1.0, 1.0, 0.1], [2.5, 1.5, 2.0]])
+    path = true.copy()
+    path[1] = compose(true[1], np.array([1.5, -1.2, np.radians(12.0)]))  # drifted far beyond the window
+    points = [_room_points(p, rng, ROOM) for p in true]
+    cfg = be.BackendConfig(cloud_neighbours=0, query_neighbours=0, min_gap_keyframes=1)
+    z_true = relative(true[0], true[1])
+    stamps = np.array([0.0, 100.0])
+    plain = be.match_loop(path, points, 0, 1, cfg, {})
+    assert plain is None or np.hypot(*(plain.z[:2] - z_true[:2])) > 0.5  # the window misses it
+    hint = compose(true[1], np.array([0.1, -0.05, np.radians(1.5)]))  # the filter's hypothesis
+    stats: dict = {}
+    loops = be.hinted_loops(stamps, path, points, np.array([0, 1]), path, [(1, hint)], cfg, stats)
+    assert stats["loops_hinted"] == 1 and (loops[0].old, loops[0].new) == (0, 1)
+    assert np.hypot(*(loops[0].z[:2] - z_true[:2])) < 0.02
+    assert abs(loops[0].z[2] - z_true[2]) < np.radians(0.5)
+    wrong = compose(true[1], np.array([0.0, 1.5, 0.0]))  # a hint the scans do not support
+    assert be.hinted_loops(stamps, path, points, np.array([0, 1]), path, [(1, wrong)], cfg, {}) == []
