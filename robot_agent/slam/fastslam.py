@@ -289,7 +289,11 @@ class FastSLAM:
         self.stats["relocalizations"] += 1
         self._anchor_m = self._odometer_m
         self.loop_hints.append((len(self.trajectory) - 1, result.poses[0].copy()))
-        targets, sources = reloc_mod.inject(ps, result)
+        # after a large correction the recent part of the map was drawn with the drift: it moves
+        # with the injected particles (a small one is within what the proposal absorbs)
+        large = reloc_mod.is_large(result, ps.poses[ps.best()], self.cfg.relocalization)
+        young_since = k - self.cfg.relocalization.old_age_steps + 1 if large else None
+        targets, sources = reloc_mod.inject(ps, result, young_since)
         self.stats["injections"] += len(targets)
         self.trajectory.inherit(targets, sources)
 

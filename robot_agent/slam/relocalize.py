@@ -25,7 +25,8 @@ from robot_agent.slam.consensus import GlobalMap
 from robot_agent.slam.extraction import ScanSegments
 from robot_agent.slam.particles import ParticleSet
 from robot_agent.slam.update import UpdateConfig, visibility
-from shared.geometry import compose, inverse, point_segment_distance, relative
+from robot_agent.slam.lines import transform_lines, transform_moments
+from shared.geometry import apply_segments, compose, inverse, point_segment_distance, relative, wrap_angle
 from shared.matching import MatchingConfig, cluster_poses, overlap_scores, pose_hypotheses
 
 
@@ -184,6 +185,17 @@ def _unique(
     return scores[best] >= cfg.unique_ratio * rival
 
 
+def _move_young(maps, p: int, correction: np.ndarray, young_since: int) -> None:
+    """Particle ``p``'s elements born at or after ``young_since`` mapped by ``correction (3,)``."""
+    cols = np.flatnonzero(maps.valid[p] & (maps.born[p] >= young_since))
+    if len(cols) == 0:
+        return
+    maps.seg[p, cols] = apply_segments(correction, maps.seg[p, cols])
+    maps.moments[p, cols] = transform_moments(correction, maps.moments[p, cols])
+    maps.alpha[p, cols], maps.rho[p, cols], _ = transform_lines(correction, maps.alpha[p, cols], maps.rho[p, cols])
+    maps.facing[p, cols] = wrap_angle(maps.facing[p, cols] + correction[2])
+
+
 @dataclass(frozen=True)
 class Pending:
     """A correction found once, awaiting confirmation: the map-frame transform ``correction (3,)``
@@ -191,6 +203,12 @@ class Pending:
 
     correction: np.ndarray
     step: int
+
+
+def is_large(result: Relocalization, pose: np.ndarray, cfg: RelocalizationConfig) -> bool:
+    """The best hypothesis is a large correction of ``pose (3,)`` (beyond confirm_beyond_m / _rad)."""
+    jump = relative(pose, result.poses[0])
+    return bool(np.hypot(jump[0], jump[1]) > cfg.confirm_beyond_m or abs(jump[2]) > cfg.confirm_beyond_rad)
 
 
 def confirm(
@@ -201,9 +219,7 @@ def confirm(
     correction — a hypothesis of it within ``confirm_m``/``confirm_rad`` of where that correction
     puts the estimate now — and the new pending correction (this result's best)."""
     new = Pending(compose(result.poses[0], inverse(pose)), step)
-    jump = relative(pose, result.poses[0])
-    small = np.hypot(jump[0], jump[1]) <= cfg.confirm_beyond_m and abs(jump[2]) <= cfg.confirm_beyond_rad
-    if cfg.confirm_steps <= 0 or small:
+    if cfg.confirm_steps <= 0 or not is_large(result, pose, cfg):
         return True, new
     if pending is None or step - pending.step > cfg.confirm_steps:
         return False, new
@@ -212,9 +228,14 @@ def confirm(
     return bool(np.any(agree)), new
 
 
-def inject(ps: ParticleSet, reloc: Relocalization) -> tuple[np.ndarray, np.ndarray]:
+def inject(
+    ps: ParticleSet, reloc: Relocalization, young_since: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Replace the weakest particles by the hypotheses, with the best particle's map and an
-    even weight. Returns ``(targets, sources)`` particle indices."""
+    even weight. Elements born at or after step ``young_since`` were mapped from the drifted
+    estimate: in each injected map they move with the pose (the correction that takes the best
+    particle's pose onto the hypothesis), as a loop closure moves the recent part of a map.
+    Returns ``(targets, sources)`` particle indices."""
     best = ps.best()
     order = np.argsort(ps.log_weights)
     targets = order[order != best][: len(reloc.poses)]
@@ -224,6 +245,9 @@ def inject(ps: ParticleSet, reloc: Relocalization) -> tuple[np.ndarray, np.ndarr
     ps.slip[targets] = src.slip
     for k, v in ps.maps.arrays().items():
         v[targets] = getattr(src.maps, k)
+    if young_since is not None:
+        for t in targets:
+            _move_young(ps.maps, int(t), compose(ps.poses[t], inverse(ps.poses[best])), young_since)
     ps.log_weights[targets] = ps.log_weights[best]
     ps.normalize()
     return targets, sources

@@ -18,7 +18,7 @@ from robot_agent.slam.relocalize import (
     relocalize,
     through_counts,
 )
-from shared.geometry import compose, wrap_angle
+from shared.geometry import apply_points, compose, inverse, wrap_angle
 from tests.rooms import ANGLES, L_FACING, L_ROOM, TRUE_POSE
 
 STEP = 300  # a multiple of RelocalizationConfig.every
@@ -264,3 +264,39 @@ def test_a_robot_that_fits_the_old_map_only_jumps_by_drift_sized_amounts():
     current = res.current_score
     lost = RelocalizationConfig(jump_base_m=0.5, anchored_m=current + 0.5)
     assert relocalize(particles(OFF_POSE), global_map(), segs, facing, STEP, lost, None, 5.0) is not None
+
+
+def test_inject_after_a_large_correction_moves_the_young_part_of_the_map_with_the_pose():
+    ps = ParticleSet.create(2)
+    ps.log_weights = np.log([0.9, 0.1])
+    drifted = np.array([2.0, 1.0, 0.3])
+    ps.poses[:] = [drifted, drifted]
+    walls = np.array([[[0.0, 0.0], [4.0, 0.0]], [[3.0, 1.0], [3.0, 3.0]]])  # old, then young
+    for p in range(2):
+        for c, (a, b) in enumerate(walls):
+            ps.maps.valid[p, c] = True
+            ps.maps.seg[p, c] = [a, b]
+            ps.maps.moments[p, c] = moments_of(np.linspace(a, b, 21))
+            ps.maps.born[p, c] = [10, 250][c]
+            ps.maps.facing[p, c] = [np.pi / 2, np.pi][c]
+        ps.maps.alpha[p, :2], ps.maps.rho[p, :2], _ = fit_lines(ps.maps.moments[p, :2])
+    before = ps.maps.take(np.arange(2))
+    truth = np.array([1.0, 2.5, 0.1])  # the hypothesis: 1.8 m and 11 degrees away
+    targets, _ = inject(ps, Relocalization(truth[None], np.array([9.0]), 1.0), young_since=200)
+    assert targets.tolist() == [1]
+    correction = compose(truth, inverse(drifted))
+    maps = ps.maps
+    # the injected particle: the old wall stays, the young one moved exactly with the pose
+    np.testing.assert_allclose(maps.seg[1, 0], walls[0])
+    np.testing.assert_allclose(maps.seg[1, 1], apply_points(correction, walls[1]), atol=1e-12)
+    np.testing.assert_allclose(maps.moments[1, 1], moments_of(apply_points(correction, np.linspace(*walls[1], 21))))
+    alpha, rho, _ = fit_lines(maps.moments[1, :2])
+    np.testing.assert_allclose(wrap_angle(maps.alpha[1, :2] - alpha), 0.0, atol=1e-9)
+    np.testing.assert_allclose(maps.rho[1, :2], rho, atol=1e-9)
+    assert maps.facing[1, 1] == pytest.approx(wrap_angle(np.pi + correction[2]))
+    # the young wall keeps its place relative to the robot; the best particle's map is untouched
+    np.testing.assert_allclose(
+        apply_points(inverse(truth), maps.seg[1, 1]), apply_points(inverse(drifted), walls[1]), atol=1e-12
+    )
+    for k, v in maps.arrays().items():
+        np.testing.assert_array_equal(v[0], before.arrays()[k][0], err_msg=k)
