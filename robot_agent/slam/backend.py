@@ -9,7 +9,9 @@ back end takes that trajectory as the odometry of a pose graph and adds loop edg
 3. loop edges: a keyframe's points (with its recent neighbours) matched against the local
    cloud of an old keyframe nearby (its neighbours in time, locally consistent) by correlative
    search over a likelihood field (Olson 2009), refined by ICP; kept only when verified (enough
-   overlap, no rival peak — the check of map_server/alignment.py);
+   overlap, no rival peak — the check of map_server/alignment.py); the filter's confirmed
+   relocalizations are tried first, the search starting where they put the robot (a drift
+   beyond the search window, which the filter bridged but could not keep, is still closed);
 4. sparse Gauss-Newton with a robust kernel on the loop edges (posegraph.py); loop edges that
    still disagree after it are dropped and the graph solved again;
 5. every scan follows its keyframe rigidly.

@@ -7,7 +7,11 @@ from the latest scan's segments against the reliable elements near the estimate 
 non-parallel segments: corners and near-corners, shared/matching.py), scored by how much of the
 scan they explain, and the best few that explain clearly more than the current estimate are
 injected as particles (report: "in practice, one each"), replacing the weakest ones. They carry
-the best particle's map and get an even chance: later scans keep them or kill them.
+the best particle's map and get an even chance: later scans keep them or kill them. After a
+large correction (one that had to be found twice) the young elements of that map — mapped from
+the drifted estimate — move with the pose in the injected copies; left where they were, they
+fitted the drifted particles better than the old map fitted the right ones, and every injection
+died while the drift stayed.
 
 A hypothesis must also not contradict the map: the scan's beams, cast from it, may pass through
 no more of those old reliable elements than from the current estimate. In a repetitive building
@@ -23,9 +27,9 @@ import numpy as np
 
 from robot_agent.slam.consensus import GlobalMap
 from robot_agent.slam.extraction import ScanSegments
+from robot_agent.slam.lines import transform_lines, transform_moments
 from robot_agent.slam.particles import ParticleSet
 from robot_agent.slam.update import UpdateConfig, visibility
-from robot_agent.slam.lines import transform_lines, transform_moments
 from shared.geometry import apply_segments, compose, inverse, point_segment_distance, relative, wrap_angle
 from shared.matching import MatchingConfig, cluster_poses, overlap_scores, pose_hypotheses
 
@@ -192,7 +196,9 @@ def _move_young(maps, p: int, correction: np.ndarray, young_since: int) -> None:
         return
     maps.seg[p, cols] = apply_segments(correction, maps.seg[p, cols])
     maps.moments[p, cols] = transform_moments(correction, maps.moments[p, cols])
-    maps.alpha[p, cols], maps.rho[p, cols], _ = transform_lines(correction, maps.alpha[p, cols], maps.rho[p, cols])
+    maps.alpha[p, cols], maps.rho[p, cols], _ = transform_lines(
+        correction, maps.alpha[p, cols], maps.rho[p, cols]
+    )
     maps.facing[p, cols] = wrap_angle(maps.facing[p, cols] + correction[2])
 
 

@@ -88,7 +88,9 @@ def test_the_back_ends_gauge_is_the_filters(intel_head, default_run, monkeypatch
     res, _ = default_run
     moved = np.array([3.0, -2.0, 0.7])
     monkeypatch.setattr(
-        replay_mod, "run_backend", lambda s, p, o, pts, c, h=None: (compose(np.broadcast_to(moved, p.shape), p), {})
+        replay_mod,
+        "run_backend",
+        lambda s, p, o, pts, c, h=None: (compose(np.broadcast_to(moved, p.shape), p), {}),
     )
     out, _ = replay_mod.correct_trajectory(log, 0, res.stamps_s, res.filter_poses, SlamConfig())
     np.testing.assert_allclose(out[:, :2], res.filter_poses[:, :2], atol=1e-6)

@@ -289,7 +289,9 @@ def test_inject_after_a_large_correction_moves_the_young_part_of_the_map_with_th
     # the injected particle: the old wall stays, the young one moved exactly with the pose
     np.testing.assert_allclose(maps.seg[1, 0], walls[0])
     np.testing.assert_allclose(maps.seg[1, 1], apply_points(correction, walls[1]), atol=1e-12)
-    np.testing.assert_allclose(maps.moments[1, 1], moments_of(apply_points(correction, np.linspace(*walls[1], 21))))
+    np.testing.assert_allclose(
+        maps.moments[1, 1], moments_of(apply_points(correction, np.linspace(*walls[1], 21)))
+    )
     alpha, rho, _ = fit_lines(maps.moments[1, :2])
     np.testing.assert_allclose(wrap_angle(maps.alpha[1, :2] - alpha), 0.0, atol=1e-9)
     np.testing.assert_allclose(maps.rho[1, :2], rho, atol=1e-9)
