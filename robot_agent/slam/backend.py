@@ -236,6 +236,19 @@ def match_loop(
     return Loop(old, new, z, best, rival / best, share)
 
 
+def near_old_keyframes(
+    kf_stamps: np.ndarray, est: np.ndarray, new: int, cfg: BackendConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Loop candidates for keyframe ``new``: the keyframes old enough (min_gap_s and
+    min_gap_keyframes back) within candidate_radius_m of it in ``est (K,3)``; and the distances
+    ``(K,)`` of every keyframe to it there."""
+    old_ok = (kf_stamps <= kf_stamps[new] - cfg.min_gap_s) & (
+        np.arange(len(est)) <= new - cfg.min_gap_keyframes
+    )
+    d = np.hypot(*(est[:, :2] - est[new, :2]).T)
+    return np.flatnonzero(old_ok & (d < cfg.candidate_radius_m)), d
+
+
 def find_loops(
     kf_stamps: np.ndarray,
     kf_poses: np.ndarray,
@@ -252,13 +265,7 @@ def find_loops(
     for new in range(0, len(kf_poses), cfg.check_every):
         if skip is not None and new in skip:
             continue
-        old_ok = (kf_stamps <= kf_stamps[new] - cfg.min_gap_s) & (
-            np.arange(len(kf_poses)) <= new - cfg.min_gap_keyframes
-        )
-        if not old_ok.any():
-            continue
-        d = np.hypot(*(est[:, :2] - est[new, :2]).T)
-        cand = np.flatnonzero(old_ok & (d < cfg.candidate_radius_m))
+        cand, d = near_old_keyframes(kf_stamps, est, new, cfg)
         if len(cand) == 0:
             continue
         dth = np.abs(wrap_angle(est[cand, 2] - est[new, 2]))
@@ -280,7 +287,7 @@ def hinted_loops(
     kf_stamps: np.ndarray,
     kf_poses: np.ndarray,
     kf_points: list[np.ndarray],
-    owner: np.ndarray,
+    kf: np.ndarray,
     poses: np.ndarray,
     hints: list[tuple[int, np.ndarray]],
     cfg: BackendConfig,
@@ -288,18 +295,14 @@ def hinted_loops(
 ) -> list[Loop]:
     """Verified loops at the filter's relocalizations: ``hints`` are ``(scan i, pose (3,))`` —
     where the filter found scan ``i`` to be among old elements, ``poses[i]`` being where its path
-    says it was (``owner (S,)``: each scan's keyframe). The search starts from the hinted pose:
-    the drift a relocalization bridges is larger than the window around the path."""
+    says it was (``kf (K,)``: the keyframes' scan indices). The search starts from the hinted
+    pose: the drift a relocalization bridges is larger than the window around the path."""
     loops: list[Loop] = []
     for i, pose in hints:
-        new = int(owner[i])
+        new = int(np.searchsorted(kf, i, side="right")) - 1  # the keyframe scan i hangs from
         est = kf_poses.copy()
         est[new] = compose(pose, relative(poses[i], kf_poses[new]))
-        old_ok = (kf_stamps <= kf_stamps[new] - cfg.min_gap_s) & (
-            np.arange(len(kf_poses)) <= new - cfg.min_gap_keyframes
-        )
-        d = np.hypot(*(est[:, :2] - est[new, :2]).T)
-        cand = np.flatnonzero(old_ok & (d < cfg.candidate_radius_m))
+        cand, d = near_old_keyframes(kf_stamps, est, new, cfg)
         for old in cand[np.argsort(d[cand])][: cfg.candidates]:
             loop = match_loop(kf_poses, kf_points, int(old), new, cfg, stats, est)
             if loop is not None:
@@ -383,8 +386,7 @@ def run_backend(
     kf_poses = poses[kf]
     kf_points = [voxel_thin(scan_points_robot(int(i)), cfg.voxel_m) for i in kf]
     stats: dict = {"keyframes": len(kf), "jumps": len(jump_edges)}
-    owner = np.searchsorted(kf, np.arange(len(poses)), side="right") - 1
-    loops = hinted_loops(stamps_s[kf], kf_poses, kf_points, owner, poses, hints or [], cfg, stats)
+    loops = hinted_loops(stamps_s[kf], kf_poses, kf_points, kf, poses, hints or [], cfg, stats)
     new = kf_poses
     skip: set = set()
     for p in range(cfg.passes):  # later passes search from the corrected path: drift the first

@@ -28,7 +28,7 @@ import numpy as np
 from robot_agent.slam.consensus import GlobalMap
 from robot_agent.slam.extraction import ScanSegments
 from robot_agent.slam.lines import transform_lines, transform_moments
-from robot_agent.slam.particles import ParticleSet
+from robot_agent.slam.particles import ParticleSet, SegmentMaps
 from robot_agent.slam.update import UpdateConfig, visibility
 from shared.geometry import apply_segments, compose, inverse, point_segment_distance, relative, wrap_angle
 from shared.matching import MatchingConfig, cluster_poses, overlap_scores, pose_hypotheses
@@ -189,17 +189,23 @@ def _unique(
     return scores[best] >= cfg.unique_ratio * rival
 
 
-def _move_young(maps, p: int, correction: np.ndarray, young_since: int) -> None:
-    """Particle ``p``'s elements born at or after ``young_since`` mapped by ``correction (3,)``."""
-    cols = np.flatnonzero(maps.valid[p] & (maps.born[p] >= young_since))
-    if len(cols) == 0:
-        return
-    maps.seg[p, cols] = apply_segments(correction, maps.seg[p, cols])
-    maps.moments[p, cols] = transform_moments(correction, maps.moments[p, cols])
-    maps.alpha[p, cols], maps.rho[p, cols], _ = transform_lines(
-        correction, maps.alpha[p, cols], maps.rho[p, cols]
-    )
-    maps.facing[p, cols] = wrap_angle(maps.facing[p, cols] + correction[2])
+def _move_young(maps: SegmentMaps, rows: np.ndarray, corrections: np.ndarray, young_since: int) -> None:
+    """In particles ``rows (T,)``, the elements born at or after ``young_since`` mapped by the
+    particle's ``corrections (T,3)``."""
+    young = maps.valid[rows] & (maps.born[rows] >= young_since)  # (T,M)
+    c = corrections[:, None, :]
+    alpha, rho, _ = transform_lines(c, maps.alpha[rows], maps.rho[rows])
+    moved = {
+        "seg": apply_segments(corrections, maps.seg[rows]),
+        "moments": transform_moments(c, maps.moments[rows]),
+        "alpha": alpha,
+        "rho": rho,
+        "facing": wrap_angle(maps.facing[rows] + c[..., 2]),
+    }
+    for name, value in moved.items():
+        old = getattr(maps, name)
+        mask = young.reshape(young.shape + (1,) * (value.ndim - 2))
+        old[rows] = np.where(mask, value, old[rows])
 
 
 @dataclass(frozen=True)
@@ -252,8 +258,7 @@ def inject(
     for k, v in ps.maps.arrays().items():
         v[targets] = getattr(src.maps, k)
     if young_since is not None:
-        for t in targets:
-            _move_young(ps.maps, int(t), compose(ps.poses[t], inverse(ps.poses[best])), young_since)
+        _move_young(ps.maps, targets, compose(ps.poses[targets], inverse(ps.poses[best])), young_since)
     ps.log_weights[targets] = ps.log_weights[best]
     ps.normalize()
     return targets, sources
