@@ -281,8 +281,9 @@ class FastSLAM:
         if result is None:
             return
         self.stats["relocalization_candidates"] += 1
+        estimate = ps.poses[ps.best()]
         ok, self._reloc_pending = reloc_mod.confirm(
-            self._reloc_pending, result, ps.poses[ps.best()], k, self.cfg.relocalization
+            self._reloc_pending, result, estimate, k, self.cfg.relocalization
         )
         if not ok:
             return
@@ -291,7 +292,7 @@ class FastSLAM:
         self.loop_hints.append((len(self.trajectory) - 1, result.poses[0].copy()))
         # after a large correction the recent part of the map was drawn with the drift: it moves
         # with the injected particles (a small one is within what the proposal absorbs)
-        large = reloc_mod.is_large(result, ps.poses[ps.best()], self.cfg.relocalization)
+        large = reloc_mod.is_large(result, estimate, self.cfg.relocalization)
         young_since = k - self.cfg.relocalization.old_age_steps + 1 if large else None
         targets, sources = reloc_mod.inject(ps, result, young_since)
         self.stats["injections"] += len(targets)
