@@ -37,7 +37,7 @@ import numpy as np
 from map_server import candidates as cand
 from map_server.candidates import Scored
 from map_server.registration import MapIndex, Samples, refine
-from shared.geometry import segment_lengths, transform_points, wrap_angle
+from shared.geometry import compose, segment_lengths, transform_points, wrap_angle
 from shared.matching import MatchingConfig
 from shared.messages import ALIGNMENT_STATUSES
 
@@ -262,3 +262,38 @@ def _from_prior(
         return kept("; ".join(problems))
     why = f"prior refined: overlap {s.matched_m:.1f} m, moved {maha:.1f} sigma"
     return _verdict("prior", s, total, 0.0, why)
+
+
+def prior_gauge(
+    transforms: np.ndarray, priors: np.ndarray, sigmas: np.ndarray, iterations: int = 4
+) -> np.ndarray:
+    """The rigid motion ``g (3,)`` of the whole placed set that best agrees with the priors:
+    argmin_g Σ_k |compose(g, transforms[k]) − priors[k]|² weighted by ``1 / sigmas[k]²`` (all
+    ``(K,3)``; Gauss-Newton from identity).
+
+    Matching between robots is blind to a motion of all of them together, so in a prior frame
+    only the priors fix it; refining one robot at a time against the others leaves that common
+    motion wherever the first robot refined put it (office, three robots: all turned 0.4° by one
+    map's own frame error). Applying ``g`` to every placed frame restores the gauge the joint
+    estimate would have: the priors' weighted residuals balance."""
+    t = np.asarray(transforms, float).reshape(-1, 3)
+    p = np.asarray(priors, float).reshape(-1, 3)
+    w = 1.0 / np.asarray(sigmas, float).reshape(-1, 3) ** 2
+    g = np.zeros(3)
+    for _ in range(iterations):
+        moved = compose(g, t)
+        r = moved - p
+        r[:, 2] = wrap_angle(r[:, 2])
+        jac = np.zeros((len(t), 3, 3))
+        jac[:, 0, 0] = jac[:, 1, 1] = jac[:, 2, 2] = 1.0
+        jac[:, 0, 2] = -(moved[:, 1] - g[1])  # d(R t)/dθ = R(θ + π/2) t, relative to g's origin
+        jac[:, 1, 2] = moved[:, 0] - g[0]
+        jw = jac * w[:, :, None]  # Jᵀ W has W on J's rows
+        h = np.einsum("kri,krj->ij", jw, jac)
+        b = np.einsum("kri,kr->i", jw, r)
+        step = np.linalg.solve(h, -b)
+        g = g + step
+        if np.all(np.abs(step) < 1e-12):
+            break
+    g[2] = wrap_angle(g[2])
+    return g

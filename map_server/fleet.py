@@ -4,11 +4,14 @@ Time is passed in (``now_s``, the server's clock); nothing here does I/O.
 
 Global frame: if a robot's map carries a start-pose prior when the first robot is placed, the
 priors define the global frame: every prior robot is placed by its prior and refined, within its
-sigma, against the others as they move (so the maps settle on their consensus); robots without a
-prior are matched against them. Otherwise the first robot to publish a non-empty map becomes the
-*reference* (identity transform) and the others are matched against the fused map of the robots
-already placed (never including themselves). Priors that arrive after a reference was chosen are
-in a frame nobody placed, so those robots are matched like the others.
+sigma, against the others as they move (so the maps settle on their consensus), and after each
+round the whole placed set is moved by the rigid motion that balances the prior robots against
+their priors (``prior_gauge``: one robot at a time fixes the robots relative to each other, not
+where the set is); robots without a prior are matched against them. Otherwise the first robot to
+publish a non-empty map becomes the *reference* (identity transform) and the others are matched
+against the fused map of the robots already placed (never including themselves). Priors that
+arrive after a reference was chosen are in a frame nobody placed, so those robots are matched like
+the others.
 
 Matching is conservative at the fleet level too (alignment.py verifies one attempt):
 
@@ -28,8 +31,9 @@ provenance, robot statuses — not the poses) changed.
 
 A robot that restarts comes back as a new *session* in a new map frame. What the fused map held
 of its old session is not dropped: the old session's last map becomes a *retired piece*, kept in
-the fused map where it was placed (its transform frozen, its segments credited to the robot) and
-in the snapshot. The new session starts unaligned and is placed like any robot — by its prior, or
+the fused map where it was placed (its transform frozen but for the prior frame's common motion,
+its segments credited to the robot) and in the snapshot. The new session starts unaligned and is
+placed like any robot — by its prior, or
 by matching against the fused map, which holds its own old piece: a robot that re-maps the same
 place aligns to it. At most ``max_retired`` pieces are kept per robot, the oldest dropped (logged);
 an old session that was never placed had nothing in the fused map and is dropped (logged).
@@ -37,12 +41,13 @@ an old session that was never placed had nothing in the fused map and is dropped
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from map_server.alignment import Alignment, AlignmentConfig, estimate_alignment
+from map_server.alignment import Alignment, AlignmentConfig, estimate_alignment, prior_gauge
 from map_server.candidates import mean_displacement
 from map_server.fusion import FusionConfig, fuse_particles, merge_segments
 from map_server.state import RetiredPiece, RobotState
@@ -155,6 +160,8 @@ class Fleet:
         self._choose_frame(now_s)
         while self._align_round(now_s):
             pass
+        if self.frame == "prior":
+            self._hold_prior_gauge()
         return self._publish(now_s)
 
     def latest(self) -> FusedMap | None:
@@ -242,6 +249,33 @@ class Fleet:
             r.mark_placed(now_s - self.epoch_s)
             return True
         return False
+
+    def _hold_prior_gauge(self) -> None:
+        """Move every placed frame (robots and retired pieces) by the common rigid motion that
+        balances the prior-placed ones against their priors (alignment.prior_gauge): each prior
+        robot is refined against the others, which fixes where they are relative to each other
+        but not where the whole set is. A motion below a millimetre is left alone."""
+        c = self.cfg.alignment
+        floor = np.array([c.prior_min_sigma_m, c.prior_min_sigma_m, c.prior_min_sigma_rad])
+        placed = [r for r in self._ordered() if r.alignment.placed] + self._pieces()
+        held = [x for x in placed if x.alignment.status == "prior" and x.map.prior is not None]
+        if not held:
+            return
+        t = np.array([x.alignment.transform for x in held])
+        g = prior_gauge(
+            t, np.array([x.map.prior for x in held]),
+            np.maximum([x.map.prior_sigma for x in held], floor),
+        )  # fmt: skip
+        moved = np.linalg.norm(compose(g, t)[:, :2] - t[:, :2], axis=1).max()
+        if moved < 1e-3 and abs(g[2]) < 1e-4:
+            return
+        for r in placed:
+            a = dataclasses.replace(r.alignment, transform=compose(g, r.alignment.transform))
+            if isinstance(r, RetiredPiece):
+                pieces = self.retired[r.robot]
+                pieces[pieces.index(r)] = dataclasses.replace(r, alignment=a)
+            else:
+                r.alignment = a
 
     @property
     def _waiting(self) -> str:

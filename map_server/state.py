@@ -123,7 +123,8 @@ class RobotState:
 @dataclass(frozen=True, eq=False)
 class RetiredPiece:
     """The last map of a robot's replaced session (the agent restarted), kept in the fused map
-    where it was placed: its own frame died with the session, so its transform is frozen."""
+    where it was placed: its own frame died with the session, so its transform is frozen (but for
+    the common motion of a prior frame, Fleet._hold_prior_gauge)."""
 
     robot: str
     session: str

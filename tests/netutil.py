@@ -26,6 +26,25 @@ def wait_for(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:
     return True
 
 
+def wait_while_progressing(
+    progress: Callable[[], object], done: Callable[[], bool], stall_s: float, limit_s: float
+) -> bool:
+    """Poll until ``done()``; give up when ``progress()`` has not changed for ``stall_s`` or
+    ``limit_s`` passed in all. For work whose pace depends on the machine's load (a server
+    working through a backlog): a slow machine gets more time, a stuck one fails as soon."""
+    start = last_change = time.monotonic()
+    last = progress()
+    while not done():
+        now = time.monotonic()
+        value = progress()
+        if value != last:
+            last, last_change = value, now
+        if now - last_change > stall_s or now - start > limit_s:
+            return done()
+        time.sleep(POLL_S)
+    return True
+
+
 class Inbox:
     """Thread-safe record of callback calls (zenoh callbacks run on their own threads)."""
 

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from map_server.alignment import Alignment, AlignmentConfig, estimate_alignment
+from map_server.alignment import Alignment, AlignmentConfig, estimate_alignment, prior_gauge
 from map_server.fusion import FusionConfig, fuse_particles
 from shared.geometry import apply_segments, compose, inverse
 from shared.metrics import ate, transform_error
@@ -113,6 +113,31 @@ def test_a_prior_is_refined_within_its_sigma():
     b = estimate_alignment(seg, placed, CFG, prior=far, prior_sigma=np.array([0.02, 0.02, 0.01]))
     assert b.status == "prior"
     assert transform_error(b.transform, far)[0] < 0.06
+
+
+def test_the_prior_gauge_undoes_a_common_motion_and_balances_the_priors():
+    rng = np.random.default_rng(4)
+    priors = np.c_[rng.uniform(-20.0, 20.0, (4, 2)), rng.uniform(-np.pi, np.pi, 4)]
+    sigma = np.tile([0.05, 0.05, np.radians(1.0)], (4, 1))
+    # frames consistent with each other, all moved together: the common motion comes back exactly
+    common = np.array([0.3, -0.2, np.radians(2.0)])
+    g = prior_gauge(compose(inverse(common), priors), priors, sigma)
+    np.testing.assert_allclose(g, common, atol=1e-9)
+    # frames that disagree with their priors: after g the weighted residuals balance (no common
+    # motion would bring them closer), and a much surer prior pulls the set to itself
+    frames = compose(priors, np.c_[rng.normal(0.0, 0.05, (4, 2)), rng.normal(0.0, 0.01, 4)])
+    g = prior_gauge(frames, priors, sigma)
+    r = compose(g, frames) - priors
+    moved = compose(g, frames)
+    jac = np.zeros((4, 3, 3))
+    jac[:, 0, 0] = jac[:, 1, 1] = jac[:, 2, 2] = 1.0
+    jac[:, 0, 2], jac[:, 1, 2] = -(moved[:, 1] - g[1]), moved[:, 0] - g[0]
+    np.testing.assert_allclose(np.einsum("kri,kr->i", jac / sigma[:, :, None] ** 2, r), 0.0, atol=1e-6)
+    sure = sigma.copy()
+    sure[2] = [1e-4, 1e-4, 1e-5]
+    g = prior_gauge(frames, priors, sure)
+    assert transform_error(compose(g, frames[2]), priors[2])[0] < 1e-3
+    assert np.linalg.norm(prior_gauge(priors, priors, sigma)) < 1e-12  # at the priors: identity
 
 
 def test_a_prior_is_kept_when_the_evidence_is_thin():
