@@ -16,7 +16,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -25,7 +25,15 @@ from robot_agent.slam import relocalize as reloc_mod
 from robot_agent.slam.association import AssociationConfig, associate, match_log_likelihood, observe
 from robot_agent.slam.backend import BackendConfig
 from robot_agent.slam.extraction import ExtractionConfig, ScanSegments, extract_segments, scan_points
-from robot_agent.slam.motion import MotionConfig, odometry_increment, predict, sample_gaussian, walk_slip
+from robot_agent.slam.motion import (
+    MotionConfig,
+    odometry_increment,
+    predict,
+    sample_gaussian,
+    slip_jacobian,
+    update_slip,
+    walk_slip,
+)
 from robot_agent.slam.particles import ParticleSet, SegmentMaps
 from robot_agent.slam.proposal import ProposalConfig, align, align_points
 from robot_agent.slam.resampling import effective_sample_size, systematic_resample
@@ -97,7 +105,13 @@ class FastSLAM:
     def __init__(self, cfg: SlamConfig, rng: np.random.Generator, start: np.ndarray | None = None):
         self.cfg = cfg
         self.rng = rng
-        self.particles = ParticleSet.create(cfg.particles, start)
+        m = cfg.motion
+        self.particles = ParticleSet.create(
+            cfg.particles, start, (m.slip_scale_prior_sigma, m.slip_drift_prior_sigma_rad_per_m)
+        )
+        # the readings the point alignment uses: extraction's, out to the proposal's own range
+        reach = max(cfg.proposal.max_range_m, cfg.extraction.max_usable_range_m)
+        self._alignment_readings = replace(cfg.extraction, max_usable_range_m=reach)
         self.trajectory = Trajectory()
         self.step_index = 0
         self._last_odo: np.ndarray | None = None
@@ -147,8 +161,12 @@ class FastSLAM:
 
         # 2. motion (slip-aware), 3. proposal
         mean, cov = predict(ps.poses, ps.slip, u, cfg.motion)
-        ps.slip = walk_slip(self.rng, ps.slip, float(np.hypot(u[0], u[1])), cfg.motion)
-        reach = float(np.max(np.hypot(*segs.endpoints.reshape(-1, 2).T), initial=0.0))
+        jac = slip_jacobian(ps.poses, u)
+        cov = cov + np.einsum("pij,pjk,plk->pil", jac, ps.slip_cov, jac)  # the slip's own uncertainty
+        pts = apply_points(
+            laser_offset, scan_points(ranges_m, angles_rad, self._alignment_readings, range_max_m)
+        )
+        reach = float(np.max(np.hypot(pts[:, 0], pts[:, 1]), initial=0.0))
         cols = self._local_columns(mean, reach + cfg.filter.local_margin_m)
         local = ps.maps.columns(cols)
         prior_term = np.zeros(ps.n)
@@ -163,16 +181,19 @@ class FastSLAM:
                 local,
                 cfg.association,
                 cfg.proposal,
-                segs.points,
+                pts,
             )
             ps.poses = sample_gaussian(self.rng, prop.mean, prop.cov)
             d = prop.mean - mean
             d[:, 2] = wrap_angle(d[:, 2])
             prior_term = -0.5 * np.einsum("pi,pij,pj->p", d, np.linalg.inv(cov), d)
+            post = prop.cov / cfg.proposal.sample_scale
+            ps.slip, ps.slip_cov = update_slip(ps.slip, ps.slip_cov, jac, cov, post, d, cfg.motion)
         else:
             ps.poses = sample_gaussian(self.rng, mean, cov)
         if self._last_odo is None:  # the first scan defines the map frame: the start pose, exactly
             ps.poses = mean.copy()  # (drawn above all the same: the random stream is unchanged)
+        ps.slip_cov = walk_slip(ps.slip_cov, float(np.hypot(u[0], u[1])), cfg.motion)
 
         # 4. association at the sampled poses, 5. weights
         obs = observe(ps.poses, segs.moments, segs.endpoints, facing, segs.cov, cfg.association.point_sigma_m)
@@ -254,7 +275,9 @@ class FastSLAM:
         to the best particle's local map (one particle, no sampling, no map change)."""
         cfg = self.cfg
         ps = self.particles
-        pts = apply_points(laser_offset, scan_points(ranges_m, angles_rad, cfg.extraction, range_max_m))
+        pts = apply_points(
+            laser_offset, scan_points(ranges_m, angles_rad, self._alignment_readings, range_max_m)
+        )
         if len(pts) == 0:
             return u
         one = np.array([best])

@@ -116,15 +116,19 @@ class SegmentMaps:
 class ParticleSet:
     """The filter state. ``poses (P,3)`` robot poses in the map frame, ``log_weights (P,)``
     normalized so that ``logsumexp == 0``, ``slip (P,2)`` each particle's belief of the
-    systematic odometry error (distance scale error, heading drift [rad/m]), ``maps``."""
+    systematic odometry error (distance scale error, heading drift [rad/m]) — the mean of a
+    Gaussian whose covariance is ``slip_cov (P,2,2)`` — and ``maps``."""
 
     poses: np.ndarray
     log_weights: np.ndarray
     slip: np.ndarray
+    slip_cov: np.ndarray
     maps: SegmentMaps
 
     @classmethod
-    def create(cls, n_particles: int, start: np.ndarray | None = None) -> ParticleSet:
+    def create(
+        cls, n_particles: int, start: np.ndarray | None = None, slip_sigma: tuple[float, float] = (0.0, 0.0)
+    ) -> ParticleSet:
         poses = (
             np.zeros((n_particles, 3))
             if start is None
@@ -134,6 +138,7 @@ class ParticleSet:
             poses=poses,
             log_weights=np.full(n_particles, -np.log(n_particles)),
             slip=np.zeros((n_particles, 2)),
+            slip_cov=np.tile(np.diag(np.square(slip_sigma)), (n_particles, 1, 1)),
             maps=SegmentMaps.empty(n_particles),
         )
 
@@ -143,7 +148,11 @@ class ParticleSet:
 
     def take(self, idx: np.ndarray) -> ParticleSet:
         return ParticleSet(
-            self.poses[idx].copy(), self.log_weights[idx].copy(), self.slip[idx].copy(), self.maps.take(idx)
+            self.poses[idx].copy(),
+            self.log_weights[idx].copy(),
+            self.slip[idx].copy(),
+            self.slip_cov[idx].copy(),
+            self.maps.take(idx),
         )
 
     def best(self) -> int:

@@ -255,6 +255,7 @@ def inject(
     src = ps.take(sources)
     ps.poses[targets] = reloc.poses[: len(targets)]
     ps.slip[targets] = src.slip
+    ps.slip_cov[targets] = src.slip_cov
     for k, v in ps.maps.arrays().items():
         v[targets] = getattr(src.maps, k)
     if young_since is not None:

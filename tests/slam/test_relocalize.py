@@ -64,6 +64,7 @@ def particles(best_pose):
     ps.poses[BEST] = best_pose
     ps.log_weights = LOG_WEIGHTS.copy()
     ps.slip = rng.normal(0.0, 0.01, (6, 2))
+    ps.slip_cov = np.einsum("p,ij->pij", rng.uniform(1e-5, 1e-4, 6), np.eye(2))
     m = ps.maps
     m.valid[:, :8] = rng.random((6, 8)) < 0.7
     m.seg[:, :8] = rng.normal(size=(6, 8, 2, 2))
@@ -116,13 +117,14 @@ def test_no_relocalization_beyond_the_plausible_jump():
 
 def test_inject_replaces_the_weakest_particles_with_the_best_ones_map_and_weight():
     ps = particles(OFF_POSE)
-    before = ParticleSet(ps.poses.copy(), ps.log_weights.copy(), ps.slip.copy(), ps.maps.take(np.arange(6)))
+    before = ps.take(np.arange(6))
     hyp = np.array([TRUE_POSE, compose(TRUE_POSE, [0.3, 0.0, 0.1])])
     targets, sources = inject(ps, Relocalization(hyp, np.array([20.0, 15.0]), 3.0))
     np.testing.assert_array_equal(targets, [3, 1])  # the two lightest, the best one never
     np.testing.assert_array_equal(sources, [BEST, BEST])
     np.testing.assert_allclose(ps.poses[targets], hyp)
     np.testing.assert_allclose(ps.slip[targets], before.slip[[BEST, BEST]])
+    np.testing.assert_allclose(ps.slip_cov[targets], before.slip_cov[[BEST, BEST]])
     for k, v in ps.maps.arrays().items():
         np.testing.assert_array_equal(v[targets], before.maps.arrays()[k][[BEST, BEST]], err_msg=k)
     # the injected particles carry the best one's log-weight; weights stay normalized

@@ -3,7 +3,15 @@
 import numpy as np
 import pytest
 
-from robot_agent.slam.motion import MotionConfig, odometry_increment, predict, sample_gaussian, walk_slip
+from robot_agent.slam.motion import (
+    MotionConfig,
+    odometry_increment,
+    predict,
+    sample_gaussian,
+    slip_jacobian,
+    update_slip,
+    walk_slip,
+)
 from robot_agent.slam.resampling import effective_sample_size, normalized_weights, systematic_resample
 from shared.geometry import compose, wrap_angle
 
@@ -130,27 +138,102 @@ def test_sample_gaussian_wraps_the_heading():
     assert np.std(wrap_angle(x[:, 2] - (np.pi - 0.01))) == pytest.approx(0.1, rel=0.05)
 
 
-def test_walk_slip_stays_in_bounds_and_scales_with_sqrt_distance():
+def test_walk_slip_grows_the_beliefs_variance_with_distance():
     cfg = MotionConfig()
-    rng = np.random.default_rng(5)
-    at_bounds = np.array(
-        [
-            [cfg.slip_scale_max, cfg.slip_drift_max_rad_per_m],
-            [-cfg.slip_scale_max, -cfg.slip_drift_max_rad_per_m],
-        ]
-        * 500
-    )
-    slip = at_bounds.copy()
-    for _ in range(20):
-        slip = walk_slip(rng, slip, 1e4, cfg)  # huge steps: everything pushed into the clip
-        assert np.all(np.abs(slip[:, 0]) <= cfg.slip_scale_max)
-        assert np.all(np.abs(slip[:, 1]) <= cfg.slip_drift_max_rad_per_m)
-    np.testing.assert_array_equal(walk_slip(rng, at_bounds, 0.0, cfg), at_bounds)  # no motion
-    np.testing.assert_array_equal(walk_slip(rng, at_bounds, -1.0, cfg), at_bounds)
-    # small walk away from the bounds: std per √m as configured
-    step = walk_slip(np.random.default_rng(6), np.zeros((20000, 2)), 4.0, cfg)
+    cov = np.tile(np.diag([1e-4, 4e-5]), (3, 1, 1))
+    grown = walk_slip(cov, 4.0, cfg)
     np.testing.assert_allclose(
-        step.std(axis=0),
-        2.0 * np.array([cfg.slip_scale_walk_per_sqrt_m, cfg.slip_drift_walk_per_sqrt_m]),
-        rtol=0.03,
+        grown - cov,
+        np.tile(
+            np.diag([4.0 * cfg.slip_scale_walk_per_sqrt_m**2, 4.0 * cfg.slip_drift_walk_per_sqrt_m**2]),
+            (3, 1, 1),
+        ),
     )
+    np.testing.assert_array_equal(walk_slip(cov, 0.0, cfg), cov)  # no motion, no growth
+    np.testing.assert_array_equal(walk_slip(cov, -1.0, cfg), cov)
+
+
+def _joint_conditioning(slip, slip_cov, jac, q, h, z):
+    """Reference: the slip's posterior from the explicit joint Gaussian of (pose, slip) and a
+    pose measurement ``z`` (relative to the predicted mean) with information ``h`` (full rank)."""
+    s_xx = q + jac @ slip_cov @ jac.T
+    s_xs = jac @ slip_cov
+    s_zz = s_xx + np.linalg.inv(h)
+    gain = s_xs.T @ np.linalg.inv(s_zz)
+    return slip + gain @ z, slip_cov - gain @ s_xs
+
+
+def _alignment_result(jac, slip_cov, q, h, z):
+    """What the proposal hands over: the prior covariance it used, its posterior covariance and
+    the posterior mean's shift from the predicted pose."""
+    prior = q + jac @ slip_cov @ jac.T
+    post = np.linalg.inv(np.linalg.inv(prior) + h)
+    shift = post @ h @ z
+    return prior, post, shift
+
+
+def test_update_slip_is_the_exact_gaussian_conditioning_of_the_slip_on_the_scan():
+    cfg = MotionConfig()
+    rng = np.random.default_rng(7)
+    poses = np.array([[1.0, 2.0, 0.4], [0.0, 0.0, -2.0]])
+    u = np.array([0.3, 0.02, 0.05])
+    jac = slip_jacobian(poses, u)
+    slip = np.array([[0.01, -0.002], [-0.02, 0.004]])
+    slip_cov = np.tile(np.array([[9e-4, 1e-5], [1e-5, 4e-4]]), (2, 1, 1))
+    q = np.tile(np.diag([1e-4, 1e-4, 3e-4]), (2, 1, 1))
+    a = rng.normal(size=(2, 3, 3))
+    h = np.einsum("pij,pkj->pik", a, a) * 1e4 + np.eye(3) * 1e3  # a well-constraining scan
+    z = rng.normal(0.0, 0.02, (2, 3))
+    prior, post, shift = (
+        np.stack(x)
+        for x in zip(
+            *[_alignment_result(jac[p], slip_cov[p], q[p], h[p], z[p]) for p in range(2)], strict=True
+        )
+    )
+    got, got_cov = update_slip(slip, slip_cov, jac, prior, post, shift, cfg)
+    for p in range(2):
+        ref, ref_cov = _joint_conditioning(slip[p], slip_cov[p], jac[p], q[p], h[p], z[p])
+        np.testing.assert_allclose(got[p], ref, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(got_cov[p], ref_cov, rtol=1e-6, atol=1e-14)
+    assert np.all(np.linalg.eigvalsh(got_cov) > 0)
+    assert np.all(np.diagonal(got_cov, axis1=1, axis2=2) < np.diagonal(slip_cov, axis1=1, axis2=2))
+
+
+def test_a_scan_that_says_nothing_along_the_motion_teaches_nothing_about_the_scale():
+    """Driving along x in a corridor whose walls constrain only y and the heading: the distance
+    scale stays where it was, with its variance; the heading drift is learned."""
+    cfg = MotionConfig()
+    poses = np.zeros((1, 3))
+    u = np.array([0.3, 0.0, 0.0])
+    jac = slip_jacobian(poses, u)
+    np.testing.assert_allclose(jac[0], [[0.3, 0.0], [0.0, 0.0], [0.0, 0.3]])
+    slip = np.array([[0.02, 0.0]])
+    slip_cov = np.diag([9e-4, 4e-4])[None]
+    q = np.diag([1e-4, 1e-4, 3e-4])[None]
+    h = np.diag([0.0, 1e6, 1e6])[None]  # y and heading measured, x not at all
+    prior = q + np.einsum("pij,pjk,plk->pil", jac, slip_cov, jac)
+    post = np.linalg.inv(np.linalg.inv(prior) + h)
+    truth_offset = np.array([0.0, 0.01, 0.006])  # the scan saw a heading drift of 0.02 rad/m
+    shift = (post @ h @ truth_offset[:, None])[..., 0]
+    got, got_cov = update_slip(slip, slip_cov, jac, prior, post, shift, cfg)
+    assert got[0, 0] == pytest.approx(0.02, abs=1e-9)
+    assert got_cov[0, 0, 0] == pytest.approx(9e-4, rel=1e-6)
+    # the heading offset is split between this step's noise and the drift by their variances
+    # (the scan measured it almost exactly: 1e6 information)
+    share = 0.3**2 * 4e-4 / (3e-4 + 0.3**2 * 4e-4)
+    assert got[0, 1] == pytest.approx(0.02 * share, rel=1e-2)
+    assert got_cov[0, 1, 1] == pytest.approx(4e-4 * (1 - share), rel=1e-2)
+
+
+def test_update_slip_keeps_the_slip_within_its_bounds():
+    cfg = MotionConfig()
+    jac = slip_jacobian(np.zeros((1, 3)), np.array([0.3, 0.0, 0.0]))
+    slip_cov = np.diag([1.0, 1.0])[None]  # a wildly uncertain belief ...
+    q = np.diag([1e-6, 1e-6, 1e-6])[None]
+    prior = q + np.einsum("pij,pjk,plk->pil", jac, slip_cov, jac)
+    post = q.copy()
+    got, _ = update_slip(
+        np.zeros((1, 2)), slip_cov, jac, prior, post, np.array([[5.0, 0.0, 3.0]]), cfg
+    )  # ... told a huge slip
+    assert got[0, 0] == cfg.slip_scale_max
+    assert got[0, 1] == cfg.slip_drift_max_rad_per_m
