@@ -16,7 +16,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -109,9 +109,6 @@ class FastSLAM:
         self.particles = ParticleSet.create(
             cfg.particles, start, (m.slip_scale_prior_sigma, m.slip_drift_prior_sigma_rad_per_m)
         )
-        # the readings the point alignment uses: extraction's, out to the proposal's own range
-        reach = max(cfg.proposal.max_range_m, cfg.extraction.max_usable_range_m)
-        self._alignment_readings = replace(cfg.extraction, max_usable_range_m=reach)
         self.trajectory = Trajectory()
         self.step_index = 0
         self._last_odo: np.ndarray | None = None
@@ -163,9 +160,7 @@ class FastSLAM:
         mean, cov = predict(ps.poses, ps.slip, u, cfg.motion)
         jac = slip_jacobian(ps.poses, u)
         cov = cov + np.einsum("pij,pjk,plk->pil", jac, ps.slip_cov, jac)  # the slip's own uncertainty
-        pts = apply_points(
-            laser_offset, scan_points(ranges_m, angles_rad, self._alignment_readings, range_max_m)
-        )
+        pts = segs.points  # the readings the point alignment uses (scan order, robot frame)
         reach = float(np.max(np.hypot(pts[:, 0], pts[:, 1]), initial=0.0))
         cols = self._local_columns(mean, reach + cfg.filter.local_margin_m)
         local = ps.maps.columns(cols)
@@ -275,9 +270,7 @@ class FastSLAM:
         to the best particle's local map (one particle, no sampling, no map change)."""
         cfg = self.cfg
         ps = self.particles
-        pts = apply_points(
-            laser_offset, scan_points(ranges_m, angles_rad, self._alignment_readings, range_max_m)
-        )
+        pts = apply_points(laser_offset, scan_points(ranges_m, angles_rad, cfg.extraction, range_max_m))
         if len(pts) == 0:
             return u
         one = np.array([best])

@@ -52,8 +52,6 @@ class ProposalConfig:
     measurement: str = "points"  # "points": every scan point against the map's segments;
     # "segments": only the extracted segments (assembled from their moments)
     max_points: int = 240  # scan points used by the point alignment (evenly thinned beyond)
-    max_range_m: float = 30.0  # readings used by the point alignment (never fewer than
-    # extraction's): far walls seen by a few beams fix what near ones cannot
     point_gate_m: float = 0.2  # a point is associated with an element closer than this ...
     extent_margin_m: float = 0.2  # ... whose extent (plus this margin) its projection falls in
 
