@@ -305,22 +305,37 @@ def sample_segments(segments: np.ndarray, step_m: float = SAMPLE_STEP_M) -> tupl
     return pts, owner, (length / counts)[owner]
 
 
-def nearest_segment(points: np.ndarray, segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distance ``(K,)`` and index ``(K,)`` of the nearest segment to each point, chunked."""
+def nearest_segment(
+    points: np.ndarray,
+    segments: np.ndarray,
+    point_dirs: np.ndarray | None = None,
+    angle_tol_rad: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Distance ``(K,)`` and index ``(K,)`` of the nearest segment to each point, chunked.
+
+    With ``point_dirs (K,)`` [rad] and ``angle_tol_rad``, only segments whose direction is within
+    the tolerance of the point's (either way round) count; distance inf and index -1 where none
+    does. At a corner the nearest wall is often the perpendicular one while a parallel one lies
+    within tolerance too: judging by the nearest alone calls such a point uncovered."""
     seg = np.asarray(segments, dtype=float).reshape(-1, 2, 2)
     k = len(points)
     if len(seg) == 0:
         return np.full(k, np.inf), np.full(k, -1)
     a, ab = seg[:, 0], seg[:, 1] - seg[:, 0]
     l2 = np.maximum(np.sum(ab * ab, axis=1), 1e-12)
+    sdir = np.arctan2(ab[:, 1], ab[:, 0])
     dist, idx = np.empty(k), np.empty(k, dtype=int)
     step = max(1, _CHUNK_PAIRS // len(seg))
     for s in range(0, k, step):
         p = points[s : s + step, None, :]
         t = np.clip(np.sum((p - a) * ab, axis=2) / l2, 0.0, 1.0)
         d = np.linalg.norm(p - (a + t[..., None] * ab), axis=2)
+        if point_dirs is not None:
+            da = np.abs(wrap_angle(np.asarray(point_dirs)[s : s + step, None] - sdir))
+            d[np.minimum(da, np.pi - da) > angle_tol_rad] = np.inf
         idx[s : s + step] = d.argmin(axis=1)
         dist[s : s + step] = d[np.arange(len(d)), idx[s : s + step]]
+    idx[~np.isfinite(dist)] = -1
     return dist, idx
 
 
@@ -347,7 +362,10 @@ def map_quality(
     precision: share of mapped length whose samples lie within ``tol_m`` of a true wall whose
     direction is within ``angle_tol_rad``. completeness: share of true wall length *seen by a
     sensor* (wall samples within ``tol_m`` of a noise-free laser hit ``seen_points (H,2)``;
-    all walls if None) that has a mapped sample within ``tol_m`` and ``angle_tol_rad``.
+    all walls if None) that has a mapped sample within ``tol_m`` and ``angle_tol_rad``. Any wall
+    (segment) within both tolerances counts, not only the nearest: near a corner the nearest is
+    often the perpendicular one (until session 10 only the nearest was judged, which called
+    0.1-0.3 % of the office's seen walls uncovered and 1 % of its mapped length imprecise).
     """
     from scipy.spatial import cKDTree
 
@@ -358,16 +376,11 @@ def map_quality(
     mdir = np.arctan2(*(m[:, 1] - m[:, 0])[:, ::-1].T)
     wdir = np.arctan2(*(w[:, 1] - w[:, 0])[:, ::-1].T)
 
-    def angle_ok(a, b):
-        d = np.abs(wrap_angle(a - b))
-        return np.minimum(d, np.pi - d) <= angle_tol_rad
-
     mapped_length = float(np.hypot(*(m[:, 1] - m[:, 0]).T).sum())
     if len(m):
         mp, mo, mlen = sample_segments(m)
-        d, j = nearest_segment(mp, w)
-        good = (d <= tol_m) & angle_ok(mdir[mo], wdir[j])
-        precision = float(mlen[good].sum() / mlen.sum())
+        d, _ = nearest_segment(mp, w, mdir[mo], angle_tol_rad)
+        precision = float(mlen[d <= tol_m].sum() / mlen.sum())
     else:
         precision = 0.0
     wp, wo, wlen = sample_segments(w)
@@ -378,9 +391,8 @@ def map_quality(
         wp, wo, wlen = wp[keep], wo[keep], wlen[keep]
     seen_length = float(wlen.sum())
     if len(m) and len(wp):
-        d, j = nearest_segment(wp, m)
-        covered = (d <= tol_m) & angle_ok(wdir[wo], mdir[j])
-        completeness = float(wlen[covered].sum() / wlen.sum())
+        d, _ = nearest_segment(wp, m, wdir[wo], angle_tol_rad)
+        completeness = float(wlen[d <= tol_m].sum() / wlen.sum())
     else:
         completeness = 0.0
     return MapQuality(precision, completeness, mapped_length, seen_length)

@@ -132,6 +132,26 @@ def test_map_quality_hand_made():
     assert q.seen_wall_length_m == pytest.approx(10.0, abs=0.2)
 
 
+def test_map_quality_judges_against_any_wall_within_tolerance_not_only_the_nearest():
+    """An inside corner mapped 0.06 m off both walls, each mapped wall running on to the true
+    corner: the last 0.12 m of each true wall is nearer the other (perpendicular) mapped wall,
+    yet covered by its own; the first 0.06 m of each mapped wall is nearer the perpendicular
+    true wall, yet precise. Judged by the nearest alone: precision 0.975, completeness 0.95."""
+    walls = np.array([[[0, 0], [2, 0]], [[0, 0], [0, 2]]], dtype=float)
+    mapped = np.array([[[0, 0.06], [2, 0.06]], [[0.06, 0], [0.06, 2]]], dtype=float)
+    q = m.map_quality(mapped, walls)
+    assert q.precision == pytest.approx(1.0) and q.completeness == pytest.approx(1.0)
+    d, j = m.nearest_segment(np.array([[0.02, 0.0]]), mapped)
+    assert j[0] == 1 and d[0] == pytest.approx(0.04)  # without directions: the perpendicular one
+    d, j = m.nearest_segment(np.array([[0.02, 0.0]]), mapped, np.array([0.0]), np.radians(5.0))
+    assert j[0] == 0 and d[0] == pytest.approx(0.06)  # the parallel one, not the nearer (0.04 m)
+    d, j = m.nearest_segment(np.array([[1.0, 1.0]]), walls[:1], np.array([np.pi / 2]), 0.1)
+    assert j[0] == -1 and d[0] == np.inf  # nothing within the angle
+    # a misdirected wall still does not cover (10° off)
+    tilted = np.array([[[0, 0], [2, 2 * np.tan(np.radians(10))]]])
+    assert m.map_quality(tilted, walls[:1]).completeness < 0.2
+
+
 def test_poses_and_tum_files(tmp_path):
     t, truth = straight_line(5)
     m.write_poses(tmp_path / "p.txt", t, truth)
