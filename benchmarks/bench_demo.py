@@ -5,7 +5,8 @@
 
 Each seed is one full `fleet-slam demo` (router, server, agents as processes on loopback, about
 3 minutes at the default duration). Prints one row per seed — every robot's status and transform
-error, fused precision and completeness, wrong merges — and writes benchmarks/results/bench_demo.json.
+error (and, in brackets, with fitted map frames: the server's error alone), fused precision and
+completeness, wrong merges — and writes benchmarks/results/bench_demo.json.
 A wrong merge is a merged robot whose transform is off by more than 0.3 m or 3° (fleet_slam/report.py).
 """
 
@@ -30,10 +31,13 @@ def row(seed: int, m: dict) -> str:
         robots.append(
             f"{name}:{r['status'][:3]}"
             + ("" if err is None else f" {err:.3f}m/{r['transform_error_deg']:.2f}°")
+            + ("" if "transform_error_fit_m" not in r else f" (fit {r['transform_error_fit_m']:.3f}m)")
             + ("" if r.get("time_to_first_merge_s") is None else f" @{r['time_to_first_merge_s']:.0f}s")
         )
     nan = float("nan")
     quality = f"P {m.get('fused_precision', nan):.3f}  C {m.get('fused_completeness', nan):.3f}"
+    if "fused_completeness_fit" in m:
+        quality += f" (fit P {m['fused_precision_fit']:.3f} C {m['fused_completeness_fit']:.3f})"
     return f"{seed:4d}  {quality}  wrong {len(m['wrong_merges'])}  " + "  ".join(robots)
 
 

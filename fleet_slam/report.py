@@ -59,6 +59,29 @@ def _global_frame_in_world(final: FusedMap, starts: dict[str, np.ndarray]) -> np
     return compose(starts[ref.robot], inverse(ref.transform))
 
 
+def _map_frame_fitted(agents_dir: Path, name: str, stamps: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """Where a robot's map frame sits in the world by its whole trajectory (rigid fit to the truth),
+    rather than by its start pose: a SLAM's map drifts away from its first pose by a few tenths of
+    a degree (nothing holds it there but the first scans), and the start-based transform error
+    charges that drift — the reference robot's too, to every other robot — to the server."""
+    t_stamps, truth = read_poses(agents_dir / f"{name}.truth.txt")
+    return ate(stamps, local, t_stamps, truth).alignment
+
+
+def _global_frame_fitted(final: FusedMap, starts: dict, agents_dir: Path) -> np.ndarray | None:
+    """The global frame in the world by the fitted map frames (see _map_frame_fitted): the world
+    in a prior frame, the reference's fitted map frame otherwise; None if there is no truth."""
+    if not starts:
+        return None
+    ref = next((r for r in final.robots if r.status == "reference"), None)
+    if ref is None:
+        return identity()
+    if ref.robot not in starts:
+        return None
+    stamps, local = read_poses(agents_dir / f"{ref.robot}.poses.txt")
+    return compose(_map_frame_fitted(agents_dir, ref.robot, stamps, local), inverse(ref.transform))
+
+
 def fused_geojson(final: FusedMap) -> dict:
     props = [{"support": int(final.support[i]), "robots": final.provenance(i)} for i in range(len(final.seg))]
     return segments_geojson(final.seg, props, kind="fused")
@@ -75,6 +98,7 @@ def write_report(cfg, out: Path, final: FusedMap, updates: list[Update], t0: flo
         starts = {n: np.asarray(world.starts[i], float) for i, n in enumerate(names)}
         save_geojson(out / "world.geojson", to_geojson(world))
     g = _global_frame_in_world(final, starts)
+    g_fit = _global_frame_fitted(final, starts, agents_dir)
     pic = Picture(title=f"fused map v{final.version}: {len(final.seg)} segments, {len(names)} robots")
     if world is not None:
         pic.segments.append(
@@ -105,12 +129,16 @@ def write_report(cfg, out: Path, final: FusedMap, updates: list[Update], t0: flo
             r["transform_sigma"] = status.sigma.tolist()
         if name in starts:
             r.update(_sim_scores(name, agents_dir, starts[name], g, status, stamps, local, poses, merged))
+            if merged and g_fit is not None:
+                fit = _map_frame_fitted(agents_dir, name, stamps, local)
+                dt, dr = transform_error(status.transform, compose(inverse(g_fit), fit))
+                r["transform_error_fit_m"], r["transform_error_fit_deg"] = dt, dr
         robots[name] = r
     save_geojson(out / "map.geojson", fused_geojson(final))
     save_picture(out / "map", pic)
     metrics = {"robots": robots, "fused_segments": len(final.seg), "fused_version": final.version}
     if world is not None:
-        metrics.update(_fused_quality(world, final, g, agents_dir, names))
+        metrics.update(_fused_quality(world, final, g, g_fit, agents_dir, names))
     wrong = [n for n, r in robots.items() if r.get("wrong_merge")]
     metrics["all_merged"] = all(r["status"] in ("reference", "prior", "aligned") for r in robots.values())
     metrics["wrong_merges"] = wrong
@@ -146,19 +174,26 @@ def _sim_scores(name, agents_dir, start, g, status, stamps, local, poses, merged
     return r
 
 
-def _fused_quality(world, final: FusedMap, g, agents_dir: Path, names) -> dict:
+def _fused_quality(world, final: FusedMap, g, g_fit, agents_dir: Path, names) -> dict:
+    """The fused map in the world placed by the global frame's start-based pose ``g`` and, as
+    ``*_fit``, by its fitted pose ``g_fit`` (see _map_frame_fitted)."""
     from robot_agent.sim import LidarConfig
     from robot_agent.sim.evaluate import seen_wall_points
 
     seen = [
         seen_wall_points(world, read_poses(agents_dir / f"{n}.truth.txt")[1], LidarConfig()) for n in names
     ]
-    q = map_quality(apply_segments(g, final.seg), world.walls, seen_points=np.concatenate(seen))
-    return {
+    seen = np.concatenate(seen)
+    q = map_quality(apply_segments(g, final.seg), world.walls, seen_points=seen)
+    out = {
         "fused_precision": q.precision,
         "fused_completeness": q.completeness,
         "fused_length_m": q.mapped_length_m,
     }
+    if g_fit is not None:
+        q = map_quality(apply_segments(g_fit, final.seg), world.walls, seen_points=seen)
+        out |= {"fused_precision_fit": q.precision, "fused_completeness_fit": q.completeness}
+    return out
 
 
 def _log_scores(cfg, out: Path, all_stamps, all_poses, split) -> dict:

@@ -11,11 +11,17 @@ def print_summary(m: dict, cfg) -> None:
     print(f"fused map v{m['fused_version']}: {m['fused_segments']} segments", end="")
     if "fused_precision" in m:
         print(f", precision {m['fused_precision']:.3f}, completeness {m['fused_completeness']:.3f}", end="")
+    if "fused_precision_fit" in m:
+        p, c = m["fused_precision_fit"], m["fused_completeness_fit"]
+        print(f" (fitted frames {p:.3f} / {c:.3f})", end="")
     print()
     for name, r in m["robots"].items():
         line = f"  {name}: {r['status']}, first merge {_f(r.get('time_to_first_merge_s'), '.1f')} s"
         if "transform_error_m" in r:
             line += f", transform error {r['transform_error_m']:.3f} m / {r['transform_error_deg']:.2f}°"
+        if "transform_error_fit_m" in r:
+            fit_m, fit_deg = r["transform_error_fit_m"], r["transform_error_fit_deg"]
+            line += f" (fitted frames {fit_m:.3f} m / {fit_deg:.2f}°)"
         if "ate_m" in r:
             line += f", ATE {r['ate_m']:.3f} m (SLAM alone {r['ate_slam_m']:.3f})"
         bps = r.get("bytes_per_s")

@@ -42,10 +42,13 @@ def test_known_starts_merge_accurately(demo):
     for r in m["robots"].values():
         assert r["status"] in ("prior", "reference")
         assert r["transform_error_m"] <= 0.10 and r["transform_error_deg"] <= 1.0
+        # the server's error alone: each map frame placed by its trajectory fitted to the truth
+        assert r["transform_error_fit_m"] <= 0.10 and r["transform_error_fit_deg"] <= 1.0
         assert r["ate_m"] < 0.15
         assert r["bytes_per_s"]["total"] > 0
     assert m["fused_precision"] >= 0.9  # 45 s, 15 particles: looser than the 3-minute demo
     assert m["fused_completeness"] >= 0.5
+    assert m["fused_precision_fit"] >= 0.9 and m["fused_completeness_fit"] >= 0.5
 
 
 def test_no_process_left_behind(demo):
