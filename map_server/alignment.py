@@ -234,12 +234,17 @@ def _revise(current: Alignment, cur: Scored, cands, robot_seg, index, robot, tot
     return _verdict("aligned", cur, total, ratio, f"kept and refined: overlap {cur.matched_m:.1f} m")
 
 
+def floored_prior_sigma(prior_sigma: np.ndarray, cfg: AlignmentConfig) -> np.ndarray:
+    """A prior's sigma ``(..., 3)`` with the configured floors (a zero sigma would pin the pose)."""
+    floor = [cfg.prior_min_sigma_m, cfg.prior_min_sigma_m, cfg.prior_min_sigma_rad]
+    return np.maximum(np.asarray(prior_sigma, float), floor)
+
+
 def _from_prior(
     robot_seg, index: MapIndex, robot: Samples, coarse: Samples, prior, prior_sigma, cfg
 ) -> Alignment:
     """Refine the prior by matching within its sigma; keep it when the evidence is thin."""
-    floor = [cfg.prior_min_sigma_m, cfg.prior_min_sigma_m, cfg.prior_min_sigma_rad]
-    sigma = np.maximum(prior_sigma, floor)
+    sigma = floored_prior_sigma(prior_sigma, cfg)
     total = float(robot.length.sum())
 
     def kept(why: str) -> Alignment:

@@ -33,10 +33,10 @@ A robot that restarts comes back as a new *session* in a new map frame. What the
 of its old session is not dropped: the old session's last map becomes a *retired piece*, kept in
 the fused map where it was placed (its transform frozen but for the prior frame's common motion,
 its segments credited to the robot) and in the snapshot. The new session starts unaligned and is
-placed like any robot — by its prior, or
-by matching against the fused map, which holds its own old piece: a robot that re-maps the same
-place aligns to it. At most ``max_retired`` pieces are kept per robot, the oldest dropped (logged);
-an old session that was never placed had nothing in the fused map and is dropped (logged).
+placed like any robot — by its prior, or by matching against the fused map, which holds its own
+old piece: a robot that re-maps the same place aligns to it. At most ``max_retired`` pieces are
+kept per robot, the oldest dropped (logged); an old session that was never placed had nothing in
+the fused map and is dropped (logged).
 """
 
 from __future__ import annotations
@@ -47,7 +47,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from map_server.alignment import Alignment, AlignmentConfig, estimate_alignment, prior_gauge
+from map_server.alignment import (
+    Alignment,
+    AlignmentConfig,
+    estimate_alignment,
+    floored_prior_sigma,
+    prior_gauge,
+)
 from map_server.candidates import mean_displacement
 from map_server.fusion import FusionConfig, fuse_particles, merge_segments
 from map_server.state import RetiredPiece, RobotState
@@ -255,8 +261,6 @@ class Fleet:
         balances the prior-placed ones against their priors (alignment.prior_gauge): each prior
         robot is refined against the others, which fixes where they are relative to each other
         but not where the whole set is. A motion below a millimetre is left alone."""
-        c = self.cfg.alignment
-        floor = np.array([c.prior_min_sigma_m, c.prior_min_sigma_m, c.prior_min_sigma_rad])
         placed = [r for r in self._ordered() if r.alignment.placed] + self._pieces()
         held = [x for x in placed if x.alignment.status == "prior" and x.map.prior is not None]
         if not held:
@@ -264,7 +268,7 @@ class Fleet:
         t = np.array([x.alignment.transform for x in held])
         g = prior_gauge(
             t, np.array([x.map.prior for x in held]),
-            np.maximum([x.map.prior_sigma for x in held], floor),
+            floored_prior_sigma([x.map.prior_sigma for x in held], self.cfg.alignment),
         )  # fmt: skip
         moved = np.linalg.norm(compose(g, t)[:, :2] - t[:, :2], axis=1).max()
         if moved < 1e-3 and abs(g[2]) < 1e-4:
