@@ -59,27 +59,31 @@ def _global_frame_in_world(final: FusedMap, starts: dict[str, np.ndarray]) -> np
     return compose(starts[ref.robot], inverse(ref.transform))
 
 
-def _map_frame_fitted(agents_dir: Path, name: str, stamps: np.ndarray, local: np.ndarray) -> np.ndarray:
-    """Where a robot's map frame sits in the world by its whole trajectory (rigid fit to the truth),
-    rather than by its start pose: a SLAM's map drifts away from its first pose by a few tenths of
-    a degree (nothing holds it there but the first scans), and the start-based transform error
-    charges that drift — the reference robot's too, to every other robot — to the server."""
-    t_stamps, truth = read_poses(agents_dir / f"{name}.truth.txt")
-    return ate(stamps, local, t_stamps, truth).alignment
+def _slam_fits(agents_dir: Path, names, local: dict) -> dict:
+    """Per simulated robot: its true path ``(stamps, poses)`` and the rigid fit of its SLAM path
+    to it (:func:`shared.metrics.ate`, read once for every score below). The fit's alignment is
+    where the robot's map frame sits in the world by its whole trajectory rather than by its start
+    pose: a SLAM's map drifts away from its first pose by a few tenths of a degree (nothing holds
+    it there but the first scans), and the start-based transform error charges that drift — the
+    reference robot's too, to every other robot — to the server."""
+    out = {}
+    for n in names:
+        t_stamps, truth = read_poses(agents_dir / f"{n}.truth.txt")
+        out[n] = ((t_stamps, truth), ate(*local[n], t_stamps, truth))
+    return out
 
 
-def _global_frame_fitted(final: FusedMap, starts: dict, agents_dir: Path) -> np.ndarray | None:
-    """The global frame in the world by the fitted map frames (see _map_frame_fitted): the world
-    in a prior frame, the reference's fitted map frame otherwise; None if there is no truth."""
-    if not starts:
+def _global_frame_fitted(final: FusedMap, fits: dict) -> np.ndarray | None:
+    """The global frame in the world by the fitted map frames (see _slam_fits): the world in a
+    prior frame, the reference's fitted map frame otherwise; None if there is no truth."""
+    if not fits:
         return None
     ref = next((r for r in final.robots if r.status == "reference"), None)
     if ref is None:
         return identity()
-    if ref.robot not in starts:
+    if ref.robot not in fits:
         return None
-    stamps, local = read_poses(agents_dir / f"{ref.robot}.poses.txt")
-    return compose(_map_frame_fitted(agents_dir, ref.robot, stamps, local), inverse(ref.transform))
+    return compose(fits[ref.robot][1].alignment, inverse(ref.transform))
 
 
 def fused_geojson(final: FusedMap) -> dict:
@@ -97,8 +101,10 @@ def write_report(cfg, out: Path, final: FusedMap, updates: list[Update], t0: flo
         world = builtin_world(cfg.world)
         starts = {n: np.asarray(world.starts[i], float) for i, n in enumerate(names)}
         save_geojson(out / "world.geojson", to_geojson(world))
+    local = {n: read_poses(agents_dir / f"{n}.poses.txt") for n in names}
+    fits = _slam_fits(agents_dir, names, local) if starts else {}
     g = _global_frame_in_world(final, starts)
-    g_fit = _global_frame_fitted(final, starts, agents_dir)
+    g_fit = _global_frame_fitted(final, fits)
     pic = Picture(title=f"fused map v{final.version}: {len(final.seg)} segments, {len(names)} robots")
     if world is not None:
         pic.segments.append(
@@ -108,7 +114,7 @@ def write_report(cfg, out: Path, final: FusedMap, updates: list[Update], t0: flo
     robots, all_stamps, all_poses = {}, [], []
     for i, name in enumerate(names):
         status = final.robot(name)
-        stamps, local = read_poses(agents_dir / f"{name}.poses.txt")
+        stamps, own = local[name]
         info = json_or_empty(agents_dir / f"{name}.agent.json")
         r = {
             "status": status.status if status else "unknown",
@@ -117,7 +123,7 @@ def write_report(cfg, out: Path, final: FusedMap, updates: list[Update], t0: flo
             "bytes_per_s": _bytes_per_s(info),
         }
         merged = status is not None and status.merged
-        poses = compose(status.transform, local) if merged else local
+        poses = compose(status.transform, own) if merged else own
         r["frame"] = "global" if merged else "local (unaligned)"
         write_poses(out / f"{name}.poses.txt", stamps, poses)
         write_tum(out / f"{name}.tum", stamps, poses)
@@ -128,17 +134,13 @@ def write_report(cfg, out: Path, final: FusedMap, updates: list[Update], t0: flo
             r["transform"] = status.transform.tolist()
             r["transform_sigma"] = status.sigma.tolist()
         if name in starts:
-            r.update(_sim_scores(name, agents_dir, starts[name], g, status, stamps, local, poses, merged))
-            if merged and g_fit is not None:
-                fit = _map_frame_fitted(agents_dir, name, stamps, local)
-                dt, dr = transform_error(status.transform, compose(inverse(g_fit), fit))
-                r["transform_error_fit_m"], r["transform_error_fit_deg"] = dt, dr
+            r.update(_sim_scores(starts[name], g, g_fit, status, stamps, poses, merged, *fits[name]))
         robots[name] = r
     save_geojson(out / "map.geojson", fused_geojson(final))
     save_picture(out / "map", pic)
     metrics = {"robots": robots, "fused_segments": len(final.seg), "fused_version": final.version}
     if world is not None:
-        metrics.update(_fused_quality(world, final, g, g_fit, agents_dir, names))
+        metrics.update(_fused_quality(world, final, g, g_fit, [fits[n][0][1] for n in names]))
     wrong = [n for n, r in robots.items() if r.get("wrong_merge")]
     metrics["all_merged"] = all(r["status"] in ("reference", "prior", "aligned") for r in robots.values())
     metrics["wrong_merges"] = wrong
@@ -162,28 +164,30 @@ def _bytes_per_s(info: dict) -> dict | None:
     return {k: v / span for k, v in sent.items()} | {"total": sum(sent.values()) / span}
 
 
-def _sim_scores(name, agents_dir, start, g, status, stamps, local, poses, merged) -> dict:
-    t_stamps, truth = read_poses(agents_dir / f"{name}.truth.txt")
-    r = {"ate_slam_m": ate(stamps, local, t_stamps, truth).rmse_m}  # SLAM alone (best alignment)
+def _sim_scores(start, g, g_fit, status, stamps, poses, merged, truth, fit) -> dict:
+    """A simulated robot's scores: ``truth`` its true ``(stamps, poses)``, ``fit`` its SLAM path's
+    rigid fit to them (_slam_fits)."""
+    r = {"ate_slam_m": fit.rmse_m}  # SLAM alone (best alignment)
     if merged:
         true_t = compose(inverse(g), start)
         dt, dr = transform_error(status.transform, true_t)
         r["transform_error_m"], r["transform_error_deg"] = dt, dr
-        r["ate_m"] = ate(stamps, compose(g, poses), t_stamps, truth, align=False).rmse_m
+        r["ate_m"] = ate(stamps, compose(g, poses), *truth, align=False).rmse_m
         r["wrong_merge"] = bool(dt > WRONG_MERGE_M or dr > WRONG_MERGE_DEG)
+        if g_fit is not None:
+            dt, dr = transform_error(status.transform, compose(inverse(g_fit), fit.alignment))
+            r["transform_error_fit_m"], r["transform_error_fit_deg"] = dt, dr
     return r
 
 
-def _fused_quality(world, final: FusedMap, g, g_fit, agents_dir: Path, names) -> dict:
+def _fused_quality(world, final: FusedMap, g, g_fit, true_paths: list[np.ndarray]) -> dict:
     """The fused map in the world placed by the global frame's start-based pose ``g`` and, as
-    ``*_fit``, by its fitted pose ``g_fit`` (see _map_frame_fitted)."""
+    ``*_fit``, by its fitted pose ``g_fit`` (see _slam_fits); ``true_paths`` the robots' true
+    poses, for the walls they saw."""
     from robot_agent.sim import LidarConfig
     from robot_agent.sim.evaluate import seen_wall_points
 
-    seen = [
-        seen_wall_points(world, read_poses(agents_dir / f"{n}.truth.txt")[1], LidarConfig()) for n in names
-    ]
-    seen = np.concatenate(seen)
+    seen = np.concatenate([seen_wall_points(world, path, LidarConfig()) for path in true_paths])
     q = map_quality(apply_segments(g, final.seg), world.walls, seen_points=seen)
     out = {
         "fused_precision": q.precision,

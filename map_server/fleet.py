@@ -261,7 +261,7 @@ class Fleet:
         balances the prior-placed ones against their priors (alignment.prior_gauge): each prior
         robot is refined against the others, which fixes where they are relative to each other
         but not where the whole set is. A motion below a millimetre is left alone."""
-        placed = [r for r in self._ordered() if r.alignment.placed] + self._pieces()
+        placed = self._placed() + self._pieces()
         held = [x for x in placed if x.alignment.status == "prior" and x.map.prior is not None]
         if not held:
             return

@@ -324,14 +324,15 @@ def nearest_segment(
     a, ab = seg[:, 0], seg[:, 1] - seg[:, 0]
     l2 = np.maximum(np.sum(ab * ab, axis=1), 1e-12)
     sdir = np.arctan2(ab[:, 1], ab[:, 0])
+    pdir = None if point_dirs is None else np.asarray(point_dirs, dtype=float)
     dist, idx = np.empty(k), np.empty(k, dtype=int)
     step = max(1, _CHUNK_PAIRS // len(seg))
     for s in range(0, k, step):
         p = points[s : s + step, None, :]
         t = np.clip(np.sum((p - a) * ab, axis=2) / l2, 0.0, 1.0)
         d = np.linalg.norm(p - (a + t[..., None] * ab), axis=2)
-        if point_dirs is not None:
-            da = np.abs(wrap_angle(np.asarray(point_dirs)[s : s + step, None] - sdir))
+        if pdir is not None:
+            da = np.abs(wrap_angle(pdir[s : s + step, None] - sdir))
             d[np.minimum(da, np.pi - da) > angle_tol_rad] = np.inf
         idx[s : s + step] = d.argmin(axis=1)
         dist[s : s + step] = d[np.arange(len(d)), idx[s : s + step]]

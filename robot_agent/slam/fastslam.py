@@ -181,9 +181,10 @@ class FastSLAM:
             ps.poses = sample_gaussian(self.rng, prop.mean, prop.cov)
             d = prop.mean - mean
             d[:, 2] = wrap_angle(d[:, 2])
-            prior_term = -0.5 * np.einsum("pi,pij,pj->p", d, np.linalg.inv(cov), d)
+            info = np.linalg.inv(cov)
+            prior_term = -0.5 * np.einsum("pi,pij,pj->p", d, info, d)
             post = prop.cov / cfg.proposal.sample_scale
-            ps.slip, ps.slip_cov = update_slip(ps.slip, ps.slip_cov, jac, cov, post, d, cfg.motion)
+            ps.slip, ps.slip_cov = update_slip(ps.slip, ps.slip_cov, jac, info, post, d, cfg.motion)
         else:
             ps.poses = sample_gaussian(self.rng, mean, cov)
         if self._last_odo is None:  # the first scan defines the map frame: the start pose, exactly

@@ -90,7 +90,7 @@ def update_slip(
     slip: np.ndarray,
     slip_cov: np.ndarray,
     jac: np.ndarray,
-    prior_cov: np.ndarray,
+    prior_info: np.ndarray,
     post_cov: np.ndarray,
     shift: np.ndarray,
     cfg: MotionConfig,
@@ -98,7 +98,8 @@ def update_slip(
     """Condition each particle's slip belief on the scan alignment of this step.
 
     The predicted pose is ``x = mean + J (s - slip) + w`` with ``w ~ N(0, Q)``, so its prior
-    covariance is ``prior_cov = Q + J slip_cov Jᵀ``. The scan adds information ``H`` about ``x``;
+    covariance is ``prior_cov = Q + J slip_cov Jᵀ``, given as its inverse ``prior_info`` (the
+    caller has it for the weight's prior term). The scan adds information ``H`` about ``x``;
     the alignment returned the posterior pose ``mean + shift`` with covariance
     ``post_cov = (prior_cov⁻¹ + H)⁻¹``. The slip's posterior given the scan (the pose
     marginalized) is then, without forming ``H`` (exact for Gaussians)::
@@ -108,7 +109,7 @@ def update_slip(
 
     A direction the scan does not constrain has no shift and removes no variance.
     """
-    info = np.linalg.inv(prior_cov)
+    info = prior_info
     gain = np.einsum("pij,pkj,pkl->pil", slip_cov, jac, info)  # slip_cov Jᵀ Σ⁻¹  (P,2,3)
     out = slip + np.einsum("pik,pk->pi", gain, shift)
     m = info - np.einsum("pij,pjk,pkl->pil", info, post_cov, info)

@@ -190,7 +190,7 @@ def test_update_slip_is_the_exact_gaussian_conditioning_of_the_slip_on_the_scan(
             *[_alignment_result(jac[p], slip_cov[p], q[p], h[p], z[p]) for p in range(2)], strict=True
         )
     )
-    got, got_cov = update_slip(slip, slip_cov, jac, prior, post, shift, cfg)
+    got, got_cov = update_slip(slip, slip_cov, jac, np.linalg.inv(prior), post, shift, cfg)
     for p in range(2):
         ref, ref_cov = _joint_conditioning(slip[p], slip_cov[p], jac[p], q[p], h[p], z[p])
         np.testing.assert_allclose(got[p], ref, rtol=1e-6, atol=1e-12)
@@ -215,7 +215,7 @@ def test_a_scan_that_says_nothing_along_the_motion_teaches_nothing_about_the_sca
     post = np.linalg.inv(np.linalg.inv(prior) + h)
     truth_offset = np.array([0.0, 0.01, 0.006])  # the scan saw a heading drift of 0.02 rad/m
     shift = (post @ h @ truth_offset[:, None])[..., 0]
-    got, got_cov = update_slip(slip, slip_cov, jac, prior, post, shift, cfg)
+    got, got_cov = update_slip(slip, slip_cov, jac, np.linalg.inv(prior), post, shift, cfg)
     assert got[0, 0] == pytest.approx(0.02, abs=1e-9)
     assert got_cov[0, 0, 0] == pytest.approx(9e-4, rel=1e-6)
     # the heading offset is split between this step's noise and the drift by their variances
@@ -233,7 +233,7 @@ def test_update_slip_keeps_the_slip_within_its_bounds():
     prior = q + np.einsum("pij,pjk,plk->pil", jac, slip_cov, jac)
     post = q.copy()
     got, _ = update_slip(
-        np.zeros((1, 2)), slip_cov, jac, prior, post, np.array([[5.0, 0.0, 3.0]]), cfg
+        np.zeros((1, 2)), slip_cov, jac, np.linalg.inv(prior), post, np.array([[5.0, 0.0, 3.0]]), cfg
     )  # ... told a huge slip
     assert got[0, 0] == cfg.slip_scale_max
     assert got[0, 1] == cfg.slip_drift_max_rad_per_m
