@@ -14,6 +14,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from robot_agent.slam.lines import fit_lines, project_to_line, segment_endpoints
+from shared.geometry import wrap_angle
 
 INITIAL_CAPACITY = 256
 
@@ -97,6 +98,9 @@ class SegmentMaps:
     def refit_extend(self, p_idx: np.ndarray, c_idx: np.ndarray, extra_ends: np.ndarray) -> None:
         """Refit the lines of elements ``(p_idx, c_idx) (K,)`` from their moments and set each
         extent to the union of its old endpoints and ``extra_ends (K,2,2)`` on the new line.
+        The facing keeps its side and turns with the line: association and weights compare
+        facings, so a facing left at the element's first observation would charge every later
+        match that observation's angle error (a tilted first view biased the weights by 2 deg).
 
         A pair may repeat (several observations merged into one element): extents are combined
         by scatter-min/max so none is lost.
@@ -109,6 +113,8 @@ class SegmentMaps:
         np.minimum.at(lo, (p_idx, c_idx), t.min(axis=-1))
         np.maximum.at(hi, (p_idx, c_idx), t.max(axis=-1))
         self.alpha[p_idx, c_idx], self.rho[p_idx, c_idx] = alpha, rho
+        same_side = np.cos(alpha - self.facing[p_idx, c_idx]) >= 0
+        self.facing[p_idx, c_idx] = np.where(same_side, alpha, wrap_angle(alpha + np.pi))
         self.seg[p_idx, c_idx] = segment_endpoints(alpha, rho, lo[p_idx, c_idx], hi[p_idx, c_idx])
 
 

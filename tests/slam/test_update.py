@@ -95,6 +95,21 @@ def test_merge_refits_from_summed_moments_and_extends_to_the_union():
         np.testing.assert_array_equal(v[1], before[k][1], err_msg=k)
 
 
+def test_merge_turns_the_facing_with_the_refitted_line_and_keeps_its_side():
+    """The facing is compared in association and weights: left at a tilted first view, it would
+    charge that tilt to every later match of the element."""
+    tilted = np.c_[np.linspace(0.0, 1.0, 11), 2.0 + 0.05 * np.linspace(0.0, 1.0, 11)]  # 2.9 deg off
+    for facing, normal in ((DOWN, DOWN), (UP, UP)):  # either side of the wall
+        maps = SegmentMaps.empty(1, 1)
+        put_element(maps, 0, tilted, facing + np.arctan(0.05))
+        obs = observe_points([hline(-4.0, 4.0, 2.0, 161)], np.zeros((1, 3)))
+        merge_matches(maps, obs, assoc_of([[0]]), step=1, cfg=UpdateConfig())
+        line_normal = maps.alpha[0, 0] if np.cos(maps.alpha[0, 0] - normal) > 0 else maps.alpha[0, 0] + np.pi
+        assert abs(wrap_angle(maps.alpha[0, 0] - np.pi / 2)) < np.radians(0.3)  # refitted: nearly level
+        assert wrap_angle(maps.facing[0, 0] - line_normal) == pytest.approx(0.0, abs=1e-12)
+        assert abs(wrap_angle(maps.facing[0, 0] - normal)) < np.radians(0.3)
+
+
 def test_two_observations_merged_into_one_element_in_one_call():
     middle, left, right = hline(0.0, 2.0, 2.0, 21), hline(-1.5, -0.3, 2.0, 13), hline(2.4, 4.0, 2.0, 17)
     maps = SegmentMaps.empty(1, 2)
