@@ -5,7 +5,7 @@ from __future__ import annotations
 import resource
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -98,7 +98,19 @@ def correct_trajectory(
     return compose(gauge, corrected), stats
 
 
-def _step(slam: FastSLAM, log: LaserLog, i: int) -> None:
+def remap(log: LaserLog, first: int, poses: np.ndarray, cfg: SlamConfig) -> FastSLAM:
+    """A one-particle filter whose map is built along ``poses (S,3)``, the known poses of scans
+    ``first .. first + S - 1`` of ``log`` (e.g. the back end's corrected trajectory): the same
+    extraction, association, update and cleaning, no sampling and no relocalization. Its map and
+    those poses agree, which the filter's map (drawn along the uncorrected path) does not."""
+    known = replace(cfg, particles=1, relocalization=replace(cfg.relocalization, enabled=False))
+    slam = FastSLAM(known, np.random.default_rng(0))
+    for i in range(len(poses)):
+        _step(slam, log, first + i, poses[i])
+    return slam
+
+
+def _step(slam: FastSLAM, log: LaserLog, i: int, pose: np.ndarray | None = None) -> None:
     slam.step(
         float(log.stamps_s[i]),
         log.odometry[i],
@@ -106,4 +118,5 @@ def _step(slam: FastSLAM, log: LaserLog, i: int) -> None:
         log.angles_rad,
         log.laser_offset,
         log.range_max_m,
+        pose,
     )

@@ -143,20 +143,29 @@ def run(args: argparse.Namespace) -> int:
     stop_on_signals(stop)
     bus_cfg = client_config(args.connect, args.bus_config)
     t0 = time.monotonic()
+    backend = None
     with Bus(bus_cfg, cancel=stop) as bus:
         print(f"agent {args.robot}: session {core.session}, connected", flush=True)
         pub = run_agent(bus, keys, core, scans, stop, on_estimate)
+        stamps, filter_poses = slam.best_trajectory()  # the best particle's, in the robot's map frame
+        poses = filter_poses
+        if sim is None and len(poses):
+            # a log piece: the same pose-graph back end as `replay` (the scans are at hand), and
+            # the map rebuilt along its corrected path is published last, so the server places
+            # the piece by the map its written poses agree with
+            from robot_agent.replay import correct_trajectory, remap
+
+            poses, backend = correct_trajectory(laser_log, args.first, stamps, poses, cfg, slam.loop_hints)
+            if backend is not None and not stop.is_set():
+                core.slam = remap(laser_log, args.first, poses, cfg)
+                pub.publish(force_map=True)
+                print(f"agent {args.robot}: published the map rebuilt along the back end's path", flush=True)
     wall = time.monotonic() - t0
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        stamps, poses = slam.best_trajectory()  # the best particle's, in the robot's map frame
-        backend = None
-        if sim is None:  # a log piece: the same pose-graph back end as `replay` (scans are at hand)
-            from robot_agent.replay import correct_trajectory
-
-            write_poses(out / f"{args.robot}.filter.poses.txt", stamps, poses)
-            poses, backend = correct_trajectory(laser_log, args.first, stamps, poses, cfg, slam.loop_hints)
+        if sim is None:
+            write_poses(out / f"{args.robot}.filter.poses.txt", stamps, filter_poses)
         write_poses(out / f"{args.robot}.poses.txt", stamps, poses)
         write_tum(out / f"{args.robot}.tum", stamps, poses)
         if sim is not None:

@@ -131,7 +131,11 @@ class FastSLAM:
         angles_rad: np.ndarray,
         laser_offset: np.ndarray,
         range_max_m: float = np.inf,
+        pose: np.ndarray | None = None,
     ) -> Estimate:
+        """One scan. ``pose (3,)``, when given, is the robot's known pose in the map frame
+        (mapping with known poses, e.g. a trajectory the back end corrected): the particles are
+        put there instead of being moved and sampled; no proposal, no slip update."""
         cfg = self.cfg
         ps = self.particles
         odometry = np.asarray(odometry, dtype=float)
@@ -158,6 +162,8 @@ class FastSLAM:
 
         # 2. motion (slip-aware), 3. proposal
         mean, cov = predict(ps.poses, ps.slip, u, cfg.motion)
+        if pose is not None:
+            mean = np.repeat(np.asarray(pose, dtype=float).reshape(1, 3), ps.n, axis=0)
         jac = slip_jacobian(ps.poses, u)
         cov = cov + np.einsum("pij,pjk,plk->pil", jac, ps.slip_cov, jac)  # the slip's own uncertainty
         pts = segs.points  # the readings the point alignment uses (scan order, robot frame)
@@ -165,7 +171,9 @@ class FastSLAM:
         cols = self._local_columns(mean, reach + cfg.filter.local_margin_m)
         local = ps.maps.columns(cols)
         prior_term = np.zeros(ps.n)
-        if cfg.proposal.enabled and len(cols) and len(segs):
+        if pose is not None:
+            ps.poses = mean
+        elif cfg.proposal.enabled and len(cols) and len(segs):
             prop = align(
                 mean,
                 cov,
@@ -189,7 +197,8 @@ class FastSLAM:
             ps.poses = sample_gaussian(self.rng, mean, cov)
         if self._last_odo is None:  # the first scan defines the map frame: the start pose, exactly
             ps.poses = mean.copy()  # (drawn above all the same: the random stream is unchanged)
-        ps.slip_cov = walk_slip(ps.slip_cov, float(np.hypot(u[0], u[1])), cfg.motion)
+        if pose is None:
+            ps.slip_cov = walk_slip(ps.slip_cov, float(np.hypot(u[0], u[1])), cfg.motion)
 
         # 4. association at the sampled poses, 5. weights
         obs = observe(ps.poses, segs.moments, segs.endpoints, facing, segs.cov, cfg.association.point_sigma_m)
