@@ -160,12 +160,13 @@ class FastSLAM:
         segs = extract_segments(ranges_m, angles_rad, cfg.extraction, range_max_m).transformed(laser_offset)
         facing = wrap_angle(segs.alpha + np.pi)  # normal pointing back to the sensor
 
-        # 2. motion (slip-aware), 3. proposal
-        mean, cov = predict(ps.poses, ps.slip, u, cfg.motion)
-        if pose is not None:
+        # 2. motion (slip-aware), 3. proposal — or the known pose
+        if pose is None:
+            mean, cov = predict(ps.poses, ps.slip, u, cfg.motion)
+            jac = slip_jacobian(ps.poses, u)
+            cov = cov + np.einsum("pij,pjk,plk->pil", jac, ps.slip_cov, jac)  # the slip's own uncertainty
+        else:
             mean = np.repeat(np.asarray(pose, dtype=float).reshape(1, 3), ps.n, axis=0)
-        jac = slip_jacobian(ps.poses, u)
-        cov = cov + np.einsum("pij,pjk,plk->pil", jac, ps.slip_cov, jac)  # the slip's own uncertainty
         pts = segs.points  # the readings the point alignment uses (scan order, robot frame)
         reach = float(np.max(np.hypot(pts[:, 0], pts[:, 1]), initial=0.0))
         cols = self._local_columns(mean, reach + cfg.filter.local_margin_m)
