@@ -1,7 +1,7 @@
 """The fleet demo over several seeds: alignment verdicts, transform errors, fused-map quality.
 
     .venv/bin/python benchmarks/bench_demo.py [--seeds 0 1 ... 9] [--unknown-starts]
-        [--robots 3] [--world office] [--duration 150] [--out out/bench_demo]
+        [--robots 3] [--world office] [--duration 175] [--out out/bench_demo]
 
 Each seed is one full `fleet-slam demo` (router, server, agents as processes on loopback, about
 3 minutes at the default duration). Prints one row per seed — every robot's status and transform
@@ -47,7 +47,7 @@ def main() -> int:
     p.add_argument("--unknown-starts", action="store_true")
     p.add_argument("--robots", type=int, default=3)
     p.add_argument("--world", default="office")
-    p.add_argument("--duration", type=float, default=150.0)
+    p.add_argument("--duration", type=float, default=175.0)
     p.add_argument("--out", default="out/bench_demo")
     args = p.parse_args()
     results = {}

@@ -126,7 +126,7 @@ def _add_fleet_commands(sub) -> None:
     )
     d.add_argument("--robots", type=int, default=3, help="simulated robots (1-4)")
     d.add_argument("--world", default="office", help="built-in world: office, warehouse, campus")
-    d.add_argument("--duration", type=float, default=150.0, help="simulated seconds")
+    d.add_argument("--duration", type=float, default=175.0, help="simulated seconds")
     d.add_argument("--seed", type=int, default=0, help="random seed")
     d.add_argument("--unknown-starts", action="store_true", help="hide the start poses from the server")
     d.add_argument("--particles", type=int, default=None, help="particles per agent (default 30)")

@@ -35,7 +35,7 @@ class DemoConfig:
     out: str = "out/demo"
     robots: int = 3
     world: str = "office"
-    duration_s: float = 150.0
+    duration_s: float = 175.0
     seed: int = 0
     unknown_starts: bool = False
     particles: int | None = None

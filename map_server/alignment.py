@@ -24,8 +24,9 @@ pass every check here and still be the mirror image.
 
 With a prior the prior is refined by matching within its sigma (a MAP estimate with the prior as
 a Gaussian term) and kept as is when the evidence is thin. A robot that is already aligned keeps
-its alignment (re-refined as its map grows) unless a distinct place passes every check and the
-current one lost support (fails a check now, or is beaten by ``revise_ratio``).
+its alignment (re-refined as the maps change) unless a distinct place passes every check and the
+current one lost support (fails a check now, or is beaten by ``revise_ratio``); only a map that
+grew enough is searched for such a place (fleet.py), a changed one is refined where it is.
 """
 
 from __future__ import annotations
@@ -169,9 +170,12 @@ def estimate_alignment(
     prior: np.ndarray | None = None,
     prior_sigma: np.ndarray | None = None,
     current: Alignment | None = None,
+    search: bool = True,
 ) -> Alignment:
     """The robot's map frame in the global frame, from its directed segments ``robot_seg (N,2,2)``
-    (its map frame) and the placed robots' fused map ``placed_seg (M,2,2)`` (global frame)."""
+    (its map frame) and the placed robots' fused map ``placed_seg (M,2,2)`` (global frame).
+    ``search=False`` with a ``current`` alignment only refines it where it is (no candidate
+    search, so no revision to a distinct place): the maps changed shape, not size."""
     robot_seg = np.asarray(robot_seg, float).reshape(-1, 2, 2)
     placed_seg = np.asarray(placed_seg, float).reshape(-1, 2, 2)
     robot = Samples.of(robot_seg, cfg.sample_step_m)
@@ -187,7 +191,7 @@ def estimate_alignment(
             return current
         why = "nothing placed yet" if len(index.samples) == 0 else f"robot map only {total:.1f} m long"
         return Alignment("unaligned", np.zeros(3), np.zeros(3), reason=why)
-    cands = cand.search(robot_seg, placed_seg, index, robot, coarse, cfg)
+    cands = cand.search(robot_seg, placed_seg, index, robot, coarse, cfg) if search or not keep else []
     if keep:
         cur = cand.refine_and_score(index, robot, coarse, current.transform, cfg)
         return _revise(current, cur, cands, robot_seg, index, robot, total, cfg)

@@ -25,9 +25,11 @@ Matching is conservative at the fleet level too (alignment.py verifies one attem
   agree on it.
 
 Attempts are repeated only when a robot's map grew enough, the map it is matched against changed,
-or a candidate awaits confirmation. :meth:`Fleet.fuse` then merges the placed robots'
-cross-particle maps (fusion.py); the version increases only when the content (segments,
-provenance, robot statuses — not the poses) changed.
+or a candidate awaits confirmation; a placed robot (by prior or by matching) is refined where it
+is whenever its map or the placed map changed, every ``retry_interval_s`` or at once when a robot
+leaves (its agent published its final map, rebuilt by its back end, just before).
+:meth:`Fleet.fuse` then merges the placed robots' cross-particle maps (fusion.py); the version
+increases only when the content (segments, provenance, robot statuses — not the poses) changed.
 
 A robot that restarts comes back as a new *session* in a new map frame. What the fused map held
 of its old session is not dropped: the old session's last map becomes a *retired piece*, kept in
@@ -151,7 +153,14 @@ class Fleet:
             r.pose = p
 
     def set_online(self, robot: str, online: bool) -> None:
-        self._robot(robot, None).online = bool(online)
+        """Presence. A robot leaving has published its final map (an agent at the end of its run
+        publishes the map rebuilt by its back end last): every placed robot is refined against
+        the maps as they are now, without waiting for ``retry_interval_s``."""
+        r = self._robot(robot, None)
+        if r.online and not online:
+            for x in self.robots.values():
+                x.refine_now = x.alignment.placed
+        r.online = bool(online)
 
     # -- fusion ------------------------------------------------------------------------------
 
@@ -229,8 +238,9 @@ class Fleet:
             current = r.alignment if r.alignment.status == "aligned" else None
             sigma = r.map.prior_sigma if prior is not None else None
             a = estimate_alignment(
-                r.layer.seg, self._global_segments(r.robot), self.cfg.alignment, prior, sigma, current
-            )
+                r.layer.seg, self._global_segments(r.robot), self.cfg.alignment, prior, sigma, current,
+                search=current is None or r.grew(self.cfg),
+            )  # fmt: skip
             if not r.alignment.placed or a.status != r.alignment.status:  # why a robot is (not) placed
                 log.info("%s: attempt at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
             if a.status == "aligned" and not r.alignment.placed:

@@ -38,8 +38,10 @@ class RobotState:
     attempt_placed_m: float = 0.0
     attempt_placed_key: str = ""  # which placed robots, how long, where (see Fleet._placed_key)
     attempt_s: float = 0.0
+    attempt_seq: int = -1  # the map's seq at the last attempt
     pending: Alignment | None = None
     pending_count: int = 0
+    refine_now: bool = False  # a robot left: attempt without waiting (not persisted)
     lengths: list[tuple[float, float]] = field(default_factory=list)  # (server time, map length)
 
     def new_session(self) -> None:
@@ -47,6 +49,7 @@ class RobotState:
         self.alignment = _unaligned("new session")
         self.layer, self.aligned_at_s, self.first_map_s = None, None, None
         self.attempt_len_m, self.attempt_placed_m, self.attempt_placed_key = None, 0.0, ""
+        self.attempt_seq = -1
         self.pending, self.pending_count = None, 0
         self.lengths = []
 
@@ -66,27 +69,32 @@ class RobotState:
         return self.layer.length_m <= (1.0 + max_growth) * before[-1]
 
     def due(self, cfg: FleetConfig, placed_m: float, placed_key: str, now_s: float) -> bool:
-        """Whether an alignment attempt is worth it: never tried, the map changed enough, or
-        (while unaligned) the placed map grew enough, or anything changed and it is a while ago."""
+        """Whether an alignment attempt is worth it: never tried, the map changed length enough,
+        or (while unaligned) the placed map grew enough, or its map or the placed map changed
+        and the last attempt is ``retry_interval_s`` ago (at once when a robot just left)."""
+        if self.attempt_len_m is None or self.grew(cfg):
+            return True
+        waited = self.refine_now or now_s - self.attempt_s >= cfg.retry_interval_s
+        if self.pending is not None:
+            return waited  # a candidate awaits confirmation
+        changed = self.map.seq != self.attempt_seq or placed_key != self.attempt_placed_key
+        if self.alignment.placed:  # refined against the others while the maps change (a prior
+            return waited and changed  # robot, or an aligned one: where it is)
+        if placed_m - self.attempt_placed_m >= cfg.retry_placed_growth_m:
+            return True
+        return waited and changed
+
+    def grew(self, cfg: FleetConfig) -> bool:
+        """Whether the map changed length enough since the last attempt for a full search (an
+        aligned robot is otherwise only refined where it is)."""
         if self.attempt_len_m is None:
             return True
         grown = abs(self.layer.length_m - self.attempt_len_m)
-        if grown >= max(cfg.retry_growth_m, cfg.retry_growth_share * self.attempt_len_m):
-            return True
-        waited = now_s - self.attempt_s >= cfg.retry_interval_s
-        if self.pending is not None:
-            return waited  # a candidate awaits confirmation
-        placed_changed = placed_key != self.attempt_placed_key
-        if self.alignment.status == "prior":  # refined against the others while they move
-            return waited and (grown > 0.0 or placed_changed)
-        if self.alignment.placed:
-            return False
-        if placed_m - self.attempt_placed_m >= cfg.retry_placed_growth_m:
-            return True
-        return waited and (grown > 0.0 or placed_changed)
+        return grown >= max(cfg.retry_growth_m, cfg.retry_growth_share * self.attempt_len_m)
 
     def attempted(self, placed_m: float, placed_key: str, now_s: float) -> None:
-        self.attempt_len_m, self.attempt_s = self.layer.length_m, now_s
+        self.refine_now = False
+        self.attempt_len_m, self.attempt_s, self.attempt_seq = self.layer.length_m, now_s, self.map.seq
         self.attempt_placed_m, self.attempt_placed_key = placed_m, placed_key
 
     def mark_placed(self, t_s: float) -> None:
@@ -116,7 +124,7 @@ class RobotState:
         return cls(
             robot, map=m, alignment=alignment_from_dict(d["alignment"]), pose=pose,
             pending=None if p is None else alignment_from_dict(p),
-            **{k: d[k] for k in _SCALARS},
+            **{k: d.get(k, _ADDED[k]) if k in _ADDED else d[k] for k in _SCALARS},
         )  # fmt: skip
 
 
@@ -157,9 +165,10 @@ def retired_blob(robot: str, session: str) -> str:
 # the plain fields of RobotState that a snapshot keeps as they are
 _SCALARS = (
     "order", "online", "aligned_at_s", "first_map_s", "attempt_len_m", "attempt_placed_m",
-    "attempt_placed_key", "attempt_s",
+    "attempt_placed_key", "attempt_s", "attempt_seq",
     "pending_count",
 )  # fmt: skip
+_ADDED = {"attempt_seq": -1}  # fields newer than some snapshots: their value when missing
 
 
 def _floats(a: np.ndarray) -> list[float]:

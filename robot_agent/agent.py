@@ -11,6 +11,7 @@ frame in the global frame), when given, travels with every map so the server can
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -76,6 +77,14 @@ class AgentCore:
         self.scans += 1
         self._last_stamp_s = max(self._last_stamp_s, float(scan.stamp_s))
         return self.estimate
+
+    def rebuilt(self, slam: FastSLAM, pose: np.ndarray) -> None:
+        """The back end corrected the path and ``slam`` holds the map rebuilt along it: publish
+        that map and ``pose (3,)``, the corrected current pose, next (both due at once)."""
+        self.slam = slam
+        if self.estimate is not None:
+            self.estimate = dataclasses.replace(self.estimate, pose=np.asarray(pose, float).copy())
+        self._next_pose_s = self._next_map_s = -np.inf
 
     def pose_message(self) -> PoseUpdate | None:
         """A pose update when one is due (every ``pose_period_s`` of source time)."""

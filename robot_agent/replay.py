@@ -13,7 +13,7 @@ from robot_agent.slam.backend import run_backend
 from robot_agent.slam.extraction import scan_points
 from robot_agent.slam.fastslam import FastSLAM, SlamConfig
 from robot_agent.sources import LaserLog
-from shared.geometry import apply_points, compose
+from shared.geometry import apply_points, compose, inverse
 from shared.metrics import align_se2
 
 
@@ -78,10 +78,18 @@ def correct_trajectory(
     poses: np.ndarray,
     cfg: SlamConfig,
     hints: list[tuple[int, np.ndarray]] | None = None,
+    gauge: str = "fit",
 ) -> tuple[np.ndarray, dict | None]:
     """The back end (pose graph) over ``poses (S,3)``, the trajectory of scans ``first ..
     first + S - 1`` of ``log``: the corrected poses and the back end's statistics (``poses`` and
-    ``None`` when it is disabled)."""
+    ``None`` when it is disabled).
+
+    ``gauge``: ``"fit"`` puts the corrected trajectory where it fits ``poses`` best (it then
+    agrees with the filter's map, drawn along ``poses``); ``"start"`` keeps its first pose at
+    ``poses[0]`` — the map frame stays the robot's start frame, for a map rebuilt along the
+    corrected path (:func:`remap`) that a server places against a start prior or other robots."""
+    if gauge not in ("fit", "start"):
+        raise ValueError(f"gauge must be 'fit' or 'start', got {gauge!r}")
     if not cfg.backend.enabled or len(poses) < 2:
         return poses, None
 
@@ -91,6 +99,8 @@ def correct_trajectory(
 
     odometry = log.odometry[first : first + len(poses)]
     corrected, stats = run_backend(stamps, poses, odometry, points, cfg.backend, hints)
+    if gauge == "start":
+        return compose(compose(poses[0], inverse(corrected[0])), corrected), stats
     # the pose graph holds the first pose fixed, an arbitrary gauge: the map (built along the
     # filter's trajectory) is in the frame that fits the filter's trajectory best, so that is where
     # the corrected trajectory is put (relative motions, what relations score, are unchanged)

@@ -26,6 +26,9 @@ if TYPE_CHECKING:  # the parser is built without the heavy imports (instant --he
 DEFAULT_FLEET = "default"  # = shared.keys.DEFAULT_FLEET
 
 EXPLORER_MAP_EVERY = 5  # scans between rebuilding the map the explorer plans on
+# a simulated robot keeps its scans (ranges as float32) for the back end at the end of its run;
+# beyond this many (5.5 h at 5 Hz, ~150 MB at 361 beams) it stops keeping them and ends without
+MAX_KEPT_SCANS = 100_000
 
 
 def parse_pose(text: str, what: str = "pose") -> np.ndarray:
@@ -80,16 +83,38 @@ class SimSource:
         self.explorer = None
         self.slam = slam
         self._map = np.zeros((0, 2, 2))
+        self._ranges: list[np.ndarray] = []  # every scan's, for the back end (MAX_KEPT_SCANS)
+        self._odometry: list[np.ndarray] = []
+        self._first: Scan | None = None
         if args.explore:
             from robot_agent.explore import Explorer
 
             self.explorer = Explorer()
 
     def scans(self) -> Iterator[Scan]:
+        import numpy as np
+
         for scan in self.sim.scans(self.duration_s):
             self.truth.append(self.sim.truth)
             self.stamps.append(scan.stamp_s)
+            if self._first is None:
+                self._first = scan
+            if len(self._ranges) < MAX_KEPT_SCANS:
+                self._ranges.append(np.asarray(scan.ranges_m, dtype=np.float32))
+                self._odometry.append(np.asarray(scan.odometry, dtype=float))
             yield scan
+
+    def recorded_log(self):
+        """The scans so far as a :class:`~robot_agent.sources.LaserLog` (what the back end
+        reads), or ``None`` when there are none or more than MAX_KEPT_SCANS were made."""
+        from robot_agent.sources import LaserLog
+
+        if self._first is None or len(self._ranges) != len(self.stamps):
+            return None
+        f = self._first  # the sim's beams, laser mount and range are the same in every scan
+        return LaserLog.from_arrays(
+            self.stamps, self._ranges, f.angles_rad, self._odometry, f.laser_offset, f.range_max_m
+        )
 
     def on_estimate(self, scan: Scan, est: Estimate) -> None:
         if self.explorer is None:
@@ -149,23 +174,32 @@ def run(args: argparse.Namespace) -> int:
         pub = run_agent(bus, keys, core, scans, stop, on_estimate)
         stamps, filter_poses = slam.best_trajectory()  # the best particle's, in the robot's map frame
         poses = filter_poses
-        if sim is None and len(poses):
-            # a log piece: the same pose-graph back end as `replay` (the scans are at hand), and
-            # the map rebuilt along its corrected path is published last, so the server places
-            # the piece by the map its written poses agree with
+        # at the end of the run (not when stopped): the pose-graph back end over the whole path,
+        # as `replay` does, and the map rebuilt along the corrected path is published last, so
+        # the server places the robot by the map its written poses agree with
+        first, scan_log = (0, sim.recorded_log()) if sim is not None else (args.first, laser_log)
+        if scan_log is None and sim is not None and len(poses):
+            print(f"agent {args.robot}: more than {MAX_KEPT_SCANS} scans, no back end at the end", flush=True)
+        elif len(poses) and not stop.is_set():
             from robot_agent.replay import correct_trajectory, remap
 
-            poses, backend = correct_trajectory(laser_log, args.first, stamps, poses, cfg, slam.loop_hints)
+            # the start gauge: the map frame stays the robot's start frame (what a prior gives)
+            poses, backend = correct_trajectory(
+                scan_log, first, stamps, poses, cfg, slam.loop_hints, gauge="start"
+            )
             if backend is not None and not stop.is_set():
-                core.slam = remap(laser_log, args.first, poses, cfg)
+                core.rebuilt(remap(scan_log, first, poses, cfg), poses[-1])
                 pub.publish(force_map=True)
-                print(f"agent {args.robot}: published the map rebuilt along the back end's path", flush=True)
+                print(
+                    f"agent {args.robot}: published the map rebuilt along the back end's path "
+                    f"({backend.get('loops', 0)} loops)",
+                    flush=True,
+                )
     wall = time.monotonic() - t0
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        if sim is None:
-            write_poses(out / f"{args.robot}.filter.poses.txt", stamps, filter_poses)
+        write_poses(out / f"{args.robot}.filter.poses.txt", stamps, filter_poses)
         write_poses(out / f"{args.robot}.poses.txt", stamps, poses)
         write_tum(out / f"{args.robot}.tum", stamps, poses)
         if sim is not None:

@@ -101,3 +101,25 @@ def test_paced_follows_the_source_clock_and_stops():
     stop = threading.Event()
     stop.set()
     assert list(paced(iter(scans), 0.0, stop)) == []
+
+
+def test_a_rebuilt_map_and_the_corrected_pose_are_published_next():
+    """At the end of a run the back end's rebuilt map (a one-particle filter) and corrected pose
+    replace the filter's; both go out on the next publication, whatever the periods."""
+    scans = list(LiveSim(builtin_world("office"), 1, seed=0).scans(8.0))
+    core = AgentCore("robot2", FastSLAM(SlamConfig(particles=5), np.random.default_rng(0)), AgentConfig())
+    for s in scans:
+        core.step(s)
+        core.pose_message(), core.map_messages()
+    assert core.pose_message() is None and core.map_messages() is None  # nothing due
+    other = FastSLAM(SlamConfig(particles=1), np.random.default_rng(1))
+    for s in scans:
+        other.step(s.stamp_s, s.odometry, s.ranges_m, s.angles_rad, s.laser_offset, s.range_max_m)
+    corrected = np.array([1.0, -2.0, 0.25])
+    core.rebuilt(other, corrected)
+    pose = core.pose_message()
+    assert pose is not None and np.array_equal(pose.pose, corrected)
+    chunks = core.map_messages()
+    assert chunks is not None and len(chunks[0].particle_weights) == 1  # the rebuilt map's
+    whole = codec.Assembler().add(codec.decode(codec.encode(chunks[0])))
+    assert whole is not None and len(whole.seg) > 5

@@ -51,6 +51,27 @@ def test_known_starts_merge_accurately(demo):
     assert m["fused_precision_fit"] >= 0.9 and m["fused_completeness_fit"] >= 0.5
 
 
+def test_each_agent_ends_with_its_back_end_and_publishes_the_rebuilt_map(demo):
+    """At the end of its run an agent corrects its path with the back end (start gauge: the
+    first pose is the filter's) and publishes the map rebuilt along it, last."""
+    import numpy as np
+
+    from shared.metrics import read_poses
+
+    out, _, _ = demo
+    for robot in ("robot1", "robot2"):
+        summary = json.loads((out / "agents" / f"{robot}.agent.json").read_text())
+        assert summary["backend"] is not None and summary["backend"]["keyframes"] > 10
+        assert (
+            "published the map rebuilt along the back end's path"
+            in (out / "logs" / f"{robot}.log").read_text()
+        )
+        _, poses = read_poses(out / "agents" / f"{robot}.poses.txt")
+        _, filt = read_poses(out / "agents" / f"{robot}.filter.poses.txt")
+        assert poses.shape == filt.shape and summary["scans"] == len(poses)
+        np.testing.assert_allclose(poses[0], filt[0], atol=1e-6)
+
+
 def test_no_process_left_behind(demo):
     out, _, _ = demo
     left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True)  # server, agents

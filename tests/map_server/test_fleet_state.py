@@ -1,5 +1,6 @@
 """The server state: three simulated robots' FastSLAM maps fused, persisted, replaced."""
 
+import copy
 import dataclasses
 import json
 
@@ -89,8 +90,26 @@ def test_snapshot_restore_fuses_to_the_same_map(fused):
     for x, y in zip(a.robots, b.robots, strict=True):
         assert (x.robot, x.status, x.aligned_at_s) == (y.robot, y.status, y.aligned_at_s)
         np.testing.assert_array_equal(x.transform, y.transform)
-    assert back.fuse(200.0) is None  # nothing to redo
+    # what is left to do (aligned robots refined against the maps placed after them) is the same
+    original = copy.deepcopy(fused)
+    for t in (200.0, 210.0):
+        x, y = original.fuse(t), back.fuse(t)
+        assert (x is None) == (y is None)
+        if x is not None:
+            np.testing.assert_array_equal(x.seg, y.seg)
+            assert x.version == y.version
     assert back.reference == "r0"
+
+
+def test_refinement_settles_when_the_maps_stop_changing(fused):
+    """Aligned robots are refined against each other as the maps change; with the same maps the
+    refinements converge and the fused map stops changing (no endless re-publishing)."""
+    fleet = copy.deepcopy(fused)
+    before = {n: fleet.robots[n].alignment.transform.copy() for n in ROBOTS}
+    versions = [fleet.fuse(200.0 + 10.0 * k) for k in range(12)]
+    assert versions[-3:] == [None, None, None], [v and v.version for v in versions]
+    for n in ROBOTS:  # a refinement, not a move: millimetres
+        assert np.linalg.norm(fleet.robots[n].alignment.transform[:2] - before[n][:2]) < 0.02
 
 
 def test_version_changes_only_with_content(runs):
@@ -175,3 +194,39 @@ def test_nothing_is_merged_while_the_maps_still_grow():
         fleet.fuse(t)
     assert fleet.latest().robot("r1").status == "unaligned"
     assert fleet.robots["r1"].alignment.reason.startswith("waiting for mature maps")
+
+
+def test_an_aligned_robot_follows_its_rebuilt_map(runs, fused):
+    """An agent's back end rebuilds its map at the end of a run (the same walls, the frame error
+    it drifted by removed): the server refines the aligned robot where it is when its map
+    changed and the last attempt is ``retry_interval_s`` ago — at once when a robot leaves (it
+    has published its final map)."""
+    fleet = copy.deepcopy(fused)
+    for k in range(12):  # settle the refinements of the fixture's maps first
+        fleet.fuse(200.0 + 10.0 * k)
+    t_r1 = fleet.robots["r1"].alignment.transform.copy()
+
+    def rebuilt(delta, seq):  # r1's map moved rigidly by ``delta`` in its own frame
+        m = runs["r1"][0]
+        seg = apply_segments(delta, m.seg)
+        return dataclasses.replace(m, seg=seg, seq=m.seq + seq)
+
+    def expected(delta):  # the same walls in the global frame: T' = T ∘ delta⁻¹
+        return compose(t_r1, inverse(delta))
+
+    d1, d2 = np.array([0.04, -0.03, np.radians(0.3)]), np.array([-0.05, 0.02, np.radians(-0.4)])
+    fleet.put_map(rebuilt(d1, 100), 400.0)
+    assert fleet.fuse(400.0) is not None
+    err_m, err_deg = transform_error(fleet.robots["r1"].alignment.transform, expected(d1))
+    assert err_m < 0.01 and err_deg < 0.05, (err_m, err_deg)
+    assert fleet.robots["r1"].alignment.reason.startswith("kept and refined")
+    # one second later: not refined yet (retry_interval_s) ...
+    fleet.put_map(rebuilt(d2, 101), 401.0)
+    fleet.fuse(401.0)
+    err_m, _ = transform_error(fleet.robots["r1"].alignment.transform, expected(d2))
+    assert err_m > 0.03
+    # ... until a robot leaves: then at once
+    fleet.set_online("r2", False)
+    fleet.fuse(402.0)
+    err_m, err_deg = transform_error(fleet.robots["r1"].alignment.transform, expected(d2))
+    assert err_m < 0.01 and err_deg < 0.05, (err_m, err_deg)

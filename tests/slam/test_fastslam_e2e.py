@@ -94,6 +94,29 @@ def test_the_back_ends_gauge_is_the_filters(intel_head, default_run, monkeypatch
     )
     out, _ = replay_mod.correct_trajectory(log, 0, res.stamps_s, res.filter_poses, SlamConfig())
     np.testing.assert_allclose(out[:, :2], res.filter_poses[:, :2], atol=1e-6)
+    # the start gauge (an agent's: its map frame stays its start frame) keeps the first pose
+    # where the filter had it, and the corrected motion with it
+    start, _ = replay_mod.correct_trajectory(
+        log, 0, res.stamps_s, res.filter_poses, SlamConfig(), gauge="start"
+    )
+    np.testing.assert_allclose(start, res.filter_poses, atol=1e-9)
+    with pytest.raises(ValueError, match="gauge"):
+        replay_mod.correct_trajectory(log, 0, res.stamps_s, res.filter_poses, SlamConfig(), gauge="end")
+
+
+def test_the_start_gauge_keeps_the_first_pose_and_the_corrected_motion(intel_head, default_run):
+    from robot_agent.replay import correct_trajectory
+    from shared.geometry import relative
+
+    log, _ = intel_head
+    res, _ = default_run
+    first = 600
+    stamps, poses = res.stamps_s[first:], res.filter_poses[first:]
+    fit, _ = correct_trajectory(log, first, stamps, poses, SlamConfig())
+    start, _ = correct_trajectory(log, first, stamps, poses, SlamConfig(), gauge="start")
+    np.testing.assert_allclose(start[0], poses[0], atol=1e-9)
+    step_fit, step_start = relative(fit[:-1], fit[1:]), relative(start[:-1], start[1:])
+    np.testing.assert_allclose(step_start, step_fit, atol=1e-9)
 
 
 def test_remap_builds_the_map_along_the_given_poses(intel_head, default_run):
