@@ -102,6 +102,7 @@ class Fleet:
         self._latest: FusedMap | None = None
         self._content: tuple | None = None
         self._arrivals = 0
+        self._left = False  # a robot left since the last fusion: settle (not persisted)
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -163,9 +164,7 @@ class Fleet:
         publishes the map rebuilt by its back end last): every placed robot is refined against
         the maps as they are now, without waiting for ``retry_interval_s``."""
         r = self._robot(robot, None)
-        if r.online and not online:
-            for x in self.robots.values():
-                x.refine_now = x.alignment.placed
+        self._left |= r.online and not online
         r.online = bool(online)
 
     # -- fusion ------------------------------------------------------------------------------
@@ -178,14 +177,12 @@ class Fleet:
             if r.map is not None and r.layer is None:
                 r.layer = fuse_particles(r.map, self.cfg.fusion)
                 r.record_length(now_s, self.cfg.mature_window_s)
-        settle = any(r.refine_now for r in self.robots.values())
         self._choose_frame(now_s)
         while self._align_round(now_s):
             pass
-        if settle:
+        if self._left:
+            self._left = False
             self._settle(now_s)
-            for r in self.robots.values():
-                r.refine_now = False  # the reference, and robots with nothing new, were not due
         if self.frame == "prior":
             self._hold_prior_gauge()
         return self._publish(now_s)
@@ -196,15 +193,13 @@ class Fleet:
         against where the others were before theirs)."""
         c = self.cfg
         for _ in range(c.settle_rounds):
-            before = {r.robot: r.alignment.transform.copy() for r in self._placed()}
-            for r in self._placed():
-                r.refine_now = True
-            while self._align_round(now_s):
-                pass
-            placed = [r for r in self._placed() if r.robot in before]
+            placed = self._placed()
             if not placed:
                 return
-            d = np.array([r.alignment.transform - before[r.robot] for r in placed])
+            before = np.array([r.alignment.transform for r in placed])
+            while self._align_round(now_s, urgent=True):
+                pass
+            d = np.array([r.alignment.transform for r in placed]) - before
             still_m = np.hypot(d[:, 0], d[:, 1]).max() <= c.settle_m
             if still_m and np.abs(wrap_angle(d[:, 2])).max() <= c.settle_rad:
                 return
@@ -244,7 +239,7 @@ class Fleet:
             return np.zeros((0, 2, 2)), np.zeros(0), np.zeros(0, np.int64)
         return np.concatenate(seg), np.concatenate(w), np.concatenate(owner)
 
-    def _align_round(self, now_s: float) -> bool:
+    def _align_round(self, now_s: float, urgent: bool = False) -> bool:
         """One pass over the robots that deserve an attempt; True if a robot got placed.
 
         Of the unplaced robots that matched, only the most decisive one (highest rival ratio)
@@ -259,7 +254,7 @@ class Fleet:
             against = others + self._pieces()
             placed_m = sum(p.layer.length_m for p in against)
             key = _placed_key(against)
-            if not r.due(self.cfg, placed_m, key, now_s):
+            if not r.due(self.cfg, placed_m, key, now_s, urgent):
                 continue
             if prior is None and not r.alignment.placed and not self._mature([r, *others], now_s):
                 if r.alignment.score_m == 0.0:  # no candidate to report yet: say why

@@ -41,7 +41,6 @@ class RobotState:
     attempt_seq: int = -1  # the map's seq at the last attempt
     pending: Alignment | None = None
     pending_count: int = 0
-    refine_now: bool = False  # a robot left: attempt without waiting (not persisted)
     lengths: list[tuple[float, float]] = field(default_factory=list)  # (server time, map length)
 
     def new_session(self) -> None:
@@ -68,18 +67,21 @@ class RobotState:
             return False
         return self.layer.length_m <= (1.0 + max_growth) * before[-1]
 
-    def due(self, cfg: FleetConfig, placed_m: float, placed_key: str, now_s: float) -> bool:
+    def due(
+        self, cfg: FleetConfig, placed_m: float, placed_key: str, now_s: float, urgent: bool = False
+    ) -> bool:
         """Whether an alignment attempt is worth it: never tried, the map changed length enough,
         or (while unaligned) the placed map grew enough, or its map or the placed map changed
-        and the last attempt is ``retry_interval_s`` ago (at once when a robot just left)."""
-        if self.attempt_len_m is None or self.grew(cfg):
+        and the last attempt is ``retry_interval_s`` ago (a placed robot at once when ``urgent``: a
+        robot just left)."""
+        if self.grew(cfg):
             return True
-        waited = self.refine_now or now_s - self.attempt_s >= cfg.retry_interval_s
+        waited = now_s - self.attempt_s >= cfg.retry_interval_s
         if self.pending is not None:
-            return waited  # a candidate awaits confirmation
+            return waited  # a candidate awaits confirmation (never hurried: same evidence)
         changed = self.map.seq != self.attempt_seq or placed_key != self.attempt_placed_key
         if self.alignment.placed:  # refined against the others while the maps change (a prior
-            return waited and changed  # robot, or an aligned one: where it is)
+            return (waited or urgent) and changed  # robot, or an aligned one: where it is)
         if placed_m - self.attempt_placed_m >= cfg.retry_placed_growth_m:
             return True
         return waited and changed
@@ -93,7 +95,6 @@ class RobotState:
         return grown >= max(cfg.retry_growth_m, cfg.retry_growth_share * self.attempt_len_m)
 
     def attempted(self, placed_m: float, placed_key: str, now_s: float) -> None:
-        self.refine_now = False
         self.attempt_len_m, self.attempt_s, self.attempt_seq = self.layer.length_m, now_s, self.map.seq
         self.attempt_placed_m, self.attempt_placed_key = placed_m, placed_key
 

@@ -178,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
         # as `replay` does, and the map rebuilt along the corrected path is published last, so
         # the server places the robot by the map its written poses agree with
         first, scan_log = (0, sim.recorded_log()) if sim is not None else (args.first, laser_log)
-        if scan_log is None and sim is not None and len(poses):
+        if scan_log is None and len(poses):  # a simulated robot past MAX_KEPT_SCANS
             print(f"agent {args.robot}: more than {MAX_KEPT_SCANS} scans, no back end at the end", flush=True)
         elif len(poses) and not stop.is_set():
             from robot_agent.replay import correct_trajectory, remap
