@@ -16,8 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from shared.geometry import segment_directions, segment_lengths, transform_points, wrap_angle
-from shared.metrics import sample_segments
+from shared.geometry import sample_segments, segment_directions, segment_lengths, transform_points, wrap_angle
 
 NEIGHBOURS = 8  # placed samples examined per robot sample (the nearest within the gate)
 OTHER_FACE_RAD = 0.75 * np.pi  # facings this far apart: the two faces of one thin wall

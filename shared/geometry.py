@@ -105,6 +105,22 @@ def segment_directions(segments: np.ndarray) -> np.ndarray:
     return np.arctan2(d[..., 1], d[..., 0])
 
 
+def sample_segments(segments: np.ndarray, step_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points every ``step_m`` along segments ``(N,2,2)`` → ``points (K,2)``, owner ``(K,)``,
+    the length each point stands for ``(K,)``: each segment cut into equal pieces no longer than
+    ``step_m`` (at least one), a point at the middle of each piece."""
+    seg = np.asarray(segments, dtype=float).reshape(-1, 2, 2)
+    d = seg[:, 1] - seg[:, 0]
+    length = np.hypot(d[:, 0], d[:, 1])
+    counts = np.maximum(np.ceil(length / step_m).astype(int), 1)
+    owner = np.repeat(np.arange(len(seg)), counts)
+    start = np.cumsum(counts) - counts
+    k = np.arange(counts.sum()) - start[owner]
+    t = (k + 0.5) / counts[owner]
+    pts = seg[owner, 0] + t[:, None] * d[owner]
+    return pts, owner, (length / counts)[owner]
+
+
 def line_angle_diff(a_rad: np.ndarray, b_rad: np.ndarray) -> np.ndarray:
     """Unsigned difference of undirected line angles, in ``[0, pi/2]``."""
     d = np.abs(wrap_angle(np.asarray(a_rad) - np.asarray(b_rad)))

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from shared import geometry
 from shared.geometry import compose, inverse, relative, wrap_angle
 
 # Kümmerle's evaluator takes the pose nearest each relation time; further than this from any
@@ -291,18 +292,8 @@ _CHUNK_PAIRS = 2_000_000
 
 
 def sample_segments(segments: np.ndarray, step_m: float = SAMPLE_STEP_M) -> tuple[np.ndarray, ...]:
-    """Points every ``step_m`` along segments ``(N,2,2)`` → ``points (K,2)``, owner ``(K,)``,
-    the length each point stands for ``(K,)``."""
-    seg = np.asarray(segments, dtype=float).reshape(-1, 2, 2)
-    d = seg[:, 1] - seg[:, 0]
-    length = np.hypot(d[:, 0], d[:, 1])
-    counts = np.maximum(np.ceil(length / step_m).astype(int), 1)
-    owner = np.repeat(np.arange(len(seg)), counts)
-    start = np.cumsum(counts) - counts
-    k = np.arange(counts.sum()) - start[owner]
-    t = (k + 0.5) / counts[owner]
-    pts = seg[owner, 0] + t[:, None] * d[owner]
-    return pts, owner, (length / counts)[owner]
+    """:func:`shared.geometry.sample_segments`, by default at the map-quality step."""
+    return geometry.sample_segments(segments, step_m)
 
 
 def nearest_segment(

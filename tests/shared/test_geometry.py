@@ -98,3 +98,13 @@ def test_distances_and_angles():
     assert g.line_angle_diff(0.1, np.pi + 0.1) == pytest.approx(0.0, abs=1e-12)
     assert g.line_angle_diff(0.0, np.pi / 2) == pytest.approx(np.pi / 2)
     assert g.line_angle_diff(0.2, -0.1) == pytest.approx(0.3)
+
+
+def test_sample_segments_hand_computed():
+    # 1 m at step 0.3: four 0.25 m pieces, a point at each middle; a zero-length segment: one point
+    seg = np.array([[[0.0, 0.0], [1.0, 0.0]], [[2.0, 2.0], [2.0, 2.0]]])
+    pts, owner, length = g.sample_segments(seg, 0.3)
+    np.testing.assert_allclose(pts, [[0.125, 0], [0.375, 0], [0.625, 0], [0.875, 0], [2, 2]])
+    np.testing.assert_array_equal(owner, [0, 0, 0, 0, 1])
+    np.testing.assert_allclose(length, [0.25, 0.25, 0.25, 0.25, 0.0])
+    assert all(len(a) == 0 for a in g.sample_segments(np.zeros((0, 2, 2)), 0.3))
