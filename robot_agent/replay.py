@@ -65,7 +65,7 @@ def replay(
             _step(slam, log, i)
     stamps, poses = slam.best_trajectory()
     t1 = time.perf_counter()
-    corrected, stats = correct_trajectory(log, 0, stamps, poses, cfg, slam.loop_hints)
+    corrected, stats = correct_trajectory(log, 0, stamps, poses, cfg, slam.loop_hints, slam.best_jumps())
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
     return ReplayResult(stamps, corrected, slam, wall, peak, poses, time.perf_counter() - t1, stats)
@@ -78,6 +78,7 @@ def correct_trajectory(
     poses: np.ndarray,
     cfg: SlamConfig,
     hints: list[tuple[int, np.ndarray]] | None = None,
+    jumps: np.ndarray | None = None,
     gauge: str = "fit",
 ) -> tuple[np.ndarray, dict | None]:
     """The back end (pose graph) over ``poses (S,3)``, the trajectory of scans ``first ..
@@ -98,7 +99,7 @@ def correct_trajectory(
         return apply_points(log.laser_offset, xy)
 
     odometry = log.odometry[first : first + len(poses)]
-    corrected, stats = run_backend(stamps, poses, odometry, points, cfg.backend, hints)
+    corrected, stats = run_backend(stamps, poses, odometry, points, cfg.backend, hints, jumps)
     if gauge == "start":
         return compose(compose(poses[0], inverse(corrected[0])), corrected), stats
     # the pose graph holds the first pose fixed, an arbitrary gauge: the map (built along the

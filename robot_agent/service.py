@@ -185,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
 
             # the start gauge: the map frame stays the robot's start frame (what a prior gives)
             poses, backend = correct_trajectory(
-                scan_log, first, stamps, poses, cfg, slam.loop_hints, gauge="start"
+                scan_log, first, stamps, poses, cfg, slam.loop_hints, slam.best_jumps(), gauge="start"
             )
             if backend is not None and not stop.is_set():
                 core.rebuilt(remap(scan_log, first, poses, cfg), poses[-1])

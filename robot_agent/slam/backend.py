@@ -67,18 +67,8 @@ class BackendConfig:
     pass_moved_m: float = 0.1  # a later pass queries only keyframes moved this much ...
     pass_moved_rad: float = np.radians(1.0)  # ... or this much by the previous one
     chain: posegraph.ChainNoise = field(default_factory=posegraph.ChainNoise)
-    jump_m: float = 0.5  # a scan-to-scan motion off odometry by this much is a relocalization jump:
-    jump_rad: float = np.radians(8.0)  # its chain edge takes the odometry instead, loosely held
-    jump_sigma_xy_m: float = 0.3
-    jump_sigma_theta_rad: float = np.radians(5.0)
-
-
-def find_jumps(poses: np.ndarray, odometry: np.ndarray, cfg: BackendConfig) -> np.ndarray:
-    """Mask ``(S,)``: scan ``i`` is reached from scan ``i-1`` by a jump of the filter (a
-    relocalization), not by motion — the step disagrees with odometry by jump_m / jump_rad."""
-    d = relative(poses[:-1], poses[1:]) - relative(odometry[:-1], odometry[1:])
-    big = (np.hypot(d[:, 0], d[:, 1]) > cfg.jump_m) | (np.abs(wrap_angle(d[:, 2])) > cfg.jump_rad)
-    return np.concatenate([[False], big])
+    jump_sigma_xy_m: float = 0.3  # a relocalization's jump: its chain edge takes the odometry,
+    jump_sigma_theta_rad: float = np.radians(5.0)  # held this loosely
 
 
 def select_keyframes(poses: np.ndarray, cfg: BackendConfig, jumps: np.ndarray | None = None) -> np.ndarray:
@@ -372,12 +362,14 @@ def run_backend(
     scan_points_robot: Callable[[int], np.ndarray],
     cfg: BackendConfig,
     hints: list[tuple[int, np.ndarray]] | None = None,
+    jumps: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict]:
     """The corrected trajectory ``(S,3)`` and statistics, offline over the whole trajectory.
     ``odometry (S,3)``: the raw odometry of every scan; ``scan_points_robot(i)``: scan ``i``'s
     points in the robot frame (asked for keyframes only); ``hints``: the filter's relocalizations
-    (:func:`hinted_loops`)."""
-    jumps = find_jumps(poses, odometry, cfg)
+    (:func:`hinted_loops`); ``jumps (S,)``: the scans the filter reached by a relocalization's jump
+    (:meth:`FastSLAM.best_jumps`), not by motion — odometry bridges them instead."""
+    jumps = np.zeros(len(poses), bool) if jumps is None else np.asarray(jumps, bool)
     kf = select_keyframes(poses, cfg, jumps)
     jump_edges = {}
     for i in np.flatnonzero(jumps):  # keyframe e+1 starts at the jump: edge e bridges it by odometry

@@ -24,6 +24,7 @@ from robot_agent.slam import consensus as consensus_mod
 from robot_agent.slam import relocalize as reloc_mod
 from robot_agent.slam.association import AssociationConfig, associate, match_log_likelihood, observe
 from robot_agent.slam.backend import BackendConfig
+from robot_agent.slam.coarse import CoarseConfig, heading_offset
 from robot_agent.slam.extraction import ExtractionConfig, ScanSegments, extract_segments, scan_points
 from robot_agent.slam.motion import (
     MotionConfig,
@@ -79,6 +80,7 @@ class SlamConfig:
     extraction: ExtractionConfig = field(default_factory=ExtractionConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
     association: AssociationConfig = field(default_factory=AssociationConfig)
+    coarse: CoarseConfig = field(default_factory=CoarseConfig)  # heading search before the proposal
     proposal: ProposalConfig = field(default_factory=ProposalConfig)
     update: UpdateConfig = field(default_factory=UpdateConfig)
     weights: WeightConfig = field(default_factory=WeightConfig)
@@ -113,7 +115,13 @@ class FastSLAM:
         self.step_index = 0
         self._last_odo: np.ndarray | None = None
         self.global_map: consensus_mod.GlobalMap | None = None
-        self.stats = {"resamples": 0, "injections": 0, "relocalizations": 0, "relocalization_candidates": 0}
+        self.stats = {
+            "coarse_turns": 0,
+            "resamples": 0,
+            "injections": 0,
+            "relocalizations": 0,
+            "relocalization_candidates": 0,
+        }
         self._reloc_pending: reloc_mod.Pending | None = None
         self._odometer_m = 0.0  # distance driven (odometry), and at the last relocalization
         self._anchor_m = 0.0
@@ -175,6 +183,7 @@ class FastSLAM:
         if pose is not None:
             ps.poses = mean
         elif cfg.proposal.enabled and len(cols) and len(segs):
+            init = self._coarse_start(mean, pts, local, float(u[2]))
             prop = align(
                 mean,
                 cov,
@@ -186,6 +195,7 @@ class FastSLAM:
                 cfg.association,
                 cfg.proposal,
                 pts,
+                init,
             )
             ps.poses = sample_gaussian(self.rng, prop.mean, prop.cov)
             d = prop.mean - mean
@@ -251,6 +261,25 @@ class FastSLAM:
         return Estimate(stamp_s, ps.poses[best].copy(), True, ess, len(segs))
 
     # -- helpers ------------------------------------------------------------------------------
+
+    def _coarse_start(
+        self, mean: np.ndarray, pts: np.ndarray, local: SegmentMaps, turn_rad: float
+    ) -> np.ndarray | None:
+        """Where the proposal's alignment starts: the predicted poses ``mean (P,3)`` turned by
+        the heading offset at which the scan fits the best particle's local map (coarse.py), or
+        None (start at the prediction)."""
+        if not self.cfg.coarse.enabled:
+            return None
+        best = self.particles.best()
+        offset = heading_offset(
+            mean[best], pts, local.seg[best][local.valid[best]], turn_rad, self.cfg.coarse
+        )
+        if offset == 0.0:
+            return None
+        self.stats["coarse_turns"] += 1
+        start = mean.copy()
+        start[:, 2] = wrap_angle(start[:, 2] + offset)
+        return start
 
     def _local_columns(self, poses: np.ndarray, radius_m: float) -> np.ndarray:
         """Columns with an element within ``radius_m`` of the particles (cheap bound: distance to
@@ -330,6 +359,11 @@ class FastSLAM:
     def best_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """``stamps (S,)`` and poses ``(S,3)`` of the best particle's whole history, one per scan."""
         return self.trajectory.backtrack(self.particles.best())
+
+    def best_jumps(self) -> np.ndarray:
+        """Mask ``(S,)``: the scans of :meth:`best_trajectory` reached by a relocalization's
+        jump, not by motion (the back end bridges them by odometry)."""
+        return self.trajectory.jumps(self.particles.best())
 
     def published_map(self) -> tuple[consensus_mod.GlobalMap, np.ndarray]:
         """The cross-particle global map as of now and the mask ``(G,)`` of its trusted

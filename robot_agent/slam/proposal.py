@@ -121,16 +121,85 @@ def associate_points(
     from ``poses (P,3)``: the element nearest to the point whose line is within ``gate_m``
     (scalar or ``(P,)``), whose extent (plus ``margin_m``) the point projects into, and whose
     free side faces the sensor — the back of a thin wall and a wall's continuation past a
-    doorway are not evidence."""
+    doorway are not evidence. Ties go to the lower column.
+
+    The particles see the scan from nearly the same place, so the (point, element) pairs that
+    can pass the gate are found once, from a reference pose, against a box around every
+    particle's copy of each element (a superset: the box is widened by the gate, the margin
+    and how far any particle's view of a point is from the reference's); the exact test runs
+    on those pairs only — the same result as testing every pair, at a fraction of the work."""
+    qx, qy = _rotate(poses, points)
+    wx, wy = qx + poses[:, None, 0], qy + poses[:, None, 1]  # (P,N) map frame
+    pt, col = _candidate_pairs(wx, wy, maps, float(np.max(gate_m)), margin_m)
+    n_pts = points.shape[0]
+    if len(pt) == 0:
+        return np.full((len(poses), n_pts), -1)
+    px, py = wx[:, pt], wy[:, pt]  # (P,K)
+    nx, ny = np.cos(maps.alpha[:, col]), np.sin(maps.alpha[:, col])
+    perp = np.abs(nx * px + ny * py - maps.rho[:, col])
+    t_pt = ny * px - nx * py  # along the line, direction (-n_y, n_x) up to sign, as the ends:
+    seg = maps.seg[:, col]
+    t0 = ny * seg[..., 0, 0] - nx * seg[..., 0, 1]
+    t1 = ny * seg[..., 1, 0] - nx * seg[..., 1, 1]
+    inside = (t_pt > np.minimum(t0, t1) - margin_m) & (t_pt < np.maximum(t0, t1) + margin_m)
+    # the sensor must be on the element's free side: facing · (sensor - point) > 0
+    front = np.cos(maps.facing[:, col]) * qx[:, pt] + np.sin(maps.facing[:, col]) * qy[:, pt] < 0
+    gate = np.reshape(gate_m, (-1, 1)) if np.ndim(gate_m) else gate_m
+    ok = maps.valid[:, col] & inside & front & (perp < gate)
+    cost = np.where(ok, perp, np.inf)
+    # nearest per point: pairs are sorted by point, then column (the lower column wins a tie)
+    starts = np.flatnonzero(np.r_[True, pt[1:] != pt[:-1]])
+    low = np.minimum.reduceat(cost, starts, axis=1)  # (P,Q)
+    counts = np.diff(np.r_[starts, len(pt)])
+    rank = len(pt) - np.arange(len(pt))  # larger for earlier pairs
+    first = np.maximum.reduceat(
+        np.where(ok & (cost == np.repeat(low, counts, axis=1)), rank, 0), starts, axis=1
+    )
+    out = np.full((len(poses), n_pts), -1)
+    out[:, pt[starts]] = np.where(first > 0, col[len(pt) - np.maximum(first, 1)], -1)
+    return out
+
+
+def _candidate_pairs(
+    wx: np.ndarray, wy: np.ndarray, maps: SegmentMaps, gate_m: float, margin_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(point, column)`` index pairs ``(K,)``, sorted, that may pass :func:`associate_points`'
+    gate for some particle; ``wx, wy (P,N)`` the points in the map frame per particle."""
+    ref_x, ref_y = wx.mean(axis=0), wy.mean(axis=0)  # (N,)
+    spread = np.max(np.hypot(wx - ref_x, wy - ref_y))  # any particle's view of any point
+    reach = np.hypot(gate_m, margin_m) + spread
+    valid = maps.valid
+    used = np.flatnonzero(valid.any(axis=0))
+    if len(used) == 0 or wx.shape[1] == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    seg = maps.seg[:, used]  # (P,C,2,2)
+    ex = np.where(valid[:, used, None], seg[..., 0], np.nan)  # (P,C,2): both ends' x
+    ey = np.where(valid[:, used, None], seg[..., 1], np.nan)
+    lo_x, hi_x = np.nanmin(ex, axis=(0, 2)) - reach, np.nanmax(ex, axis=(0, 2)) + reach  # (C,)
+    lo_y, hi_y = np.nanmin(ey, axis=(0, 2)) - reach, np.nanmax(ey, axis=(0, 2)) + reach
+    near = (
+        (ref_x[:, None] >= lo_x)
+        & (ref_x[:, None] <= hi_x)
+        & (ref_y[:, None] >= lo_y)
+        & (ref_y[:, None] <= hi_y)
+    )  # (N,C)
+    pt, c = np.nonzero(near)
+    return pt, used[c]
+
+
+def _associate_points_dense(
+    poses: np.ndarray, points: np.ndarray, maps: SegmentMaps, gate_m: np.ndarray | float, margin_m: float
+) -> np.ndarray:
+    """:func:`associate_points` by testing every (particle, point, element) triple: the
+    reference it is tested against."""
     qx, qy = _rotate(poses, points)
     wx, wy = (qx + poses[:, None, 0])[..., None], (qy + poses[:, None, 1])[..., None]  # map frame
     nx, ny = np.cos(maps.alpha)[:, None, :], np.sin(maps.alpha)[:, None, :]  # (P,1,C)
     perp = np.abs(nx * wx + ny * wy - maps.rho[:, None, :])  # (P,N,C)
-    t_pt = ny * wx - nx * wy  # along the line, direction (-n_y, n_x) up to sign, as the ends:
+    t_pt = ny * wx - nx * wy
     t0 = ny * maps.seg[:, None, :, 0, 0] - nx * maps.seg[:, None, :, 0, 1]
     t1 = ny * maps.seg[:, None, :, 1, 0] - nx * maps.seg[:, None, :, 1, 1]
     inside = (t_pt > np.minimum(t0, t1) - margin_m) & (t_pt < np.maximum(t0, t1) + margin_m)
-    # the sensor must be on the element's free side: facing · (sensor - point) > 0
     front = (
         np.cos(maps.facing)[:, None, :] * qx[..., None] + np.sin(maps.facing)[:, None, :] * qy[..., None] < 0
     )
@@ -157,8 +226,9 @@ def _point_normal_equations(
     j_th = n_y * qx - n_x * qy  # ∂r/∂θ = m·q with m = (n_y, -n_x)
     w = np.where(matched, 1.0 / (1.0 + (r / cfg.robust_scale_m) ** 2), 0.0) / cfg.point_sigma_m**2
     jac = np.stack([n_x, n_y, j_th], axis=-1)  # (P,N,3)
-    h = np.einsum("pn,pni,pnj->pij", w, jac, jac)
-    g = np.einsum("pn,pni->pi", w * np.where(matched, r, 0.0), jac)
+    wjac_t = np.swapaxes(w[..., None] * jac, 1, 2)  # (P,3,N)
+    h = wjac_t @ jac
+    g = (wjac_t @ np.where(matched, r, 0.0)[..., None])[..., 0]
     return h, g
 
 
@@ -176,14 +246,16 @@ def _gauss_newton(
     cfg: ProposalConfig,
     associate_at: Callable[[np.ndarray, bool], np.ndarray],
     normal_equations: Callable[..., tuple[np.ndarray, np.ndarray]],
+    init: np.ndarray | None = None,
 ) -> ProposalResult:
     """The motion prior fused with a point-to-line measurement, by Gauss-Newton.
 
     ``associate_at(x, wide)`` gives the element index ``(P,K)`` (-1: none) of every measured
     item (point or segment) at poses ``x``, with gates widened for the predicted pose when
     ``wide``; it runs at the first iteration and again at ``cfg.reassociate_after``.
-    ``normal_equations(x, n_m, rho_m, matched)`` gives ``H (P,3,3)`` and ``g (P,3)``."""
-    x = prior_mean.copy()
+    ``normal_equations(x, n_m, rho_m, matched)`` gives ``H (P,3,3)`` and ``g (P,3)``. The
+    iterations start from ``init (P,3)`` when given (a coarse search's result), else the prior mean."""
+    x = prior_mean.copy() if init is None else init.copy()
     info_prior = np.linalg.inv(prior_cov)
     h = np.zeros_like(prior_cov)
     idx = np.full((len(x), 0), -1)
@@ -214,12 +286,13 @@ def align(
     assoc_cfg: AssociationConfig,
     cfg: ProposalConfig,
     points_robot: np.ndarray | None = None,
+    init: np.ndarray | None = None,
 ) -> ProposalResult:
     """Refine ``prior_mean (P,3)`` by point-to-line alignment of the scan (robot frame) to each
     particle's local map: its points when given and ``cfg.measurement == "points"``, else its
     segments (moments, ends, facing, line covariance). The Gaussian proposal per particle."""
     if cfg.measurement == "points" and points_robot is not None:
-        return align_points(prior_mean, prior_cov, points_robot, maps, cfg)
+        return align_points(prior_mean, prior_cov, points_robot, maps, cfg, init)
     var_a = prior_cov[:, 2, 2][:, None, None]
     var_p = (prior_cov[:, 0, 0] + prior_cov[:, 1, 1])[:, None, None]
 
@@ -232,7 +305,7 @@ def align(
     def normal_equations(x, n_m, rho_m, matched):
         return _normal_equations(x, moments_robot, n_m, rho_m, matched, cfg)
 
-    return _gauss_newton(prior_mean, prior_cov, maps, cfg, associate_at, normal_equations)
+    return _gauss_newton(prior_mean, prior_cov, maps, cfg, associate_at, normal_equations, init)
 
 
 def align_points(
@@ -241,6 +314,7 @@ def align_points(
     points_robot: np.ndarray,
     maps: SegmentMaps,
     cfg: ProposalConfig,
+    init: np.ndarray | None = None,
 ) -> ProposalResult:
     """Refine ``prior_mean (P,3)`` by aligning the scan points ``points_robot (N,2)`` (robot
     frame) to each particle's map; the Gaussian proposal per particle."""
@@ -258,4 +332,4 @@ def align_points(
     def normal_equations(x, n_m, rho_m, matched):
         return _point_normal_equations(x, pts, n_m, rho_m, matched, cfg)
 
-    return _gauss_newton(prior_mean, prior_cov, maps, cfg, associate_at, normal_equations)
+    return _gauss_newton(prior_mean, prior_cov, maps, cfg, associate_at, normal_equations, init)

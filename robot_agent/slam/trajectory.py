@@ -18,6 +18,8 @@ class Trajectory:
         self._poses: list[np.ndarray] = []  # per step k: (P,3) poses of the propagated set
         self._parents: list[np.ndarray] = []  # per step k: (P,) parent index in step k-1
         self._pending: np.ndarray | None = None  # current particle -> index in the last record
+        self._jumped: list[np.ndarray] = []  # per step k: (P,) the pose was reached by a jump
+        self._jumping: np.ndarray | None = None  # current particle: injected since the last record
         self._scan_stamps: list[float] = []
         self._scan_anchor: list[int] = []  # processed step each scan hangs from
         self._scan_rel: list[np.ndarray] = []  # (3,) odometry from that step's pose
@@ -29,8 +31,10 @@ class Trajectory:
         """A processed scan: the particles' poses ``(P,3)`` (before any resampling)."""
         p = len(poses)
         self._parents.append(self._pending if self._pending is not None else np.arange(p))
+        self._jumped.append(self._jumping if self._jumping is not None else np.zeros(p, bool))
         self._poses.append(poses.copy())
         self._pending = np.arange(p)
+        self._jumping = np.zeros(p, bool)
         self._scan_stamps.append(stamp_s)
         self._scan_anchor.append(len(self._poses) - 1)
         self._scan_rel.append(np.zeros(3))
@@ -46,21 +50,41 @@ class Trajectory:
     def reparent(self, idx: np.ndarray) -> None:
         """After resampling: new particle ``j`` is old particle ``idx[j]``."""
         self._pending = self._pending[idx]
+        self._jumping = self._jumping[idx]
 
     def inherit(self, targets: np.ndarray, sources: np.ndarray) -> None:
-        """Particles ``targets`` now continue the history of particles ``sources``."""
+        """Particles ``targets`` now continue the history of particles ``sources`` from a pose
+        that was put there (a relocalization): their next step is a jump, not a motion."""
         self._pending[targets] = self._pending[sources]
+        self._jumping[targets] = True
 
     def backtrack(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
         """``stamps (S,)`` and poses ``(S,3)`` for every scan along ``particle``'s ancestry."""
-        k_steps = len(self._poses)
-        if k_steps == 0:
+        line, _ = self._lineage(particle)
+        if len(line) == 0:
             return np.zeros(0), np.zeros((0, 3))
-        line = np.empty((k_steps, 3))
-        i = int(self._pending[particle])
-        for k in range(k_steps - 1, -1, -1):
-            line[k] = self._poses[k][i]
-            i = int(self._parents[k][i])
         anchors = np.asarray(self._scan_anchor)
         poses = compose(line[anchors], np.asarray(self._scan_rel))
         return np.asarray(self._scan_stamps), poses
+
+    def jumps(self, particle: int) -> np.ndarray:
+        """Mask ``(S,)`` of the scans along ``particle``'s ancestry that were reached by a
+        jump (a relocalization put the ancestor there), not by a motion from the scan before."""
+        _, jumped = self._lineage(particle)
+        anchors = np.asarray(self._scan_anchor, dtype=int)
+        first = np.r_[True, anchors[1:] != anchors[:-1]] if len(anchors) else np.zeros(0, bool)
+        return first & jumped[anchors] if len(anchors) else first
+
+    def _lineage(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
+        """Poses ``(K,3)`` and jump flags ``(K,)`` of ``particle``'s ancestor at every step."""
+        k_steps = len(self._poses)
+        line = np.empty((k_steps, 3))
+        jumped = np.zeros(k_steps, bool)
+        if k_steps == 0:
+            return line, jumped
+        i = int(self._pending[particle])
+        for k in range(k_steps - 1, -1, -1):
+            line[k] = self._poses[k][i]
+            jumped[k] = self._jumped[k][i]
+            i = int(self._parents[k][i])
+        return line, jumped

@@ -104,14 +104,14 @@ def test_match_loop_refuses_a_featureless_corridor():
     assert loop is None and stats.get("ambiguous", 0) == 1
 
 
-def test_jumps_are_found_and_start_a_keyframe():
+def test_a_jump_starts_a_keyframe():
     odo = np.column_stack([np.arange(50) * 0.05, np.zeros(50), np.zeros(50)])
     poses = odo.copy()
-    poses[30:, 1] += 1.0  # relocalization moved the filter by 1 m at scan 30
+    poses[33:, 1] += 0.02  # a relocalization moved the filter by 2 cm at scan 33: no motion keyframe
+    jumps = np.arange(50) == 33
     cfg = be.BackendConfig()
-    jumps = be.find_jumps(poses, odo, cfg)
-    assert np.flatnonzero(jumps).tolist() == [30]
-    assert 30 in be.select_keyframes(poses, cfg, jumps)
+    assert 33 not in be.select_keyframes(poses, cfg)
+    assert 33 in be.select_keyframes(poses, cfg, jumps)
 
 
 def test_a_jump_without_loops_is_bridged_by_odometry():
@@ -119,9 +119,22 @@ def test_a_jump_without_loops_is_bridged_by_odometry():
     poses = odo.copy()
     poses[30:, 1] += 1.0
     points = lambda i: np.zeros((0, 2))  # noqa: E731 — no scan: no loop can be found
-    out, stats = be.run_backend(np.arange(50.0), poses, odo, points, be.BackendConfig())
+    jumps = np.arange(50) == 30  # the filter says where it jumped (FastSLAM.best_jumps)
+    out, stats = be.run_backend(np.arange(50.0), poses, odo, points, be.BackendConfig(), jumps=jumps)
     assert stats["jumps"] == 1 and stats["loops"] == 0
     np.testing.assert_allclose(relative(out[29], out[30]), relative(odo[29], odo[30]), atol=1e-6)
+
+
+def test_odometry_that_disagrees_with_the_path_is_no_jump():
+    """MIT-CSAIL's odometry turns 30° in a step where the robot turned 17°: a path that
+    follows the scans is not a relocalization, and its chain edges keep the path's motion."""
+    odo = np.column_stack([np.arange(50) * 0.05, np.zeros(50), np.zeros(50)])
+    odo[30:, 2] += np.radians(13.0)  # a spike the scans did not see
+    poses = np.column_stack([np.arange(50) * 0.05, np.zeros(50), np.zeros(50)])
+    points = lambda i: np.zeros((0, 2))  # noqa: E731
+    out, stats = be.run_backend(np.arange(50.0), poses, odo, points, be.BackendConfig())
+    assert stats["jumps"] == 0
+    np.testing.assert_allclose(out, poses, atol=1e-9)
 
 
 def test_a_relocalization_hint_finds_a_loop_beyond_the_search_window():

@@ -90,7 +90,7 @@ def test_the_back_ends_gauge_is_the_filters(intel_head, default_run, monkeypatch
     monkeypatch.setattr(
         replay_mod,
         "run_backend",
-        lambda s, p, o, pts, c, h=None: (compose(np.broadcast_to(moved, p.shape), p), {}),
+        lambda s, p, o, pts, c, h=None, j=None: (compose(np.broadcast_to(moved, p.shape), p), {}),
     )
     out, _ = replay_mod.correct_trajectory(log, 0, res.stamps_s, res.filter_poses, SlamConfig())
     np.testing.assert_allclose(out[:, :2], res.filter_poses[:, :2], atol=1e-6)

@@ -115,3 +115,20 @@ def test_recorded_poses_are_copied():
     p[:] = 99.0
     _, poses = traj.backtrack(0)
     np.testing.assert_allclose(poses[0], poses_at(0)[0])
+
+
+def test_an_injected_particle_reached_its_next_pose_by_a_jump():
+    traj = Trajectory()
+    traj.record(0.0, poses_at(0))
+    traj.bridge(0.5, np.array([0.1, 0.0, 0.0]))
+    traj.record(1.0, poses_at(1))
+    traj.inherit(np.array([0]), np.array([2]))  # particle 0 now continues particle 2, relocalized
+    traj.reparent(np.array([0, 1, 1]))  # resampling keeps the flag with the particle
+    traj.record(2.0, poses_at(2))
+    traj.bridge(2.5, np.array([0.1, 0.0, 0.0]))
+    traj.record(3.0, poses_at(3))
+    np.testing.assert_array_equal(traj.jumps(0), [False, False, False, True, False, False])
+    stamps, poses = traj.backtrack(0)
+    np.testing.assert_allclose(poses[2], poses_at(1)[2])  # its history is particle 2's
+    for j in (1, 2):
+        assert not traj.jumps(j).any()
