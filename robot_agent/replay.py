@@ -95,8 +95,9 @@ def correct_trajectory(
         return poses, None
 
     def points(i: int) -> np.ndarray:
-        xy = scan_points(log.ranges_m[first + i], log.angles_rad, cfg.extraction, log.range_max_m)
-        return apply_points(log.laser_offset, xy)
+        scan = log.scan(first + i)
+        xy = scan_points(scan.ranges_m, scan.angles_rad, cfg.extraction, scan.range_max_m)
+        return apply_points(scan.laser_offset, xy)
 
     odometry = log.odometry[first : first + len(poses)]
     corrected, stats = run_backend(stamps, poses, odometry, points, cfg.backend, hints, jumps)
@@ -122,12 +123,7 @@ def remap(log: LaserLog, first: int, poses: np.ndarray, cfg: SlamConfig) -> Fast
 
 
 def _step(slam: FastSLAM, log: LaserLog, i: int, pose: np.ndarray | None = None) -> None:
+    scan = log.scan(i)  # its own beams: the geometry may change from scan to scan
     slam.step(
-        float(log.stamps_s[i]),
-        log.odometry[i],
-        log.ranges_m[i],
-        log.angles_rad,
-        log.laser_offset,
-        log.range_max_m,
-        pose,
+        scan.stamp_s, scan.odometry, scan.ranges_m, scan.angles_rad, scan.laser_offset, scan.range_max_m, pose
     )

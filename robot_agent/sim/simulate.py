@@ -23,7 +23,7 @@ from robot_agent.sim.odometry import (
 from robot_agent.sim.robot import RobotConfig, RouteFollower, _step_pose, drive_route, limit_velocity
 from robot_agent.sim.world import World
 from robot_agent.sources.base import Scan
-from robot_agent.sources.carmen import LaserLog
+from robot_agent.sources.laserlog import LaserLog
 from shared.geometry import compose, point_segment_distance, relative
 
 

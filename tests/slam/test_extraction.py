@@ -280,11 +280,9 @@ def test_intel_scans_give_several_tight_segments():
     if not INTEL_HEAD.exists():
         pytest.skip(f"{INTEL_HEAD} not available")
     log = carmen.read_log(INTEL_HEAD)
-    ranges = np.asarray(log.ranges_m)[::10]
-    angles = np.broadcast_to(log.angles_rad, ranges.shape)
     counts, rms = [], []
-    for r, a in zip(ranges, angles, strict=True):
-        seg = extract_segments(r, a, range_max_m=float(log.range_max_m))
+    for scan in map(log.scan, range(0, len(log), 10)):
+        seg = extract_segments(scan.ranges_m, scan.angles_rad, range_max_m=scan.range_max_m)
         counts.append(len(seg))
         rms.extend(seg.rms_m)
         lab = seg.point_segment >= 0

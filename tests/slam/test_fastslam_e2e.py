@@ -150,8 +150,9 @@ def test_remap_builds_the_map_along_the_given_poses(intel_head, default_run):
     from shared.metrics import nearest_segment
 
     def world_points(i):
-        xy = scan_points(log.ranges_m[first + i], log.angles_rad, cfg.extraction, log.range_max_m)
-        return apply_points(poses[i], apply_points(log.laser_offset, xy))
+        scan = log.scan(first + i)
+        xy = scan_points(scan.ranges_m, scan.angles_rad, cfg.extraction, scan.range_max_m)
+        return apply_points(poses[i], apply_points(scan.laser_offset, xy))
 
     pts = np.vstack([world_points(i) for i in range(0, n, 20)])
     d, _ = nearest_segment(pts, ma.seg[ma.valid])

@@ -1,20 +1,20 @@
 """Property tests: whatever a CARMEN log holds, :func:`read_log` returns its valid records or raises
 :class:`LogFormatError` naming a bad line and its field — never another exception.
 
-Logs are generated line by line: valid FLASER / ROBOTLASER1 / ODOM / PARAM lines, comments, other
-message types, then some lines corrupted (a token replaced by NaN, inf, a huge or negative count,
-text, binary junk; a token dropped or added; the line cut; two lines joined; raw bytes), written
-plain or gzip (optionally with the compressed stream damaged). The oracle knows which lines are
-intact: an error must point at a corrupted line (or, for a changed beam count or geometry, name a
-corrupted first laser line), and a log that reads must contain every intact record, exactly.
-Budget: ~4,000 inputs, ~10 s; derandomized (the same inputs every run).
+Logs are generated line by line: valid FLASER / ROBOTLASER1 / RAWLASER1 / ODOM / PARAM lines (the
+beam count and geometry the same on every laser line of a log, or drawn per line), comments,
+other message types, then some lines corrupted (a token replaced by NaN, inf, a huge or negative
+count, text, binary junk; a token dropped or added; the line cut; two lines joined; raw bytes),
+written plain or gzip (optionally with the compressed stream damaged). The oracle knows which
+lines are intact: an error must point at a corrupted line (a RAWLASER1 log may also be refused
+for having no intact ODOM line), and a log that reads must contain every intact record, with its
+own beam angles, exactly. Budget: ~4,000 inputs, ~10 s; derandomized (the same inputs every run).
 """
 
 from __future__ import annotations
 
 import gzip
 import math
-import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +24,7 @@ from hypothesis import strategies as st
 
 from robot_agent.sources import LaserLog, LogFormatError, read_log
 from robot_agent.sources.carmen import DEFAULT_RANGE_MAX_M, RANGE_MAX_PARAMS, flaser_angles, infer_range_max_m
+from robot_agent.sources.carmen_conventions import interpolate_odometry
 from shared.geometry import relative
 
 pytestmark = pytest.mark.timeout(300)
@@ -43,7 +44,7 @@ OFFSET_PARAMS = ("robot_frontlaser_offset", "robot_frontlaser_side_offset", "rob
 class Line:
     text: str | bytes  # without the newline; bytes only for raw junk
     intact: bool = True
-    laser: tuple | None = None  # (stamp, ranges, odometry (3,), laser pose (3,)) of an intact laser line
+    laser: tuple | None = None  # (stamp, ranges, odometry (3,) | None, laser pose (3,) | None, angles)
     odom: tuple | None = None  # (stamp, x, y, theta) of an intact ODOM line
     skipped: str | None = None  # message type the reader counts as skipped
 
@@ -73,22 +74,35 @@ hostile_token = st.one_of(
 seeds = st.integers(0, 2**32 - 1).map(np.random.default_rng)
 
 
+def draw_geometry(rng: np.random.Generator) -> tuple[str, str, str]:
+    """ROBOTLASER1 / RAWLASER1 start angle, resolution and range limit, as a log writes them."""
+    return f"{rng.uniform(-3.2, 0.0):.6f}", f"{rng.uniform(0.001, 0.1):.6f}", f"{rng.uniform(1.0, 80.0):.2f}"
+
+
 @st.composite
-def laser_line(draw, kind: str, n: int, geometry: tuple[str, str, str]) -> Line:
+def laser_line(draw, kind: str, n: int | None, geometry: tuple[str, str, str] | None) -> Line:
+    """One laser line; ``n`` / ``geometry`` None: drawn for this line alone."""
     rng = draw(seeds)
+    n = int(rng.integers(0, 7)) if n is None else n
+    start, res, max_range = draw_geometry(rng) if geometry is None else geometry
     ranges, laser, odom = ranges_text(rng, n), numbers(rng, 3), numbers(rng, 3)
     if rng.random() < 0.2:
         laser = odom  # identical poses: the FLASER offset comes from the PARAMs
     stamp, logger_stamp = numbers(rng, 2, 0.0, 2e9)
     tail = [stamp, "nohost", logger_stamp]
+    rem = numbers(rng, int(rng.integers(0, 3)), 0.0, 1.0)
+    config = ["0", start, "3.14", res, max_range, "0.01", "0", str(n), *ranges, str(len(rem)), *rem]
     if kind == "FLASER":
         tokens = ["FLASER", str(n), *ranges, *laser, *odom, *tail]
-    else:
-        start, res, max_range = geometry
-        rem = numbers(rng, int(rng.integers(0, 3)), 0.0, 1.0)
-        tokens = ["ROBOTLASER1", "0", start, "3.14", res, max_range, "0.01", "0", str(n), *ranges]
-        tokens += [str(len(rem)), *rem, *laser, *odom, "0", "0", "0.5", "0.2", "0", *tail]
-    record = (float(stamp), [float(r) for r in ranges], [float(v) for v in odom], [float(v) for v in laser])
+        angles = flaser_angles(n)
+    elif kind == "ROBOTLASER1":
+        tokens = ["ROBOTLASER1", *config, *laser, *odom, "0", "0", "0.5", "0.2", "0", *tail]
+        angles = float(start) + np.arange(n) * float(res)
+    else:  # RAWLASER1: no poses
+        tokens, laser, odom = ["RAWLASER1", *config, *tail], None, None
+        angles = float(start) + np.arange(n) * float(res)
+    poses = [None if p is None else [float(v) for v in p] for p in (odom, laser)]
+    record = (float(stamp), [float(r) for r in ranges], *poses, angles)
     return Line(" ".join(tokens), laser=record)
 
 
@@ -118,7 +132,7 @@ other_line = st.one_of(
     st.just(Line("")),
     st.text(max_size=20).map(lambda t: Line("#" + t.replace("\n", " "))),
     st.just(Line("SYNC tag")),
-    st.sampled_from(["RLASER", "TRUEPOS", "NMEA-GGA", "RAWLASER1"]).map(
+    st.sampled_from(["RLASER", "TRUEPOS", "NMEA-GGA", "RAWLASER3", "ROBOTLASER2"]).map(
         lambda k: Line(f"{k} 2 1 1 0 0 0 0 0 0 100.0 nohost 0.1", skipped=k)
     ),
 )
@@ -149,19 +163,17 @@ def corrupt(draw, line: Line) -> Line:
 
 
 @st.composite
-def carmen_log(draw) -> tuple[list[Line], str, int, tuple[str, str, str]]:
-    kind = draw(st.sampled_from(["FLASER", "ROBOTLASER1"]))
-    n = draw(st.integers(0, 6))
-    rng = draw(seeds)
-    geometry = (
-        f"{rng.uniform(-3.2, 0.0):.6f}",
-        f"{rng.uniform(0.001, 0.1):.6f}",
-        f"{rng.uniform(1.0, 80.0):.2f}",
-    )
+def carmen_log(draw) -> tuple[list[Line], str]:
+    kind = draw(st.sampled_from(["FLASER", "ROBOTLASER1", "RAWLASER1"]))
+    fixed = draw(st.booleans())  # one beam count and geometry for the log, or drawn per line
+    n = draw(st.integers(0, 6)) if fixed else None
+    geometry = draw_geometry(draw(seeds)) if fixed else None
     laser = laser_line(kind, n, geometry)
     make = st.one_of(laser, laser, laser, odom_line(), param_line(), other_line)
     lines = draw(st.lists(make, max_size=9))
     lines.insert(draw(st.integers(0, len(lines))), draw(laser))  # at least one laser line
+    if kind == "RAWLASER1" and draw(st.integers(0, 9)):  # mostly with an ODOM line to interpolate
+        lines.insert(draw(st.integers(0, len(lines))), draw(odom_line()))
     for i in draw(st.lists(st.integers(0, len(lines) - 1), max_size=3, unique=True)):
         lines[i] = draw(corrupt(lines[i]))
     if len(lines) > 1 and draw(st.integers(0, 9)) == 0:  # two lines joined: the newline lost
@@ -171,7 +183,7 @@ def carmen_log(draw) -> tuple[list[Line], str, int, tuple[str, str, str]]:
             for line in lines[i : i + 2]
         )
         lines[i : i + 2] = [Line(a + " " + b, intact=False)]
-    return lines, kind, n, geometry
+    return lines, kind
 
 
 def file_bytes(lines: list[Line], crlf: bool, final_newline: bool) -> bytes:
@@ -199,33 +211,48 @@ def check_error(e: LogFormatError, lines: list[Line]) -> None:
     if e.message_type == "log":  # no laser lines: there must have been none intact
         assert not any(line.laser for line in lines), str(e)
         return
-    first = re.search(r"\(line (\d+)\)", e.problem)  # beam count or geometry changed since line K
-    assert e.line_no in corrupted or (first and int(first.group(1)) in corrupted), (str(e), sorted(corrupted))
+    if (e.message_type, e.field) == ("RAWLASER1", "odometry"):  # nothing to interpolate from
+        assert not any(line.odom for line in lines), str(e)
+        return
+    assert e.line_no in corrupted, (str(e), sorted(corrupted))
 
 
 def same(a, b) -> bool:
     return np.array_equal(np.asarray(a, float), np.asarray(b, float), equal_nan=True)
 
 
-def check_log(log: LaserLog, lines: list[Line], kind: str, n: int, geometry: tuple) -> None:
-    """Every intact record is in the log, in order, exactly; what the reader derives is finite."""
-    assert log.ranges_m.shape == (len(log), log.angles_rad.size)
-    for name in ("stamps_s", "odometry", "angles_rad", "laser_offset", "odom_poses", "odom_stamps_s"):
+def check_log(log: LaserLog, lines: list[Line], kind: str) -> None:
+    """Every intact record is in the log, in order, with its own beam angles, exactly; what the
+    reader derives is finite."""
+    scans = list(log.scans())
+    assert (
+        log.ranges_m.shape == (len(log), log.angle_table_rad.shape[1]) == (len(scans), log.beam_counts.max())
+    )
+    assert all(s.ranges_m.size == s.angles_rad.size == n for s, n in zip(scans, log.beam_counts, strict=True))
+    for name in ("stamps_s", "odometry", "laser_offset", "odom_poses", "odom_stamps_s"):
         assert np.all(np.isfinite(getattr(log, name))), name
+    assert all(np.all(np.isfinite(s.angles_rad)) for s in scans)
     assert math.isfinite(log.range_max_m) and log.range_max_m > 0
+    if log.kind == "RAWLASER1":  # odometry interpolated from the ODOM lines (checked below)
+        np.testing.assert_array_equal(
+            log.odometry, interpolate_odometry(log.odom_stamps_s, log.odom_poses, log.stamps_s)
+        )
     lasers = [line.laser for line in lines if line.laser] if log.kind == kind else []
-    rows = iter(zip(log.stamps_s, log.ranges_m, log.odometry, strict=True))
-    for stamp, ranges, odometry, _ in lasers:  # a subsequence: accepted corrupted lines may sit between
-        assert any(s == stamp and same(r, ranges) and same(o, odometry) for s, r, o in rows), stamp
+    rows = iter(scans)
+    for stamp, ranges, odometry, _, angles in lasers:  # a subsequence: accepted corrupted lines between
+        assert any(
+            s.stamp_s == stamp
+            and same(s.ranges_m, ranges)
+            and (odometry is None or same(s.odometry, odometry))
+            and same(s.angles_rad, angles)
+            for s in rows
+        ), stamp
     odoms = [line.odom for line in lines if line.odom]
     rows = iter(np.column_stack([log.odom_stamps_s, log.odom_poses]))
     for record in odoms:
         assert any(same(row, record) for row in rows), record
     if all(line.intact for line in lines):  # nothing corrupted: exactly these records
         assert log.kind == kind and len(log) == len(lasers) and len(log.odom_stamps_s) == len(odoms)
-        start, res = float(geometry[0]), float(geometry[1])
-        angles = flaser_angles(n) if kind == "FLASER" else start + np.arange(n) * res
-        np.testing.assert_array_equal(log.angles_rad, angles)
         skipped = [line.skipped for line in lines if line.skipped]
         assert log.skipped == {k: skipped.count(k) for k in set(skipped)}
         check_derived(log, lines, kind)
@@ -238,8 +265,8 @@ def check_derived(log: LaserLog, lines: list[Line], kind: str) -> None:
         parts = line.text.split()
         if parts and parts[0] == "PARAM":
             params[parts[1]] = parts[2]
-    _, _, odometry, laser = next(line.laser for line in lines if line.laser)
-    if kind == "FLASER" and odometry == laser:
+    _, _, odometry, laser, _ = next(line.laser for line in lines if line.laser)
+    if kind == "RAWLASER1" or (kind == "FLASER" and odometry == laser):
         offset = [float(params.get(name, 0.0)) for name in OFFSET_PARAMS]
     else:
         offset = relative(np.array(odometry), np.array(laser))
@@ -249,6 +276,9 @@ def check_derived(log: LaserLog, lines: list[Line], kind: str) -> None:
         expected = float(named[0]) if named else infer_range_max_m(log.ranges_m)
         assert log.range_max_m == expected
         assert named or log.range_max_m <= DEFAULT_RANGE_MAX_M
+    else:  # the first laser line's max_range
+        first = next(line.text.split() for line in lines if line.laser)
+        assert log.range_max_m == float(first[5])
 
 
 @pytest.fixture(scope="module")
@@ -259,19 +289,19 @@ def scratch(tmp_path_factory):
 @settings(max_examples=2000, **FUZZ)
 @given(carmen_log(), st.booleans(), st.booleans())
 def test_generated_logs(scratch, generated, crlf, final_newline):
-    lines, kind, n, geometry = generated
+    lines, kind = generated
     out = read(scratch, file_bytes(lines, crlf, final_newline))
     if isinstance(out, LogFormatError):
         check_error(out, lines)
     else:
-        event("read")
-        check_log(out, lines, kind, n, geometry)
+        event(f"read {out.kind}, {'one geometry' if len(out.geometry_beams) == 1 else 'geometries vary'}")
+        check_log(out, lines, kind)
 
 
 @settings(max_examples=600, **FUZZ)
 @given(carmen_log(), st.data())
 def test_generated_logs_gzip_and_damaged_streams(scratch, generated, data):
-    lines, kind, n, geometry = generated
+    lines, kind = generated
     packed = bytearray(gzip.compress(file_bytes(lines, False, True), mtime=0))
     damaged = data.draw(st.booleans())
     if damaged:
@@ -285,7 +315,7 @@ def test_generated_logs_gzip_and_damaged_streams(scratch, generated, data):
         assert out.message_type != "gzip", str(out)
         check_error(out, lines)
     else:
-        check_log(out, lines, kind, n, geometry)
+        check_log(out, lines, kind)
 
 
 @settings(max_examples=1000, **FUZZ)
@@ -317,12 +347,12 @@ FOUND = {  # lines, the line and field the error names, a detail of its text
     # were accepted with an infinite laser offset / infinite beam angles (overflow warnings only)
     "offset_overflow": (["FLASER 3 1 2 3 1e308 0 0 -1e308 0 0 100.5 nohost 0.1"], 1, "x", "overflows"),
     "angles_overflow": ([RL1.format(res="1e308", stamp=100)], 1, "angular_res", "overflow"),
-    # was read with the first line's angles for every scan
-    "geometry_changed": (
-        [RL1.format(res="1.0", stamp=100), RL1.format(res="0.5", stamp=101)],
+    # a later line's geometry overflowing (each geometry is computed on its first line)
+    "later_angles_overflow": (
+        [RL1.format(res="1.0", stamp=100), RL1.format(res="1e308", stamp=101)],
         2,
         "angular_res",
-        "(line 1)",
+        "overflow",
     ),
     # was a 5,000-character message
     "huge_token": (["FLASER " + "9" * 5000 + " 1"], 1, "num_readings", "(5000 characters)"),
@@ -338,6 +368,15 @@ def test_found_by_the_fuzz(tmp_path, case):
         read_log(path)
     assert info.value.line_no == line_no and info.value.field == field, str(info.value)
     assert detail in str(info.value) and len(str(info.value)) < 200 + len(str(path))
+
+
+def test_a_changed_geometry_is_read_per_scan(tmp_path):
+    # was read with the first line's angles for every scan, then refused ("geometry changed")
+    path = tmp_path / "log.clf"
+    path.write_text(f"{RL1.format(res='1.0', stamp=100)}\n{RL1.format(res='0.5', stamp=101)}\n")
+    log = read_log(path)
+    np.testing.assert_array_equal(log.scan(0).angles_rad, [-1.0, 0.0, 1.0])
+    np.testing.assert_array_equal(log.scan(1).angles_rad, [-1.0, -0.5, 0.0])
 
 
 def test_a_stray_carriage_return_is_whitespace_and_line_numbers_are_greps(tmp_path):
