@@ -52,7 +52,7 @@ def test_the_back_end_gets_each_scans_points(logs, monkeypatch):
     varying, _ = logs
     got = {}
 
-    def backend(stamps, poses, odometry, points, cfg, hints):
+    def backend(stamps, poses, odometry, points, cfg, hints, jumps=None):
         got.update({i: points(i) for i in (0, 1)})
         return poses, {}
 

@@ -128,7 +128,7 @@ def test_an_injected_particle_reached_its_next_pose_by_a_jump():
     traj.bridge(2.5, np.array([0.1, 0.0, 0.0]))
     traj.record(3.0, poses_at(3))
     np.testing.assert_array_equal(traj.jumps(0), [False, False, False, True, False, False])
-    stamps, poses = traj.backtrack(0)
+    _, poses = traj.backtrack(0)
     np.testing.assert_allclose(poses[2], poses_at(1)[2])  # its history is particle 2's
     for j in (1, 2):
         assert not traj.jumps(j).any()
