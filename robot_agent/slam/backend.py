@@ -49,9 +49,11 @@ class BackendConfig:
     search_step_m: float = 0.1
     search_step_rad: float = np.radians(2.0)
     field_sigma_m: float = 0.08  # likelihood field: exp(-d^2 / 2 sigma^2)
-    rival_xy_m: float = 0.3  # a peak this far from the best ...
-    rival_theta_rad: float = np.radians(4.0)
-    max_rival_ratio: float = 0.85  # ... scoring above this share of the best: ambiguous
+    score_sharpness: float = 20.0  # a pose scoring s is exp(-k (1 - s / best)) as likely as the best
+    max_cross_sigma_m: float = 0.15  # a match this uncertain across its best-determined direction ...
+    max_theta_sigma_rad: float = np.radians(3.0)  # ... or in heading is ambiguous: refused
+    edge_mass: float = 0.05  # likelihood this large at the window's edge: unbounded along that axis
+    unbounded_sigma_m: float = 5.0  # ... then its std along it
     min_score: float = 0.4  # mean likelihood of the query at the best pose
     icp_iterations: int = 8
     icp_max_m: float = 0.15
@@ -177,7 +179,7 @@ class Loop:
     new: int
     z: np.ndarray  # (3,) pose of new in old's frame
     score: float
-    rival_ratio: float
+    info: np.ndarray  # (3,3) information of z: narrow across a corridor, wide along it
     inliers: float
 
 
@@ -209,11 +211,8 @@ def match_loop(
     best = float(scores[a, t])
     if best < cfg.min_score:
         return None
-    far = (np.abs(angles - angles[a])[:, None] > cfg.rival_theta_rad) | (
-        np.hypot(*(offs - offs[t]).T)[None, :] > cfg.rival_xy_m
-    )
-    rival = float(np.max(np.where(far, scores, 0.0)))
-    if rival > cfg.max_rival_ratio * best:
+    cov = match_covariance(scores, angles, offs, (a, t), cfg)
+    if cov is None:
         stats["ambiguous"] = stats.get("ambiguous", 0) + 1
         return None
     pose0 = np.array([guess[0] + offs[t, 0], guess[1] + offs[t, 1], angles[a]])
@@ -223,7 +222,43 @@ def match_loop(
         stats["low_overlap"] = stats.get("low_overlap", 0) + 1
         return None
     z[2] = wrap_angle(z[2])
-    return Loop(old, new, z, best, rival / best, share)
+    return Loop(old, new, z, best, np.linalg.inv(cov), share)
+
+
+def match_covariance(
+    scores: np.ndarray, angles: np.ndarray, offs: np.ndarray, best: tuple[int, int], cfg: BackendConfig
+) -> np.ndarray | None:
+    """Covariance ``(3,3)`` of a correlative match (x, y, θ in the old keyframe's frame) from its
+    score surface ``scores (A,T)`` over ``angles (A,)`` × ``offs (T,2)`` (Olson 2009): every pose
+    weighted by how likely it is against the best, second moments about the best. Along a
+    corridor many poses score alike: the match constrains only across it and in heading — it
+    is kept with that information, not refused. None when even the best-determined direction
+    or the heading is uncertain (a different place scores alike: ambiguous)."""
+    a, t = best
+    p = np.exp(-cfg.score_sharpness * (1.0 - scores / scores[a, t]))  # (A,T)
+    d = np.empty((*scores.shape, 3))
+    d[..., :2] = (offs - offs[t])[None, :, :]
+    d[..., 2] = (angles - angles[a])[:, None]
+    w = p / p.sum()
+    cov = np.einsum("at,ati,atj->ij", w, d, d)
+    cov += np.diag([cfg.search_step_m**2 / 12 + cfg.loop_sigma_xy_m**2] * 2 + [
+        cfg.search_step_rad**2 / 12 + cfg.loop_sigma_theta_rad**2
+    ])  # fmt: skip
+    if cov[2, 2] > cfg.max_theta_sigma_rad**2:
+        return None
+    values, vectors = np.linalg.eigh(cov[:2, :2])
+    if values[0] > cfg.max_cross_sigma_m**2:
+        return None
+    # mass at the window's edge along the weak axis: the likelihood goes on beyond what was
+    # searched, the match says nothing along it
+    half = np.max(np.abs(offs), axis=0)
+    edge = np.any(np.abs(offs) >= half - 1e-9, axis=1)  # (T,)
+    if w[:, edge].sum() > cfg.edge_mass:
+        weak = vectors[:, 1]
+        extra = cfg.unbounded_sigma_m**2 - values[1]
+        if extra > 0:
+            cov[:2, :2] += extra * np.outer(weak, weak)
+    return cov
 
 
 def near_old_keyframes(
@@ -316,10 +351,8 @@ def optimize(
     la = np.array([lp.old for lp in loops], dtype=int)
     lb = np.array([lp.new for lp in loops], dtype=int)
     lz = np.array([lp.z for lp in loops], dtype=float).reshape(-1, 3)
-    li = np.tile(
-        1.0 / np.array([cfg.loop_sigma_xy_m, cfg.loop_sigma_xy_m, cfg.loop_sigma_theta_rad]) ** 2,
-        (len(la), 1),
-    )
+    li = np.array([lp.info for lp in loops], dtype=float).reshape(-1, 3, 3)
+    info = posegraph.full_information(info)
     keep = np.ones(len(la), bool)
     for _round in range(3):
         # a wide kernel first, then narrower: loops far from the initial path (a large drift)
@@ -338,7 +371,7 @@ def optimize(
             )
         r = relative(x[la], x[lb]) - lz
         r[:, 2] = wrap_angle(r[:, 2])
-        chi = np.sqrt(np.sum(r**2 * li, axis=1) / 3.0)
+        chi = np.sqrt(posegraph.mahalanobis2(r, li) / 3.0)
         new_keep = chi <= cfg.max_loop_chi
         if np.array_equal(new_keep, keep):
             break

@@ -70,30 +70,28 @@ def optimize(
     robust_from: int | None = None,
     robust_k: float = 3.0,
 ) -> np.ndarray:
-    """Poses ``(N,3)`` minimizing ``Σ rᵀ diag(info) r`` over edges ``a, b (E,)`` with measured
-    motions ``z (E,3)`` and diagonal information ``info (E,3)``, from ``x0 (N,3)``; node 0 is
-    held fixed (the map frame). Edges from index ``robust_from`` on get a Cauchy kernel of
-    width ``robust_k`` (in normalized residual units), by iteratively reweighting."""
+    """Poses ``(N,3)`` minimizing ``Σ rᵀ Ω r`` over edges ``a, b (E,)`` with measured motions
+    ``z (E,3)`` and information ``Ω``: ``info (E,3,3)``, or ``(E,3)`` for a diagonal one, from
+    ``x0 (N,3)``; node 0 is held fixed (the map frame). Edges from index ``robust_from`` on get a
+    Cauchy kernel of width ``robust_k`` (in normalized residual units), by iteratively
+    reweighting."""
     x = np.array(x0, dtype=float, copy=True)
     n = len(x)
     if n < 2 or len(a) == 0:
         return x
     a, b = np.asarray(a, int), np.asarray(b, int)
+    omega = full_information(info)
     for _ in range(iterations):
         r, ja, jb = _residuals_and_jacobians(x, a, b, z)
-        w_info = info
+        w = omega
         if robust_from is not None and robust_from < len(a):
-            chi2 = np.sum(r[robust_from:] ** 2 * info[robust_from:], axis=1)
-            w_info = info.copy()
-            w_info[robust_from:] *= (1.0 / (1.0 + chi2 / robust_k**2))[:, None]
+            chi2 = mahalanobis2(r[robust_from:], omega[robust_from:])
+            w = omega.copy()
+            w[robust_from:] *= (1.0 / (1.0 + chi2 / robust_k**2))[:, None, None]
         # H = Σ Jᵀ Ω J over blocks (a,a), (a,b), (b,a), (b,b); g = Σ Jᵀ Ω r
-        w = w_info[:, :, None]
-        blocks = {
-            (0, 0): np.einsum("eki,ekj->eij", ja, w * ja),
-            (0, 1): np.einsum("eki,ekj->eij", ja, w * jb),
-            (1, 0): np.einsum("eki,ekj->eij", jb, w * ja),
-            (1, 1): np.einsum("eki,ekj->eij", jb, w * jb),
-        }
+        wa, wb = w @ ja, w @ jb
+        ja_t, jb_t = np.swapaxes(ja, 1, 2), np.swapaxes(jb, 1, 2)
+        blocks = {(0, 0): ja_t @ wa, (0, 1): ja_t @ wb, (1, 0): jb_t @ wa, (1, 1): jb_t @ wb}
         nodes = (a, b)
         rows, cols, vals = [], [], []
         ii, jj = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
@@ -105,9 +103,9 @@ def optimize(
             (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n)
         )
         g = np.zeros(3 * n)
-        wr = w_info * r
-        np.add.at(g, (3 * a[:, None] + np.arange(3)).ravel(), np.einsum("eki,ek->ei", ja, wr).ravel())
-        np.add.at(g, (3 * b[:, None] + np.arange(3)).ravel(), np.einsum("eki,ek->ei", jb, wr).ravel())
+        wr = (w @ r[..., None])[..., 0]
+        np.add.at(g, (3 * a[:, None] + np.arange(3)).ravel(), (ja_t @ wr[..., None]).ravel())
+        np.add.at(g, (3 * b[:, None] + np.arange(3)).ravel(), (jb_t @ wr[..., None]).ravel())
         # hold node 0: drop its rows and columns
         free = np.arange(3, 3 * n)
         step = spla.spsolve(h[free][:, free].tocsc(), -g[free])
@@ -116,6 +114,21 @@ def optimize(
         if np.max(np.abs(step)) < tol:
             break
     return x
+
+
+def full_information(info: np.ndarray) -> np.ndarray:
+    """Information matrices ``(E,3,3)`` from ``(E,3,3)`` or diagonals ``(E,3)``."""
+    info = np.asarray(info, dtype=float)
+    if info.ndim == 3:
+        return info
+    out = np.zeros((len(info), 3, 3))
+    out[:, [0, 1, 2], [0, 1, 2]] = info
+    return out
+
+
+def mahalanobis2(r: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    """``rᵀ Ω r`` per row of residuals ``r (E,3)`` with information ``omega (E,3,3)``."""
+    return np.einsum("ei,eij,ej->e", r, omega, r)
 
 
 def chain_edges(path: np.ndarray, noise: ChainNoise) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -44,9 +44,10 @@ def test_pose_graph_without_loops_keeps_the_chain():
 def test_backend_optimize_drops_a_false_loop():
     true, drifted = _square(0.002)
     kf = np.arange(0, len(true), 5)
-    good = [be.Loop(0, len(kf) - 1, relative(true[kf[0]], true[kf[-1]]), 1.0, 0.5, 1.0)]
-    good += [be.Loop(2, len(kf) - 3, relative(true[kf[2]], true[kf[-3]]), 1.0, 0.5, 1.0)]
-    false = be.Loop(10, 50, relative(true[kf[10]], true[kf[50]]) + np.array([1.5, -0.8, 0.3]), 1.0, 0.5, 1.0)
+    info = np.diag([400.0, 400.0, 3283.0])  # 5 cm, 1°
+    good = [be.Loop(0, len(kf) - 1, relative(true[kf[0]], true[kf[-1]]), 1.0, info, 1.0)]
+    good += [be.Loop(2, len(kf) - 3, relative(true[kf[2]], true[kf[-3]]), 1.0, info, 1.0)]
+    false = be.Loop(10, 50, relative(true[kf[10]], true[kf[50]]) + np.array([1.5, -0.8, 0.3]), 1.0, info, 1.0)
     stats: dict = {}
     cfg = be.BackendConfig()
     x = be.optimize(drifted[kf], [*good, false], cfg, stats)
@@ -99,9 +100,51 @@ def test_match_loop_finds_a_known_offset():
     assert abs(loop.z[2] - z_true[2]) < np.radians(0.5)
 
 
-def test_match_loop_refuses_a_featureless_corridor():
-    loop, _, stats = _match(CORRIDOR, np.array([0.3, 0.0, 0.0]))
-    assert loop is None and stats.get("ambiguous", 0) == 1
+def test_a_featureless_corridor_constrains_only_across_it():
+    """In a corridor every shift along it scores alike: the loop says where the robot is across
+    the corridor and how it is turned, and nothing about where along it (its information there
+    is next to none, not a false certainty)."""
+    loop, z_true, stats = _match(CORRIDOR, np.array([0.3, 0.12, np.radians(4.0)]))
+    assert loop is not None and stats.get("ambiguous", 0) == 0
+    cov = np.linalg.inv(loop.info)
+    along = np.array([np.cos(-0.1), np.sin(-0.1)])  # the corridor's direction in keyframe 0's frame
+    across = np.array([-along[1], along[0]])
+    assert np.sqrt(along @ cov[:2, :2] @ along) > 2.0
+    assert np.sqrt(across @ cov[:2, :2] @ across) < 0.08 and np.sqrt(cov[2, 2]) < np.radians(1.5)
+    assert abs(across @ (loop.z[:2] - z_true[:2])) < 0.03 and abs(loop.z[2] - z_true[2]) < np.radians(0.5)
+
+
+def _surface(peaks):
+    """A score surface over the default window: ``peaks`` of (x, y, θ, height, width_x, width_y)."""
+    cfg = be.BackendConfig()
+    n_xy = round(cfg.search_xy_m / cfg.search_step_m)
+    n_th = round(cfg.search_theta_rad / cfg.search_step_rad)
+    angles = cfg.search_step_rad * np.arange(-n_th, n_th + 1)
+    o = cfg.search_step_m * np.arange(-n_xy, n_xy + 1)
+    offs = np.array([(x, y) for x in o for y in o])
+    scores = np.zeros((len(angles), len(offs)))
+    for x, y, th, h, wx, wy in peaks:
+        g = np.exp(-0.5 * (((offs[:, 0] - x) / wx) ** 2 + ((offs[:, 1] - y) / wy) ** 2))
+        scores = np.maximum(scores, h * g[None, :] * np.exp(-0.5 * ((angles - th) / 0.02) ** 2)[:, None])
+    best = np.unravel_index(np.argmax(scores), scores.shape)
+    return be.match_covariance(scores, angles, offs, best, cfg)
+
+
+def test_match_covariance_of_a_sharp_peak_a_ridge_and_two_places():
+    sharp = _surface([(0.1, -0.2, 0.0, 0.9, 0.05, 0.05)])
+    assert sharp is not None and np.sqrt(sharp[0, 0]) < 0.08 and np.sqrt(sharp[2, 2]) < np.radians(1.5)
+    ridge = _surface([(0.0, 0.0, 0.0, 0.9, 10.0, 0.05)])  # alike all along x, to the window's edges
+    assert ridge is not None and np.sqrt(ridge[0, 0]) >= 4.9 and np.sqrt(ridge[1, 1]) < 0.08
+    # two places 0.9 m apart along y that fit alike: x and the heading are still known, y is not
+    apart = _surface([(0.0, -0.4, 0.0, 0.9, 0.05, 0.05), (0.0, 0.5, 0.0, 0.88, 0.05, 0.05)])
+    assert apart is not None and np.sqrt(apart[1, 1]) > 0.4 and np.sqrt(apart[0, 0]) < 0.08
+    # three that do not lie on a line, or two headings: nothing is known — refused
+    assert _surface([(0.0, -0.4, 0.0, 0.9, 0.05, 0.05), (0.5, 0.4, 0.0, 0.88, 0.05, 0.05),
+                     (-0.5, 0.4, 0.0, 0.88, 0.05, 0.05)]) is None  # fmt: skip
+    assert _surface([(0.0, 0.0, -0.1, 0.9, 0.05, 0.05), (0.0, 0.0, 0.1, 0.9, 0.05, 0.05)]) is None
+    near = _surface([(0.0, 0.0, 0.0, 0.9, 0.05, 0.05), (0.0, 0.5, 0.0, 0.6, 0.05, 0.05)])
+    assert near is not None  # a far weaker second peak costs nothing
+
 
 
 def test_a_jump_starts_a_keyframe():
