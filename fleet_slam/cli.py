@@ -64,6 +64,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             f"relations error: trans {r['trans_mean_m']:.3f} ± {r['trans_std_m']:.3f} m, "
             f"rot {r['rot_mean_deg']:.2f} ± {r['rot_std_deg']:.2f}° (n={r['n']})"
         )
+    elif "relations_note" in m:
+        print(f"relations error: none — {m['relations_note']}")
     print(f"wrote {args.out}/")
     return 0
 

@@ -1,0 +1,46 @@
+"""`fleet-slam replay` outputs: files, metrics, the map rebuilt along the corrected path."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from fleet_slam.cli import main
+from fleet_slam.replayrun import replay_to_dir
+from robot_agent.slam.extraction import ExtractionConfig, scan_points
+from robot_agent.sources import read_log
+from shared.geometry import apply_points, compose, point_segment_distance
+from shared.metrics import read_poses
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+LOG, REL = DATA / "intel_head.clf.gz", DATA / "intel_head.relations"
+
+
+def test_replay_writes_the_corrected_path_and_the_map_along_it(tmp_path):
+    m = replay_to_dir(str(LOG), tmp_path, str(REL), limit=400, progress=False)
+    for name in ("intel_head.poses.txt", "intel_head.filter.poses.txt", "intel_head.tum", "map.geojson",
+                 "map.svg", "map.png", "metrics.json"):  # fmt: skip
+        assert (tmp_path / name).stat().st_size > 0, name
+    stamps, poses = read_poses(tmp_path / "intel_head.poses.txt")
+    assert len(stamps) == 400 and m["scans"] == 400
+    assert m["relations"]["n"] > 0 and m["relations"]["trans_mean_m"] < 0.05
+    assert m["map_rebuild_s"] > 0 and m["map_segments"] >= 10
+    # the map agrees with the written poses: the scans, put where those poses say, fall on it
+    segs = np.array(
+        [f["geometry"]["coordinates"] for f in json.loads((tmp_path / "map.geojson").read_text())["features"]]
+    )
+    log = read_log(LOG)
+    dist = []
+    for i in range(0, 400, 40):
+        scan = log.scan(i)
+        xy = scan_points(scan.ranges_m, scan.angles_rad, ExtractionConfig(), scan.range_max_m)
+        xy = apply_points(compose(poses[i], scan.laser_offset), xy[np.hypot(*xy.T) < 5.0])
+        dist.append(np.min(point_segment_distance(xy[:, None, :], segs[None]), axis=1))
+    assert np.median(np.concatenate(dist)) < 0.03
+
+
+def test_a_limit_before_the_first_relation_reports_none(tmp_path, capsys):
+    assert main(["replay", str(LOG), "--relations", str(REL), "--limit", "20", "--out", str(tmp_path)]) == 0
+    assert "no relation lies within the scans replayed" in capsys.readouterr().out
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert "relations" not in m and m["scans"] == 20
