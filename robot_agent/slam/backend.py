@@ -5,13 +5,17 @@ loop closure fixes the current pose and leaves the surviving particle's past as 
 back end takes that trajectory as the odometry of a pose graph and adds loop edges:
 
 1. keyframes every ``keyframe_m`` / ``keyframe_rad`` of the trajectory; each keeps its scan points;
-2. chain edges: the trajectory's relative motion between consecutive keyframes;
+2. chain edges: the trajectory's relative motion between consecutive keyframes; across the
+   filter's own relocalization jumps (it says where: ``FastSLAM.best_jumps``), odometry, loosely;
 3. loop edges: a keyframe's points (with its recent neighbours) matched against the local
    cloud of an old keyframe nearby (its neighbours in time, locally consistent) by correlative
-   search over a likelihood field (Olson 2009), refined by ICP; kept only when verified (enough
-   overlap, no rival peak — the check of map_server/alignment.py); the filter's confirmed
-   relocalizations are tried first, the search starting where they put the robot (a drift
-   beyond the search window, which the filter bridged but could not keep, is still closed);
+   search over a likelihood field (scanmatch.py, Olson 2009), refined by ICP. The first pass
+   searches as wide as the path between the two may have drifted (a share of the distance
+   driven between them, by branch and bound); later passes search around the corrected path.
+   A match keeps the covariance of its score surface: in a corridor it holds across and in
+   heading, not along — refused only when it holds in neither translation direction or not in
+   heading, or too few points overlap after ICP. The filter's confirmed relocalizations are
+   tried first, the search starting where they put the robot;
 4. sparse Gauss-Newton with a robust kernel on the loop edges (posegraph.py); loop edges that
    still disagree after it are dropped and the graph solved again;
 5. every scan follows its keyframe rigidly.
@@ -23,10 +27,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
 from robot_agent.slam import posegraph
+from robot_agent.slam.scanmatch import (
+    branch_and_bound,
+    icp,
+    likelihood_field,
+    match_covariance,
+    window_scores,
+)
 from shared.geometry import apply_points, compose, relative, wrap_angle
 
 
@@ -41,13 +51,25 @@ class BackendConfig:
     query_points: int = 200  # query thinned to at most this many points
     min_gap_s: float = 30.0  # loop candidates: older than this ...
     min_gap_keyframes: int = 20  # ... and this many keyframes back ...
-    candidate_radius_m: float = 2.5  # ... and within this distance in the current estimate
+    candidate_radius_m: float = 2.5  # ... and within this distance in the current estimate, plus
+    # the drift the path between them may hold (below)
     candidates: int = 2  # old keyframes tried per query
     check_every: int = 2  # every this many keyframes a query is tried
     search_xy_m: float = 0.8  # correlative search window (half width) ...
     search_theta_rad: float = np.radians(8.0)
     search_step_m: float = 0.1
     search_step_rad: float = np.radians(2.0)
+    # the first pass searches wider, by the drift the filter's path may hold between the two
+    # keyframes: this share of the path driven between them (branch and bound, scanmatch.py)
+    drift_xy_per_m: float = 0.02
+    drift_theta_rad_per_m: float = np.radians(0.1)
+    max_drift_xy_m: float = 8.0
+    max_drift_theta_rad: float = np.radians(25.0)
+    wide_step_m: float = 0.1  # the wide search's translation grid; its heading step keeps the far
+    # query points within a cell (at least min_wide_step_rad)
+    min_wide_step_rad: float = np.radians(0.5)
+    wide_points: int = 100  # query points the wide search scores (evenly thinned)
+    wide_keep_ratio: float = 0.95  # it keeps poses scoring this share of the best (rivals)
     field_sigma_m: float = 0.08  # likelihood field: exp(-d^2 / 2 sigma^2)
     score_sharpness: float = 20.0  # a pose scoring s is exp(-k (1 - s / best)) as likely as the best
     max_cross_sigma_m: float = 0.15  # a match this uncertain across its best-determined direction ...
@@ -110,70 +132,6 @@ def local_cloud(
 
 
 @dataclass(frozen=True)
-class Field:
-    values: np.ndarray  # (W,H) likelihood
-    origin: np.ndarray  # (2,) xy of cell (0,0)
-    res_m: float
-
-
-def likelihood_field(points: np.ndarray, res_m: float, sigma_m: float, margin_m: float) -> Field:
-    lo = points.min(axis=0) - margin_m
-    shape = np.ceil((points.max(axis=0) + margin_m - lo) / res_m).astype(int) + 1
-    occ = np.zeros(shape, bool)
-    c = np.round((points - lo) / res_m).astype(int)
-    occ[c[:, 0], c[:, 1]] = True
-    d = distance_transform_edt(~occ) * res_m
-    return Field(np.exp(-0.5 * (d / sigma_m) ** 2), lo, res_m)
-
-
-def correlative_search(fld: Field, query: np.ndarray, guess: np.ndarray, cfg: BackendConfig):
-    """Scores ``(A,T)`` of the query points ``(N,2)`` at every pose of the window around
-    ``guess``; also the angles ``(A,)`` and translation offsets ``(T,2)`` [m]."""
-    n_xy = round(cfg.search_xy_m / cfg.search_step_m)
-    n_th = round(cfg.search_theta_rad / cfg.search_step_rad)
-    angles = guess[2] + cfg.search_step_rad * np.arange(-n_th, n_th + 1)
-    steps = round(cfg.search_step_m / fld.res_m)
-    o = steps * np.arange(-n_xy, n_xy + 1)
-    ox, oy = np.meshgrid(o, o, indexing="ij")
-    ox, oy = ox.ravel(), oy.ravel()
-    w, h = fld.values.shape
-    flat = fld.values.ravel()
-    scores = np.empty((len(angles), len(ox)))
-    for a, th in enumerate(angles):
-        c, s = np.cos(th), np.sin(th)
-        px = c * query[:, 0] - s * query[:, 1] + guess[0]
-        py = s * query[:, 0] + c * query[:, 1] + guess[1]
-        cx = np.round((px - fld.origin[0]) / fld.res_m).astype(int)
-        cy = np.round((py - fld.origin[1]) / fld.res_m).astype(int)
-        ix = cx[None, :] + ox[:, None]
-        iy = cy[None, :] + oy[:, None]
-        ok = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
-        v = np.where(ok, flat[np.where(ok, ix * h + iy, 0)], 0.0)
-        scores[a] = v.mean(axis=1)
-    return scores, angles, np.column_stack([ox, oy]) * fld.res_m
-
-
-def icp(target: cKDTree, target_pts: np.ndarray, query: np.ndarray, pose: np.ndarray, cfg: BackendConfig):
-    """Point-to-point ICP of ``query`` onto the target from ``pose``; the pose and inlier share."""
-    x = pose.copy()
-    for _ in range(cfg.icp_iterations):
-        p = apply_points(x, query)
-        d, j = target.query(p, distance_upper_bound=cfg.icp_max_m)
-        ok = np.isfinite(d)
-        if ok.sum() < 10:
-            break
-        a, b = p[ok], target_pts[j[ok]]
-        ma, mb = a.mean(axis=0), b.mean(axis=0)
-        hmat = (a - ma).T @ (b - mb)
-        th = np.arctan2(hmat[0, 1] - hmat[1, 0], hmat[0, 0] + hmat[1, 1])
-        c, s = np.cos(th), np.sin(th)
-        t = mb - np.array([c * ma[0] - s * ma[1], s * ma[0] + c * ma[1]])
-        x = compose(np.array([t[0], t[1], th]), x)
-    d, _ = target.query(apply_points(x, query), distance_upper_bound=cfg.inlier_m)
-    return x, float(np.mean(np.isfinite(d)))
-
-
-@dataclass(frozen=True)
 class Loop:
     old: int  # keyframe index
     new: int
@@ -191,10 +149,12 @@ def match_loop(
     cfg: BackendConfig,
     stats: dict,
     estimate: np.ndarray | None = None,
+    drift: tuple[float, float] = (0.0, 0.0),
 ) -> Loop | None:
     """Verified relative pose of keyframe ``new`` in keyframe ``old``'s frame, or None. The
     clouds are built with ``kf_poses (K,3)`` (the filter's path: locally right); the search
-    starts from ``estimate (K,3)`` when given (the path corrected so far)."""
+    starts from ``estimate (K,3)`` when given (the path corrected so far) and covers the base
+    window widened by ``drift`` (m, rad) — wider than it, by branch and bound first."""
     w = cfg.cloud_neighbours
     cloud = voxel_thin(local_cloud(kf_poses, kf_points, old, old - w, old + w), cfg.voxel_m)
     query = voxel_thin(local_cloud(kf_poses, kf_points, new, new - cfg.query_neighbours, new), cfg.voxel_m)
@@ -205,19 +165,63 @@ def match_loop(
     est = kf_poses if estimate is None else estimate
     guess = relative(est[old], est[new])
     fld = likelihood_field(cloud, cfg.search_step_m, cfg.field_sigma_m, 4.0 * cfg.field_sigma_m)
-    scores, angles, offs = correlative_search(fld, query, guess, cfg)
     stats["matches"] = stats.get("matches", 0) + 1
+    wide = np.zeros((0, 3)), np.zeros(0), np.zeros(0, bool)
+    if drift[0] > 0 or drift[1] > 0:
+        half_xy, half_th = cfg.search_xy_m + drift[0], cfg.search_theta_rad + drift[1]
+        few = query[np.linspace(0, len(query) - 1, min(len(query), cfg.wide_points)).astype(int)]
+        reach = float(np.percentile(np.hypot(few[:, 0], few[:, 1]), 90))
+        step = max(cfg.min_wide_step_rad, np.arctan2(cfg.wide_step_m, reach))
+        depth = int(np.clip(np.ceil(np.log2(half_xy / cfg.search_step_m)) - 1, 1, 6))
+        poses, sc = branch_and_bound(
+            fld, few, guess, half_xy, half_th, step, cfg.min_score, cfg.wide_keep_ratio, depth
+        )
+        stats["wide"] = stats.get("wide", 0) + 1
+        if len(poses) == 0:
+            return None
+        edge = (np.max(np.abs(poses[:, :2] - guess[:2]), axis=1) >= half_xy - cfg.search_step_m) | (
+            np.abs(wrap_angle(poses[:, 2] - guess[2])) >= half_th - step
+        )
+        wide, guess = (poses, sc, edge), poses[0]
+    scores, angles, offs = window_scores(
+        fld, query, guess, cfg.search_xy_m, cfg.search_theta_rad, cfg.search_step_m, cfg.search_step_rad
+    )
     a, t = np.unravel_index(np.argmax(scores), scores.shape)
     best = float(scores[a, t])
     if best < cfg.min_score:
         return None
-    cov = match_covariance(scores, angles, offs, (a, t), cfg)
+    pose0 = np.array([guess[0] + offs[t, 0], guess[1] + offs[t, 1], angles[a]])
+    # the score surface: the window around the best, and the wide search's near-best poses
+    d_local = np.concatenate(
+        [np.broadcast_to(offs - offs[t], (len(angles), len(offs), 2)),
+         np.broadcast_to((angles - angles[a])[:, None, None], (len(angles), len(offs), 1))], axis=-1,
+    ).reshape(-1, 3)  # fmt: skip
+    edge_local = (
+        np.broadcast_to(np.max(np.abs(offs), axis=1) >= cfg.search_xy_m - 1e-9, (len(angles), len(offs)))
+        | (np.abs(angles - guess[2]) >= cfg.search_theta_rad - 1e-9)[:, None]
+    )
+    if len(wide[0]):  # the wide search covered beyond the small window's edge
+        edge_local = np.zeros_like(edge_local)
+    d_wide = wide[0] - pose0
+    d_wide[:, 2] = wrap_angle(d_wide[:, 2])
+    floor = np.array([cfg.search_step_m**2 / 12 + cfg.loop_sigma_xy_m**2] * 2
+                     + [cfg.search_step_rad**2 / 12 + cfg.loop_sigma_theta_rad**2])  # fmt: skip
+    cov = match_covariance(
+        np.vstack([d_local, d_wide]),
+        np.concatenate([scores.ravel(), wide[1]]),
+        max(best, float(wide[1].max(initial=0.0))),
+        np.concatenate([edge_local.ravel(), wide[2]]),
+        cfg.score_sharpness,
+        floor,
+        cfg.max_cross_sigma_m,
+        cfg.max_theta_sigma_rad,
+        cfg.edge_mass,
+        cfg.unbounded_sigma_m,
+    )
     if cov is None:
         stats["ambiguous"] = stats.get("ambiguous", 0) + 1
         return None
-    pose0 = np.array([guess[0] + offs[t, 0], guess[1] + offs[t, 1], angles[a]])
-    tree = cKDTree(cloud)
-    z, share = icp(tree, cloud, query, pose0, cfg)
+    z, share = icp(cKDTree(cloud), cloud, query, pose0, cfg.icp_iterations, cfg.icp_max_m, cfg.inlier_m)
     if share < cfg.min_inlier_share:
         stats["low_overlap"] = stats.get("low_overlap", 0) + 1
         return None
@@ -225,53 +229,31 @@ def match_loop(
     return Loop(old, new, z, best, np.linalg.inv(cov), share)
 
 
-def match_covariance(
-    scores: np.ndarray, angles: np.ndarray, offs: np.ndarray, best: tuple[int, int], cfg: BackendConfig
-) -> np.ndarray | None:
-    """Covariance ``(3,3)`` of a correlative match (x, y, θ in the old keyframe's frame) from its
-    score surface ``scores (A,T)`` over ``angles (A,)`` × ``offs (T,2)`` (Olson 2009): every pose
-    weighted by how likely it is against the best, second moments about the best. Along a
-    corridor many poses score alike: the match constrains only across it and in heading — it
-    is kept with that information, not refused. None when even the best-determined direction
-    or the heading is uncertain (a different place scores alike: ambiguous)."""
-    a, t = best
-    p = np.exp(-cfg.score_sharpness * (1.0 - scores / scores[a, t]))  # (A,T)
-    d = np.empty((*scores.shape, 3))
-    d[..., :2] = (offs - offs[t])[None, :, :]
-    d[..., 2] = (angles - angles[a])[:, None]
-    w = p / p.sum()
-    cov = np.einsum("at,ati,atj->ij", w, d, d)
-    cov += np.diag([cfg.search_step_m**2 / 12 + cfg.loop_sigma_xy_m**2] * 2 + [
-        cfg.search_step_rad**2 / 12 + cfg.loop_sigma_theta_rad**2
-    ])  # fmt: skip
-    if cov[2, 2] > cfg.max_theta_sigma_rad**2:
-        return None
-    values, vectors = np.linalg.eigh(cov[:2, :2])
-    if values[0] > cfg.max_cross_sigma_m**2:
-        return None
-    # mass at the window's edge along the weak axis: the likelihood goes on beyond what was
-    # searched, the match says nothing along it
-    half = np.max(np.abs(offs), axis=0)
-    edge = np.any(np.abs(offs) >= half - 1e-9, axis=1)  # (T,)
-    if w[:, edge].sum() > cfg.edge_mass:
-        weak = vectors[:, 1]
-        extra = cfg.unbounded_sigma_m**2 - values[1]
-        if extra > 0:
-            cov[:2, :2] += extra * np.outer(weak, weak)
-    return cov
+def path_drift(arc_m: np.ndarray, old: np.ndarray | int, new: int, cfg: BackendConfig) -> tuple:
+    """How far (m, rad) the filter's path may have drifted between keyframes ``old`` and ``new``:
+    shares of the path driven between them, ``arc_m (K,)`` its length up to each keyframe."""
+    driven = np.abs(arc_m[new] - arc_m[old])
+    return (
+        np.minimum(cfg.max_drift_xy_m, cfg.drift_xy_per_m * driven),
+        np.minimum(cfg.max_drift_theta_rad, cfg.drift_theta_rad_per_m * driven),
+    )
 
 
 def near_old_keyframes(
-    kf_stamps: np.ndarray, est: np.ndarray, new: int, cfg: BackendConfig
+    kf_stamps: np.ndarray, est: np.ndarray, new: int, cfg: BackendConfig, arc_m: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Loop candidates for keyframe ``new``: the keyframes old enough (min_gap_s and
-    min_gap_keyframes back) within candidate_radius_m of it in ``est (K,3)``; and the distances
-    ``(K,)`` of every keyframe to it there."""
+    min_gap_keyframes back) within candidate_radius_m of it in ``est (K,3)`` — plus the drift the
+    path between them may hold when ``arc_m (K,)`` (:func:`path_drift`) is given; and the
+    distances ``(K,)`` of every keyframe to it there."""
     old_ok = (kf_stamps <= kf_stamps[new] - cfg.min_gap_s) & (
         np.arange(len(est)) <= new - cfg.min_gap_keyframes
     )
     d = np.hypot(*(est[:, :2] - est[new, :2]).T)
-    return np.flatnonzero(old_ok & (d < cfg.candidate_radius_m)), d
+    radius = cfg.candidate_radius_m
+    if arc_m is not None:
+        radius = radius + path_drift(arc_m, np.arange(len(est)), new, cfg)[0]
+    return np.flatnonzero(old_ok & (d < radius)), d
 
 
 def find_loops(
@@ -282,15 +264,18 @@ def find_loops(
     stats: dict,
     estimate: np.ndarray | None = None,
     skip: set | None = None,
+    arc_m: np.ndarray | None = None,
 ) -> list[Loop]:
     """Verified loops over every keyframe (offline: the whole trajectory at once); candidates
-    near in ``estimate`` (default ``kf_poses``); queries in ``skip`` are not tried."""
+    near in ``estimate`` (default ``kf_poses``); queries in ``skip`` are not tried. With
+    ``arc_m (K,)`` (the path's length at each keyframe) candidates and search windows widen by
+    the drift the path between the two keyframes may hold (:func:`path_drift`)."""
     loops: list[Loop] = []
     est = kf_poses if estimate is None else estimate
     for new in range(0, len(kf_poses), cfg.check_every):
         if skip is not None and new in skip:
             continue
-        cand, d = near_old_keyframes(kf_stamps, est, new, cfg)
+        cand, d = near_old_keyframes(kf_stamps, est, new, cfg, arc_m)
         if len(cand) == 0:
             continue
         dth = np.abs(wrap_angle(est[cand, 2] - est[new, 2]))
@@ -302,7 +287,8 @@ def find_loops(
             if len(picked) >= cfg.candidates:
                 break
         for old in picked:
-            loop = match_loop(kf_poses, kf_points, old, new, cfg, stats, estimate)
+            drift = (0.0, 0.0) if arc_m is None else path_drift(arc_m, old, new, cfg)
+            loop = match_loop(kf_poses, kf_points, old, new, cfg, stats, estimate, drift)
             if loop is not None:
                 loops.append(loop)
     return loops
@@ -414,9 +400,13 @@ def run_backend(
     loops = hinted_loops(stamps_s[kf], kf_poses, kf_points, kf, poses, hints or [], cfg, stats)
     new = kf_poses
     skip: set = set()
-    for p in range(cfg.passes):  # later passes search from the corrected path: drift the first
-        # pass could not bridge is now within the window where its loops pulled the path
-        found = find_loops(stamps_s[kf], kf_poses, kf_points, cfg, stats, new if p else None, skip)
+    step = relative(kf_poses[:-1], kf_poses[1:])
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(step[:, 0], step[:, 1]))])
+    for p in range(cfg.passes):  # the first pass searches as wide as the path may have drifted;
+        # later ones search from the corrected path, near where its loops pulled it
+        found = find_loops(
+            stamps_s[kf], kf_poses, kf_points, cfg, stats, new if p else None, skip, None if p else arc
+        )
         stats[f"loops_pass{p}"] = len(found)
         loops += found
         if p and len(found) < cfg.min_pass_loops:

@@ -1,0 +1,223 @@
+"""Correlative scan matching of a point cloud against another: where does a keyframe's scan fit
+an old place, and how sure is that (the back end's loop closures).
+
+- a likelihood field of the old cloud, ``exp(-d²/2σ²)`` on a grid (Olson 2009);
+- :func:`window_scores`: every pose of a small window, brute force — the score surface;
+- :func:`branch_and_bound`: a wide window, searched through a pyramid of the field where each
+  level holds the maximum over blocks twice as large (Hess et al. 2016, §V): a block whose bound
+  cannot reach the threshold is never opened, so a drift of metres costs little more than one
+  of decimetres;
+- :func:`match_covariance`: the uncertainty of the best pose from the scores of all the others
+  (a corridor: certain across, uncertain along);
+- :func:`icp`: the final fit, point to point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt
+from scipy.spatial import cKDTree
+
+from shared.geometry import apply_points, compose
+
+
+@dataclass(frozen=True)
+class Field:
+    values: np.ndarray  # (W,H) likelihood
+    origin: np.ndarray  # (2,) xy of cell (0,0)
+    res_m: float
+
+
+def likelihood_field(points: np.ndarray, res_m: float, sigma_m: float, margin_m: float) -> Field:
+    """The field ``exp(-d²/2σ²)`` of ``points (N,2)``, ``d`` the distance to the nearest one, on a
+    grid of ``res_m`` cells over their extent plus ``margin_m``."""
+    lo = points.min(axis=0) - margin_m
+    shape = np.ceil((points.max(axis=0) + margin_m - lo) / res_m).astype(int) + 1
+    occ = np.zeros(shape, bool)
+    c = np.round((points - lo) / res_m).astype(int)
+    occ[c[:, 0], c[:, 1]] = True
+    d = distance_transform_edt(~occ) * res_m
+    return Field(np.exp(-0.5 * (d / sigma_m) ** 2), lo, res_m)
+
+
+def _query_cells(fld: Field, query: np.ndarray, guess: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Cells ``(A,N,2)`` of the query points ``(N,2)`` at ``guess``'s translation, turned to each
+    of ``angles (A,)``."""
+    c, s = np.cos(angles)[:, None], np.sin(angles)[:, None]
+    px = c * query[:, 0] - s * query[:, 1] + guess[0]
+    py = s * query[:, 0] + c * query[:, 1] + guess[1]
+    return np.stack(
+        [np.round((px - fld.origin[0]) / fld.res_m), np.round((py - fld.origin[1]) / fld.res_m)], axis=-1
+    ).astype(int)
+
+
+def _lookup(grid: np.ndarray, ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
+    """``grid[ix, iy]``, 0 outside."""
+    w, h = grid.shape
+    ok = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
+    return np.where(ok, grid.ravel()[np.where(ok, ix * h + iy, 0)], 0.0)
+
+
+def window_scores(
+    fld: Field,
+    query: np.ndarray,
+    guess: np.ndarray,
+    half_xy_m: float,
+    half_theta_rad: float,
+    step_m: float,
+    step_rad: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scores ``(A,T)`` (mean likelihood of the query points ``(N,2)``) at every pose of the window
+    around ``guess (3,)``; the angles ``(A,)`` and translation offsets ``(T,2)`` [m] from it."""
+    n_xy = round(half_xy_m / step_m)
+    n_th = round(half_theta_rad / step_rad)
+    angles = guess[2] + step_rad * np.arange(-n_th, n_th + 1)
+    o = round(step_m / fld.res_m) * np.arange(-n_xy, n_xy + 1)
+    ox, oy = (g.ravel() for g in np.meshgrid(o, o, indexing="ij"))
+    cells = _query_cells(fld, query, guess, angles)
+    scores = np.empty((len(angles), len(ox)))
+    for a in range(len(angles)):
+        ix = cells[a, None, :, 0] + ox[:, None]
+        iy = cells[a, None, :, 1] + oy[:, None]
+        scores[a] = _lookup(fld.values, ix, iy).mean(axis=1)
+    return scores, angles, np.column_stack([ox, oy]) * fld.res_m
+
+
+def max_pyramid(values: np.ndarray, depth: int) -> list[np.ndarray]:
+    """Levels ``0..depth``: level ``k`` at cell ``(i, j)`` holds the maximum of ``values`` over the
+    block ``[i, i + 2^k) × [j, j + 2^k)`` (0 beyond the grid) — an upper bound of the score of
+    every translation in that block."""
+    levels = [values]
+    for k in range(1, depth + 1):
+        prev, s = levels[-1], 2 ** (k - 1)
+        m = prev.copy()
+        m[:-s] = np.maximum(prev[:-s], prev[s:])
+        out = m.copy()
+        out[:, :-s] = np.maximum(m[:, :-s], m[:, s:])
+        levels.append(out)
+    return levels
+
+
+def branch_and_bound(
+    fld: Field,
+    query: np.ndarray,
+    guess: np.ndarray,
+    half_xy_m: float,
+    half_theta_rad: float,
+    step_rad: float,
+    min_score: float,
+    keep_ratio: float,
+    depth: int,
+    max_open: int = 1024,
+    probes: int = 32,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Poses ``(K,3)`` in the window around ``guess`` (translations on the field's cells, headings
+    ``step_rad`` apart) scoring at least ``min_score`` and ``keep_ratio`` × the best, with their
+    scores ``(K,)``, best first; empty when none reaches ``min_score``. Exact while at most
+    ``max_open`` blocks stay open at a level (beyond, the lowest-bounded ones are dropped); at
+    every level the exact score of the ``probes`` best-bounded blocks' first poses raises the
+    threshold."""
+    n_th = int(np.ceil(half_theta_rad / step_rad))
+    angles = guess[2] + step_rad * np.arange(-n_th, n_th + 1)
+    w = int(np.ceil(half_xy_m / fld.res_m))
+    top = 2**depth
+    # the query cells clipped to just beyond the reach of any offset (-w .. w + top) — a point
+    # that far stays off the grid whatever the offset — and every level padded with zeros by
+    # as much: a lookup is one flat index, no bounds test
+    pad = 2 * w + top + 1
+    levels = [np.pad(v.astype(np.float32), pad) for v in max_pyramid(fld.values, depth)]
+    height = levels[0].shape[1]
+    cells = _query_cells(fld, query, guess, angles)  # (A,N,2)
+    cx = np.clip(cells[..., 0], -(w + top + 1), fld.values.shape[0] + w) + pad
+    cy = np.clip(cells[..., 1], -(w + top + 1), fld.values.shape[1] + w) + pad
+    flat = cx * height + cy  # (A,N)
+    n_points = query.shape[0]
+
+    def score(k: int, a: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
+        return levels[k].ravel()[flat[a] + (ox * height + oy)[:, None]].sum(axis=1) / n_points
+
+    starts = np.arange(-w, w + 1, top)
+    a, ox, oy = (g.ravel() for g in np.meshgrid(np.arange(len(angles)), starts, starts, indexing="ij"))
+    best_low = 0.0  # a score some pose reaches: prunes blocks that cannot come near it
+    for k in range(depth, -1, -1):
+        bound = score(k, a, ox, oy)
+        if k > 0:  # the exact score of the best-bounded blocks' first poses
+            probe = np.argsort(-bound)[:probes]
+            best_low = max(best_low, float(score(0, a[probe], ox[probe], oy[probe]).max(initial=0.0)))
+        else:
+            best_low = max(best_low, float(bound.max(initial=0.0)))
+        keep = bound >= max(min_score, keep_ratio * best_low)
+        if k > 0 and keep.sum() > max_open:
+            keep &= bound >= np.sort(bound[keep])[-max_open]
+        a, ox, oy, bound = a[keep], ox[keep], oy[keep], bound[keep]
+        if k > 0:  # open the blocks: four children of half the size
+            h = 2 ** (k - 1)
+            dx, dy = np.array([0, h, 0, h]), np.array([0, 0, h, h])
+            a = np.repeat(a, 4)
+            ox, oy = (np.repeat(ox, 4) + np.tile(dx, len(ox))), (np.repeat(oy, 4) + np.tile(dy, len(oy)))
+            inside = (ox <= w) & (oy <= w)
+            a, ox, oy = a[inside], ox[inside], oy[inside]
+    order = np.argsort(-bound, kind="stable")
+    poses = np.column_stack(
+        [guess[0] + ox[order] * fld.res_m, guess[1] + oy[order] * fld.res_m, angles[a[order]]]
+    )
+    return poses, bound[order]
+
+
+def match_covariance(
+    offsets: np.ndarray,
+    scores: np.ndarray,
+    best_score: float,
+    edge: np.ndarray,
+    sharpness: float,
+    floor: np.ndarray,
+    max_cross_sigma_m: float,
+    max_theta_sigma_rad: float,
+    edge_mass: float,
+    unbounded_sigma_m: float,
+) -> np.ndarray | None:
+    """Covariance ``(3,3)`` of a match from the scores ``(K,)`` of poses at ``offsets (K,3)`` from
+    the best (Olson 2009): each weighted ``exp(-sharpness (1 - s / best))``, second moments about
+    the best, plus ``floor (3,)`` variances (grid steps, the fit itself). None when even the
+    best-determined direction or the heading is uncertain beyond ``max_*`` (alike places: the
+    match is ambiguous). Mass beyond ``edge_mass`` on poses at the window's edge ``(K,)``: the
+    likelihood goes on past what was searched, so along the weak axis the match says nothing
+    (std ``unbounded_sigma_m``)."""
+    p = np.exp(-sharpness * (1.0 - scores / best_score))
+    w = p / p.sum()
+    cov = np.einsum("k,ki,kj->ij", w, offsets, offsets) + np.diag(floor)
+    if cov[2, 2] > max_theta_sigma_rad**2:
+        return None
+    values, vectors = np.linalg.eigh(cov[:2, :2])
+    if values[0] > max_cross_sigma_m**2:
+        return None
+    if w[edge].sum() > edge_mass and unbounded_sigma_m**2 > values[1]:
+        weak = vectors[:, 1]
+        cov[:2, :2] += (unbounded_sigma_m**2 - values[1]) * np.outer(weak, weak)
+    return cov
+
+
+def icp(
+    target: cKDTree, target_pts: np.ndarray, query: np.ndarray, pose: np.ndarray, iterations: int,
+    max_m: float, inlier_m: float,
+) -> tuple[np.ndarray, float]:  # fmt: skip
+    """Point-to-point ICP of ``query (N,2)`` onto the target from ``pose (3,)``: the pose and the
+    share of query points within ``inlier_m`` of the target there."""
+    x = pose.copy()
+    for _ in range(iterations):
+        p = apply_points(x, query)
+        d, j = target.query(p, distance_upper_bound=max_m)
+        ok = np.isfinite(d)
+        if ok.sum() < 10:
+            break
+        a, b = p[ok], target_pts[j[ok]]
+        ma, mb = a.mean(axis=0), b.mean(axis=0)
+        hmat = (a - ma).T @ (b - mb)
+        th = np.arctan2(hmat[0, 1] - hmat[1, 0], hmat[0, 0] + hmat[1, 1])
+        c, s = np.cos(th), np.sin(th)
+        t = mb - np.array([c * ma[0] - s * ma[1], s * ma[0] + c * ma[1]])
+        x = compose(np.array([t[0], t[1], th]), x)
+    d, _ = target.query(apply_points(x, query), distance_upper_bound=inlier_m)
+    return x, float(np.mean(np.isfinite(d)))
