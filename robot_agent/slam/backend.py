@@ -30,6 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from robot_agent.slam import posegraph
+from robot_agent.slam.extraction import voxel_thin
 from robot_agent.slam.scanmatch import (
     branch_and_bound,
     icp,
@@ -110,14 +111,6 @@ def select_keyframes(poses: np.ndarray, cfg: BackendConfig, jumps: np.ndarray | 
             keep.append(i)
             last = poses[i]
     return np.asarray(keep)
-
-
-def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    if len(points) == 0:
-        return points
-    key = np.floor(points / voxel_m).astype(np.int64)
-    _, first = np.unique(key[:, 0] * 1_000_003 + key[:, 1], return_index=True)
-    return points[np.sort(first)]
 
 
 def local_cloud(
