@@ -32,11 +32,14 @@ from scipy.spatial import cKDTree
 from robot_agent.slam import posegraph
 from robot_agent.slam.extraction import voxel_thin
 from robot_agent.slam.scanmatch import (
+    Field,
+    SurfaceConfig,
     branch_and_bound,
     icp,
     likelihood_field,
     match_covariance,
     window_scores,
+    window_surface,
 )
 from shared.geometry import apply_points, compose, relative, wrap_angle
 
@@ -72,11 +75,7 @@ class BackendConfig:
     wide_points: int = 100  # query points the wide search scores (evenly thinned)
     wide_keep_ratio: float = 0.95  # it keeps poses scoring this share of the best (rivals)
     field_sigma_m: float = 0.08  # likelihood field: exp(-d^2 / 2 sigma^2)
-    score_sharpness: float = 20.0  # a pose scoring s is exp(-k (1 - s / best)) as likely as the best
-    max_cross_sigma_m: float = 0.15  # a match this uncertain across its best-determined direction ...
-    max_theta_sigma_rad: float = np.radians(3.0)  # ... or in heading is ambiguous: refused
-    edge_mass: float = 0.05  # likelihood this large at the window's edge: unbounded along that axis
-    unbounded_sigma_m: float = 5.0  # ... then its std along it
+    surface: SurfaceConfig = field(default_factory=SurfaceConfig)  # a match's covariance
     min_score: float = 0.4  # mean likelihood of the query at the best pose
     icp_iterations: int = 8
     icp_max_m: float = 0.15
@@ -159,58 +158,32 @@ def match_loop(
     guess = relative(est[old], est[new])
     fld = likelihood_field(cloud, cfg.search_step_m, cfg.field_sigma_m, 4.0 * cfg.field_sigma_m)
     stats["matches"] = stats.get("matches", 0) + 1
-    wide = np.zeros((0, 3)), np.zeros(0), np.zeros(0, bool)
+    wide = None
     if drift[0] > 0 or drift[1] > 0:
-        half_xy, half_th = cfg.search_xy_m + drift[0], cfg.search_theta_rad + drift[1]
-        few = query[np.linspace(0, len(query) - 1, min(len(query), cfg.wide_points)).astype(int)]
-        reach = float(np.percentile(np.hypot(few[:, 0], few[:, 1]), 90))
-        step = max(cfg.min_wide_step_rad, np.arctan2(cfg.wide_step_m, reach))
-        depth = int(np.clip(np.ceil(np.log2(half_xy / cfg.search_step_m)) - 1, 1, 6))
-        poses, sc = branch_and_bound(
-            fld, few, guess, half_xy, half_th, step, cfg.min_score, cfg.wide_keep_ratio, depth
-        )
         stats["wide"] = stats.get("wide", 0) + 1
-        if len(poses) == 0:
+        wide = _wide_search(fld, query, guess, drift, cfg)
+        if wide is None:
             return None
-        edge = (np.max(np.abs(poses[:, :2] - guess[:2]), axis=1) >= half_xy - cfg.search_step_m) | (
-            np.abs(wrap_angle(poses[:, 2] - guess[2])) >= half_th - step
-        )
-        wide, guess = (poses, sc, edge), poses[0]
+        guess = wide[0][0]  # the small window around the wide search's best
     scores, angles, offs = window_scores(
         fld, query, guess, cfg.search_xy_m, cfg.search_theta_rad, cfg.search_step_m, cfg.search_step_rad
     )
-    a, t = np.unravel_index(np.argmax(scores), scores.shape)
-    best = float(scores[a, t])
+    best = float(scores.max())
     if best < cfg.min_score:
         return None
-    pose0 = np.array([guess[0] + offs[t, 0], guess[1] + offs[t, 1], angles[a]])
-    # the score surface: the window around the best, and the wide search's near-best poses
-    d_local = np.concatenate(
-        [np.broadcast_to(offs - offs[t], (len(angles), len(offs), 2)),
-         np.broadcast_to((angles - angles[a])[:, None, None], (len(angles), len(offs), 1))], axis=-1,
-    ).reshape(-1, 3)  # fmt: skip
-    edge_local = (
-        np.broadcast_to(np.max(np.abs(offs), axis=1) >= cfg.search_xy_m - 1e-9, (len(angles), len(offs)))
-        | (np.abs(angles - guess[2]) >= cfg.search_theta_rad - 1e-9)[:, None]
-    )
-    if len(wide[0]):  # the wide search covered beyond the small window's edge
-        edge_local = np.zeros_like(edge_local)
-    d_wide = wide[0] - pose0
-    d_wide[:, 2] = wrap_angle(d_wide[:, 2])
+    rel, d_local, edge_local = window_surface(scores, angles, offs, cfg.search_xy_m, cfg.search_theta_rad)
+    pose0 = np.array([guess[0] + rel[0], guess[1] + rel[1], rel[2]])
+    # the score surface: the window around the best, and the wide search's near-best poses (which
+    # went beyond the small window's edge)
+    d, s, edge = d_local, scores.ravel(), edge_local
+    if wide is not None:
+        d_wide = wide[0] - pose0
+        d_wide[:, 2] = wrap_angle(d_wide[:, 2])
+        d, s = np.vstack([d, d_wide]), np.concatenate([s, wide[1]])
+        edge = np.concatenate([np.zeros_like(edge), wide[2]])
     floor = np.array([cfg.search_step_m**2 / 12 + cfg.loop_sigma_xy_m**2] * 2
                      + [cfg.search_step_rad**2 / 12 + cfg.loop_sigma_theta_rad**2])  # fmt: skip
-    cov = match_covariance(
-        np.vstack([d_local, d_wide]),
-        np.concatenate([scores.ravel(), wide[1]]),
-        max(best, float(wide[1].max(initial=0.0))),
-        np.concatenate([edge_local.ravel(), wide[2]]),
-        cfg.score_sharpness,
-        floor,
-        cfg.max_cross_sigma_m,
-        cfg.max_theta_sigma_rad,
-        cfg.edge_mass,
-        cfg.unbounded_sigma_m,
-    )
+    cov = match_covariance(d, s, float(s.max()), edge, floor, cfg.surface)
     if cov is None:
         stats["ambiguous"] = stats.get("ambiguous", 0) + 1
         return None
@@ -220,6 +193,28 @@ def match_loop(
         return None
     z[2] = wrap_angle(z[2])
     return Loop(old, new, z, best, np.linalg.inv(cov), share)
+
+
+def _wide_search(
+    fld: Field, query: np.ndarray, guess: np.ndarray, drift: tuple[float, float], cfg: BackendConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Branch and bound over the small window widened by ``drift`` (m, rad) around ``guess``: the
+    near-best poses ``(K,3)`` (best first), their scores ``(K,)`` and whether each lies on the wide
+    window's edge ``(K,)``; None when no pose reaches ``cfg.min_score``."""
+    half_xy, half_th = cfg.search_xy_m + drift[0], cfg.search_theta_rad + drift[1]
+    few = query[np.linspace(0, len(query) - 1, min(len(query), cfg.wide_points)).astype(int)]
+    reach = float(np.percentile(np.hypot(few[:, 0], few[:, 1]), 90))
+    step = max(cfg.min_wide_step_rad, np.arctan2(cfg.wide_step_m, reach))  # far points within a cell
+    depth = int(np.clip(np.ceil(np.log2(half_xy / cfg.search_step_m)) - 1, 1, 6))
+    poses, scores = branch_and_bound(
+        fld, few, guess, half_xy, half_th, step, cfg.min_score, cfg.wide_keep_ratio, depth
+    )
+    if len(poses) == 0:
+        return None
+    edge = (np.max(np.abs(poses[:, :2] - guess[:2]), axis=1) >= half_xy - cfg.search_step_m) | (
+        np.abs(wrap_angle(poses[:, 2] - guess[2])) >= half_th - step
+    )
+    return poses, scores, edge
 
 
 def path_drift(arc_m: np.ndarray, old: np.ndarray | int, new: int, cfg: BackendConfig) -> tuple:

@@ -24,6 +24,17 @@ from shared.geometry import apply_points, compose
 
 
 @dataclass(frozen=True)
+class SurfaceConfig:
+    """How a match's score surface becomes its covariance (:func:`match_covariance`)."""
+
+    sharpness: float = 20.0  # a pose scoring s is exp(-k (1 - s / best)) as likely as the best
+    max_cross_sigma_m: float = 0.15  # a match this uncertain across its best-determined direction ...
+    max_theta_sigma_rad: float = float(np.radians(3.0))  # ... or in heading is ambiguous: refused
+    edge_mass: float = 0.05  # likelihood this large at the window's edge: unbounded along that axis
+    unbounded_sigma_m: float = 5.0  # ... then its std along it
+
+
+@dataclass(frozen=True)
 class Field:
     values: np.ndarray  # (W,H) likelihood
     origin: np.ndarray  # (2,) xy of cell (0,0)
@@ -171,32 +182,45 @@ def match_covariance(
     scores: np.ndarray,
     best_score: float,
     edge: np.ndarray,
-    sharpness: float,
     floor: np.ndarray,
-    max_cross_sigma_m: float,
-    max_theta_sigma_rad: float,
-    edge_mass: float,
-    unbounded_sigma_m: float,
+    cfg: SurfaceConfig,
 ) -> np.ndarray | None:
     """Covariance ``(3,3)`` of a match from the scores ``(K,)`` of poses at ``offsets (K,3)`` from
     the best (Olson 2009): each weighted ``exp(-sharpness (1 - s / best))``, second moments about
     the best, plus ``floor (3,)`` variances (grid steps, the fit itself). None when even the
-    best-determined direction or the heading is uncertain beyond ``max_*`` (alike places: the
-    match is ambiguous). Mass beyond ``edge_mass`` on poses at the window's edge ``(K,)``: the
-    likelihood goes on past what was searched, so along the weak axis the match says nothing
-    (std ``unbounded_sigma_m``)."""
-    p = np.exp(-sharpness * (1.0 - scores / best_score))
+    best-determined direction or the heading is uncertain beyond ``cfg.max_*`` (alike places:
+    the match is ambiguous). Mass beyond ``cfg.edge_mass`` on poses at the window's edge ``(K,)``:
+    the likelihood goes on past what was searched, so along the weak axis the match says
+    nothing (std ``cfg.unbounded_sigma_m``)."""
+    p = np.exp(-cfg.sharpness * (1.0 - scores / best_score))
     w = p / p.sum()
     cov = np.einsum("k,ki,kj->ij", w, offsets, offsets) + np.diag(floor)
-    if cov[2, 2] > max_theta_sigma_rad**2:
+    if cov[2, 2] > cfg.max_theta_sigma_rad**2:
         return None
     values, vectors = np.linalg.eigh(cov[:2, :2])
-    if values[0] > max_cross_sigma_m**2:
+    if values[0] > cfg.max_cross_sigma_m**2:
         return None
-    if w[edge].sum() > edge_mass and unbounded_sigma_m**2 > values[1]:
+    if w[edge].sum() > cfg.edge_mass and cfg.unbounded_sigma_m**2 > values[1]:
         weak = vectors[:, 1]
-        cov[:2, :2] += (unbounded_sigma_m**2 - values[1]) * np.outer(weak, weak)
+        cov[:2, :2] += (cfg.unbounded_sigma_m**2 - values[1]) * np.outer(weak, weak)
     return cov
+
+
+def window_surface(
+    scores: np.ndarray, angles: np.ndarray, offs: np.ndarray, half_xy_m: float, half_theta_rad: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`window_scores`' result as the best pose ``(3,)`` — its translation offset from the
+    window's centre and its heading — and every pose's offset from it ``(A·T,3)`` with its edge
+    flag ``(A·T,)`` (on the window's boundary)."""
+    a, t = np.unravel_index(np.argmax(scores), scores.shape)
+    d = np.empty((len(angles), len(offs), 3))
+    d[..., :2] = (offs - offs[t])[None]
+    d[..., 2] = (angles - angles[a])[:, None]
+    centre = angles[len(angles) // 2]
+    edge = (np.max(np.abs(offs), axis=1) >= half_xy_m - 1e-9)[None, :] | (
+        np.abs(angles - centre) >= half_theta_rad - 1e-9
+    )[:, None]
+    return np.array([offs[t, 0], offs[t, 1], angles[a]]), d.reshape(-1, 3), edge.ravel()
 
 
 def icp(

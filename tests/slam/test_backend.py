@@ -5,7 +5,7 @@ import pytest
 
 from robot_agent.slam import backend as be
 from robot_agent.slam.posegraph import ChainNoise, chain_edges, optimize
-from robot_agent.slam.scanmatch import match_covariance
+from robot_agent.slam.scanmatch import match_covariance, window_surface
 from shared.geometry import apply_points, compose, inverse, relative
 
 
@@ -128,17 +128,9 @@ def _surface(peaks):
     for x, y, th, h, wx, wy in peaks:
         g = np.exp(-0.5 * (((offs[:, 0] - x) / wx) ** 2 + ((offs[:, 1] - y) / wy) ** 2))
         scores = np.maximum(scores, h * g[None, :] * np.exp(-0.5 * ((angles - th) / 0.02) ** 2)[:, None])
-    a, t = np.unravel_index(np.argmax(scores), scores.shape)
-    d = np.concatenate(
-        [np.broadcast_to(offs - offs[t], (len(angles), len(offs), 2)),
-         np.broadcast_to((angles - angles[a])[:, None, None], (len(angles), len(offs), 1))], axis=-1,
-    ).reshape(-1, 3)  # fmt: skip
-    edge = np.broadcast_to(np.max(np.abs(offs), axis=1) >= cfg.search_xy_m - 1e-9, scores.shape)
+    _, d, edge = window_surface(scores, angles, offs, cfg.search_xy_m, cfg.search_theta_rad)
     floor = np.array([cfg.loop_sigma_xy_m**2] * 2 + [cfg.loop_sigma_theta_rad**2])
-    return match_covariance(
-        d, scores.ravel(), scores[a, t], edge.ravel(), cfg.score_sharpness, floor, cfg.max_cross_sigma_m,
-        cfg.max_theta_sigma_rad, cfg.edge_mass, cfg.unbounded_sigma_m,
-    )  # fmt: skip
+    return match_covariance(d, scores.ravel(), scores.max(), edge, floor, cfg.surface)
 
 
 def test_match_covariance_of_a_sharp_peak_a_ridge_and_two_places():
