@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -34,6 +35,8 @@ def replay_to_dir(
 ) -> dict:
     cfg = command_line_config(overrides or [], particles)
     log = read_log(log_path, progress=progress)
+    for warning in log.warnings:  # what the reader could not use and what it did instead
+        print(f"warning: {warning}", file=sys.stderr)
     rel = read_relations(relations_path) if relations_path else None
     res = replay(log, cfg, seed=seed, progress=progress, limit=limit)
     out = Path(out_dir)
@@ -80,6 +83,7 @@ def replay_to_dir(
         "backend_s": res.backend_s,
         "backend": res.backend_stats,
         "map_rebuild_s": map_rebuild_s,
+        "log_warnings": list(log.warnings),
     }
     if rel is not None:
         rel = rel.until(res.stamps_s.max() + 1e-6)  # --limit: only relations inside the run

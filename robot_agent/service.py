@@ -162,6 +162,8 @@ def run(args: argparse.Namespace) -> int:
         from robot_agent.sources import read_log
 
         laser_log = read_log(args.log, progress=False)
+        for warning in laser_log.warnings:  # what the reader could not use and what it did instead
+            print(f"agent {args.robot}: warning: {warning}", flush=True)
         scans = itertools.islice(laser_log.scans(), args.first, args.last)
         on_estimate = None
     stop = threading.Event()

@@ -37,9 +37,12 @@ Rules (CARMEN's conventions and their sources: :mod:`robot_agent.sources.carmen_
   and resolution the PARAMs ``laser_front_laser_{fov,resolution}`` (or ``laser_laser<id>_...``)
   give in degrees, pi and none when absent (then 180 beams span -90°..89°, 181 -90°..90°, 360
   -90°..89.5°, 361 -90°..90°, CARMEN's own reading). With a resolution, every FLASER count must
-  fill the field of view as CARMEN's driver does (``fov/res`` or one more beam), else the first
-  line of that count is refused. ``laser_front_laser_flipped`` changes nothing (the driver
-  reverses a flipped scan before publishing it).
+  fill the field of view as CARMEN's driver does (``fov/res`` or one more beam); a count that does
+  not is read with the default angles, and a warning names its first line and the PARAMs
+  (``LaserLog.warnings``: a PARAM may describe a laser setup other than the one logged).
+  ``laser_front_laser_flipped`` changes nothing (the driver reverses a flipped scan before
+  publishing it). Any PARAM the reader uses whose value it cannot use (text where a number is
+  due, a field of view in radians) is likewise replaced by its default, with a warning.
 - Odometry: ROBOTLASER1's robot pose, FLASER's ``odom_*``; RAWLASER1 has none, so the ODOM lines
   are interpolated at its ipc timestamp (:func:`interpolate_odometry`; a RAWLASER1 log without
   ODOM lines is refused).
@@ -203,6 +206,7 @@ class _Reader:
         self.path, self.kind, self.line_no = path, kind, 0
         read = {"PARAM", "ODOM", "SYNC", kind}
         self.skipped = {name: n for name, n in types.items() if name not in read}
+        self.warnings: list[str] = []
         self.first: tuple[int, np.ndarray | None, np.ndarray | None] | None = None  # line, odom, laser
         self.range_max_m: float | None = None
         self.geometry_of: dict[object, int] = {}  # key -> row of the geometry table
@@ -368,18 +372,18 @@ class _Reader:
     # --- PARAMs ---------------------------------------------------------------------------------
 
     def param_float(self, name: str, default: float, positive: bool = False) -> float:
-        """The PARAM ``name`` as a finite number (``positive``: > 0), ``default`` when absent; a bad
-        value raises naming the PARAM's line."""
-        with self.param_errors():
-            return param_number(self.params, name, default, positive)
-
-    @contextmanager
-    def param_errors(self) -> Iterator[None]:
-        """Turns a :class:`ParamError` into a LogFormatError at the PARAM's line."""
+        """The PARAM ``name`` as a finite number (``positive``: > 0), ``default`` when absent or
+        unusable (then a warning names the PARAM's line and what was used instead)."""
         try:
-            yield
+            return param_number(self.params, name, default, positive)
         except ParamError as err:
-            raise self.error("PARAM", err.name, err.problem, self.param_lines[err.name]) from None
+            self.warn_param(err, f"used {default:g} instead" if np.isfinite(default) else "not used")
+            return default
+
+    def warn_param(self, err: ParamError, instead: str) -> None:
+        """A PARAM that cannot be used: the log is read all the same (a PARAM may describe a setup
+        other than the one logged), and the user is told which line and what was done."""
+        self.warnings.append(f"{self.path}:{self.param_lines[err.name]}: {err}; {instead}")
 
     def laser_offset(self) -> np.ndarray:
         _, odom, laser = self.first
@@ -394,20 +398,26 @@ class _Reader:
         width = max(beams for _, beams, _ in self.geometries)
         table = np.full((len(self.geometries), width), np.nan)
         if self.kind == "FLASER":
-            with self.param_errors():
+            try:
                 fov_rad, res_rad, names = flaser_field_of_view(self.params)
+            except ParamError as err:
+                self.warn_param(err, "beams spread over 180° by their count instead")
+                fov_rad, res_rad, names = np.pi, None, []
         for g, (line_no, beams, angles) in enumerate(self.geometries):
             if angles is None:  # FLASER
+                geometry = (fov_rad, res_rad)
                 if res_rad is not None and not beams_fit(beams, fov_rad, res_rad):
                     said = [f"{name} {self.params[name]} (line {self.param_lines[name]})" for name in names]
                     if len(said) == 1:
                         said.insert(0, "a field of view of 180° (none named)")
                     k = round(fov_rad / res_rad)
-                    problem = (
-                        f"{beams} beams do not fit {' and '.join(said)}: CARMEN's driver gives {k} or {k + 1}"
+                    self.warnings.append(
+                        f"{self.path}:{line_no}: {self.kind} {beams} beams do not fit {' and '.join(said)} "
+                        f"(CARMEN's driver gives {k} or {k + 1}); these beams spread over 180° by their "
+                        "count instead"
                     )
-                    raise self.error(self.kind, "num_readings", problem, line_no)
-                angles = flaser_angles(beams, fov_rad, res_rad)
+                    geometry = (np.pi, None)
+                angles = flaser_angles(beams, *geometry)
             table[g, :beams] = angles
         return table
 
@@ -435,9 +445,8 @@ class _Reader:
         table = self.table()
         if self.range_max_m is None:
             named = [name for name in RANGE_MAX_PARAMS if name in self.params]
-            self.range_max_m = (
-                self.param_float(named[0], 0.0, positive=True) if named else infer_range_max_m(ranges)
-            )
+            said = self.param_float(named[0], np.nan, positive=True) if named else np.nan
+            self.range_max_m = said if np.isfinite(said) else infer_range_max_m(ranges)
         return LaserLog(
             stamps_s=stamps,
             ranges_m=ranges,
@@ -453,6 +462,7 @@ class _Reader:
             path=self.path,
             kind=self.kind,
             skipped=dict(self.skipped),
+            warnings=tuple(self.warnings),
         )
 
 

@@ -44,7 +44,7 @@ class LaserLog:
       the robot frame, ``range_max_m`` the range limit (a reading at or past it: no return);
     - ``odom_stamps_s (M,)``, ``odom_poses (M,3)`` the ODOM lines;
     - ``params`` every PARAM as text, ``kind`` the laser message read, ``skipped`` counts of the
-      message types not read.
+      message types not read, ``warnings`` what the reader could not use and did instead.
 
     A log whose scans all share one geometry has ``G = 1``; :meth:`scan` gives scan ``i`` with its
     own ``ranges_m (n,)`` and ``angles_rad (n,)``, views of these arrays.
@@ -64,6 +64,7 @@ class LaserLog:
     path: str = ""
     kind: str = "FLASER"
     skipped: dict[str, int] = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         dims: dict[str, int] = {}

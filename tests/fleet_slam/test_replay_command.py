@@ -44,3 +44,17 @@ def test_a_limit_before_the_first_relation_reports_none(tmp_path, capsys):
     assert "no relation lies within the scans replayed" in capsys.readouterr().out
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert "relations" not in m and m["scans"] == 20
+
+
+def test_replay_says_what_the_reader_could_not_use(tmp_path, capsys):
+    """A PARAM the reader cannot use is a warning on stderr and in metrics.json, and the log is
+    mapped all the same."""
+    import gzip
+
+    text = gzip.decompress(LOG.read_bytes()).decode()
+    log = tmp_path / "odd.clf"
+    log.write_text("PARAM laser_front_laser_resolution 0.5 1.0 host 0\n" + text)
+    m = replay_to_dir(str(log), tmp_path / "out", limit=50, progress=False)
+    err = capsys.readouterr().err
+    assert "warning:" in err and "180 beams do not fit" in err and "resolution 0.5 (line 1)" in err
+    assert m["scans"] == 50 and m["log_warnings"] and "360 or 361" in m["log_warnings"][0]

@@ -184,11 +184,6 @@ MALFORMED = {
         "ROBOTLASER1|FLASER|RAWLASER1",
         "no front laser",
     ),
-    "bad_offset_param": (
-        ["PARAM robot_frontlaser_offset abc nohost 0", _flaser()],
-        "robot_frontlaser_offset",
-        "'abc'",
-    ),
 }
 
 
@@ -199,13 +194,24 @@ def test_malformed_line_names_file_line_and_field(tmp_path, case):
     path.write_text("# header\n" + "\n".join(lines) + "\n")
     with pytest.raises(LogFormatError) as info:
         read_log(path)
-    bad_line = 1 + (1 if case in ("no_laser_lines", "bad_offset_param") else len(lines))
+    bad_line = 1 + (1 if case == "no_laser_lines" else len(lines))
     message = str(info.value)
     assert f"{path}:{bad_line}:" in message
     assert f"field '{field}'" in message
     assert detail in message
     assert info.value.line_no == bad_line and info.value.field == field
     assert str(pickle.loads(pickle.dumps(info.value))) == message
+
+
+def test_an_unusable_offset_param_is_warned_not_refused(tmp_path):
+    """A PARAM is configuration, not data: ``robot_frontlaser_offset abc`` leaves the log readable
+    with the offset's default, and says so, naming the line."""
+    path = tmp_path / "offset.clf"
+    path.write_text("# header\nPARAM robot_frontlaser_offset abc nohost 0\n" + _flaser() + "\n")
+    log = read_log(path)
+    assert len(log) == 1 and log.laser_offset[0] == 0.0
+    assert log.warnings == (f"{path}:2: PARAM robot_frontlaser_offset: cannot parse 'abc' as a number; "
+                            "used 0 instead",)  # fmt: skip
 
 
 def test_truncated_gzip_is_a_log_format_error(tmp_path):

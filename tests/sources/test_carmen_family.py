@@ -116,23 +116,30 @@ def test_param_field_of_view_and_resolution_in_degrees(tmp_path):
 
 
 @pytest.mark.parametrize(
-    ("lines", "line_no", "field", "detail"),
+    ("lines", "line_no", "detail"),
     [
-        (["PARAM laser_front_laser_resolution 0.5 1.0 h 0", flaser(181)], 2, "num_readings", "360 or 361"),
-        (["PARAM laser_front_laser_fov 3.1416 1.0 h 0", flaser(181)], 1, "laser_front_laser_fov", "radians"),
-        (["PARAM laser_front_laser_fov 400 1.0 h 0", flaser(3)], 1, "laser_front_laser_fov", "above 360"),
-        (
-            ["PARAM laser_front_laser_resolution on 1.0 h 0", flaser(3)],
-            1,
-            "laser_front_laser_resolution",
-            "'on'",
-        ),
-        (["PARAM robot_front_laser_max off 1.0 h 0", flaser(3)], 1, "robot_front_laser_max", "'off'"),
+        (["PARAM laser_front_laser_resolution 0.5 1.0 h 0", flaser(181)], 2, "360 or 361"),
+        (["PARAM laser_front_laser_fov 3.1416 1.0 h 0", flaser(181)], 1, "radians"),
+        (["PARAM laser_front_laser_fov 400 1.0 h 0", flaser(181)], 1, "above 360"),
+        (["PARAM laser_front_laser_resolution on 1.0 h 0", flaser(181)], 1, "'on'"),
     ],
 )
-def test_unusable_geometry_params_name_their_line(tmp_path, lines, line_no, field, detail):
-    e = refusal(tmp_path, lines)
-    assert (e.line_no, e.field) == (line_no, field) and detail in e.problem, str(e)
+def test_unusable_geometry_params_are_warned_and_the_scan_read_by_its_count(tmp_path, lines, line_no, detail):
+    """A PARAM may describe a laser setup other than the one logged: the log is read, with the
+    default angles (181 beams over 180°), and a warning names the line and what was done."""
+    log = read(tmp_path, lines)
+    assert len(log) == 1 and len(log.warnings) == 1, log.warnings
+    assert f"log.clf:{line_no}:" in log.warnings[0] and detail in log.warnings[0], log.warnings
+    assert "180°" in log.warnings[0]
+    np.testing.assert_allclose(log.scan(0).angles_rad[[0, 90, 180]] / DEG, [-90, 0, 90], atol=1e-12)
+
+
+def test_an_unusable_range_param_is_warned_and_the_range_read_from_the_data(tmp_path):
+    log = read(tmp_path, ["PARAM robot_front_laser_max off 1.0 h 0", flaser(3)])
+    assert len(log.warnings) == 1 and "log.clf:1:" in log.warnings[0] and "'off'" in log.warnings[0]
+    assert log.range_max_m == 81.0  # the rule for a log naming none (module docstring)
+    offset = read(tmp_path, ["PARAM robot_frontlaser_offset front 1.0 h 0", flaser(3, 1.0, "1 2 0 1 2 0")])
+    assert offset.laser_offset[0] == 0.0 and "used 0 instead" in offset.warnings[0]
 
 
 # --- beam geometry per scan ---------------------------------------------------------------------

@@ -338,12 +338,6 @@ F = "FLASER 3 1 2 3 0 0 0 0 0 0 100.5 nohost 0.1"
 RL1 = "ROBOTLASER1 0 -1.0 2.0 {res} 20.0 0.01 0 3 1 1 1 0 0 0 0 0 0 0 0 0 0 0 0 {stamp} nohost 0.1"
 MAX_PARAM, OFFSET_PARAM = "laser_front_laser_max_range", "robot_frontlaser_offset"
 FOUND = {  # lines, the line and field the error names, a detail of its text
-    # was ValueError("range_max_m must be positive") from LaserLog, naming no line
-    "range_max_param_nan": ([f"PARAM {MAX_PARAM} nan nohost 0", F], 1, MAX_PARAM, "not finite"),
-    "range_max_param_negative": ([f"PARAM {MAX_PARAM} -5 nohost 0", F], 1, MAX_PARAM, "positive"),
-    # were accepted: an infinite range limit, a NaN laser offset
-    "range_max_param_inf": ([f"PARAM {MAX_PARAM} inf nohost 0", F], 1, MAX_PARAM, "not finite"),
-    "offset_param_nan": ([f"PARAM {OFFSET_PARAM} nan nohost 0", F], 1, OFFSET_PARAM, "not finite"),
     # were accepted with an infinite laser offset / infinite beam angles (overflow warnings only)
     "offset_overflow": (["FLASER 3 1 2 3 1e308 0 0 -1e308 0 0 100.5 nohost 0.1"], 1, "x", "overflows"),
     "angles_overflow": ([RL1.format(res="1e308", stamp=100)], 1, "angular_res", "overflow"),
@@ -357,6 +351,26 @@ FOUND = {  # lines, the line and field the error names, a detail of its text
     # was a 5,000-character message
     "huge_token": (["FLASER " + "9" * 5000 + " 1"], 1, "num_readings", "(5000 characters)"),
 }
+
+
+# PARAMs the fuzz found unusable (they were a ValueError naming no line, or accepted as an
+# infinite range limit / a NaN laser offset): now warned, naming the line, and their defaults used
+WARNED = {
+    "range_max_param_nan": (f"PARAM {MAX_PARAM} nan nohost 0", "not finite"),
+    "range_max_param_negative": (f"PARAM {MAX_PARAM} -5 nohost 0", "positive"),
+    "range_max_param_inf": (f"PARAM {MAX_PARAM} inf nohost 0", "not finite"),
+    "offset_param_nan": (f"PARAM {OFFSET_PARAM} nan nohost 0", "not finite"),
+}
+
+
+@pytest.mark.parametrize("case", WARNED)
+def test_unusable_params_found_by_the_fuzz_are_warned(tmp_path, case):
+    param, detail = WARNED[case]
+    path = tmp_path / "log.clf"
+    path.write_text(f"{param}\n{F}\n")
+    log = read_log(path)
+    assert len(log.warnings) == 1 and f"{path}:1: PARAM" in log.warnings[0] and detail in log.warnings[0]
+    assert np.isfinite(log.range_max_m) and log.range_max_m > 0 and np.all(np.isfinite(log.laser_offset))
 
 
 @pytest.mark.parametrize("case", FOUND)
