@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from shared.geometry import sample_segments
+
 
 @dataclass(frozen=True)
 class CoarseConfig:
@@ -32,18 +34,8 @@ class CoarseConfig:
     # 30° MIT-CSAIL's scan fit a junction 28° off better than the right heading)
     step_rad: float = float(np.radians(1.0))  # headings tried: within the Gauss-Newton's reach
     points: int = 90  # scan points scored (evenly thinned)
-    sample_m: float = 0.05  # map segments sampled this densely
+    sample_m: float = 0.05  # map segments sampled this densely (a point mid each piece)
     sigma_m: float = 0.1  # score kernel width: tolerant of the translation left to refine
-
-
-def sample_segments(segments: np.ndarray, step_m: float) -> np.ndarray:
-    """Points ``(K,2)`` along ``segments (C,2,2)``, both ends included, at most ``step_m`` apart."""
-    d = segments[:, 1] - segments[:, 0]
-    n = np.maximum(np.ceil(np.hypot(d[:, 0], d[:, 1]) / step_m).astype(int), 1) + 1
-    seg = np.repeat(np.arange(len(segments)), n)
-    start = np.repeat(np.cumsum(n) - n, n)
-    t = (np.arange(n.sum()) - start) / np.repeat(n - 1, n)
-    return segments[seg, 0] + t[:, None] * d[seg]
 
 
 def heading_offset(
@@ -67,7 +59,7 @@ def heading_offset(
     world = np.stack(
         [c * pts[:, 0] - s * pts[:, 1] + pose[0], s * pts[:, 0] + c * pts[:, 1] + pose[1]], axis=-1
     )  # (A,N,2)
-    tree = cKDTree(sample_segments(segments, cfg.sample_m))
+    tree = cKDTree(sample_segments(segments, cfg.sample_m)[0])
     d, _ = tree.query(world.reshape(-1, 2), distance_upper_bound=3.0 * cfg.sigma_m)
     score = np.exp(-0.5 * (d.reshape(len(offsets), -1) / cfg.sigma_m) ** 2).sum(axis=1)  # inf -> 0
     best = int(np.argmax(score))

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from robot_agent.sim.lidar import cast_rays
-from robot_agent.slam.coarse import CoarseConfig, heading_offset, sample_segments
+from robot_agent.slam.coarse import CoarseConfig, heading_offset
 from tests.rooms import L_ROOM, TRUE_POSE
 
 FRONT = np.linspace(-np.pi / 2, np.pi / 2, 181)  # a SICK LMS: 180°, 1° apart
@@ -15,14 +15,6 @@ def scan_points(pose, angles=FRONT):
     r = cast_rays(pose[None, :2], (pose[2] + angles)[None], L_ROOM, 30.0)[0]
     hit = r < 30.0
     return np.column_stack([r[hit] * np.cos(angles[hit]), r[hit] * np.sin(angles[hit])])
-
-
-def test_sample_segments_spacing_and_ends():
-    seg = np.array([[(0.0, 0.0), (1.0, 0.0)], [(2.0, 2.0), (2.0, 2.12)]])
-    pts = sample_segments(seg, 0.25)
-    np.testing.assert_allclose(pts[:5, 0], [0.0, 0.25, 0.5, 0.75, 1.0])  # 1 m: 4 steps, ends kept
-    np.testing.assert_allclose(pts[5:], [(2.0, 2.0), (2.0, 2.12)])  # shorter than a step: its ends
-    assert len(pts) == 7
 
 
 @pytest.mark.parametrize("error_deg", [-14.0, -6.0, 9.0, 13.0])
