@@ -52,6 +52,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         seed=args.seed,
         overrides=args.set,
         limit=args.limit,
+        live=args.live,
     )
     rtf = m["real_time_factor"]
     print(
@@ -64,7 +65,13 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             f"relations error: trans {r['trans_mean_m']:.3f} ± {r['trans_std_m']:.3f} m, "
             f"rot {r['rot_mean_deg']:.2f} ± {r['rot_std_deg']:.2f}° (n={r['n']})"
         )
-    elif "relations_note" in m:
+    for row in m.get("live", []):
+        if row["n"]:
+            print(
+                f"  live after {row['scans']} scans ({row['at_s']:.0f} s): "
+                f"trans {row['trans_mean_m']:.3f} m, rot {row['rot_mean_deg']:.2f}° (n={row['n']})"
+            )
+    if "relations_note" in m:
         print(f"relations error: none — {m['relations_note']}")
     print(f"wrote {args.out}/")
     return 0
@@ -196,6 +203,16 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, default=0, help="random seed")
     r.add_argument("--out", default="out/replay", help="output directory")
     r.add_argument("--limit", type=int, default=None, help="only the first N scans")
+    r.add_argument(
+        "--live",
+        type=int,
+        nargs="?",
+        const=10,
+        default=0,
+        metavar="K",
+        help="also score, at every K-th part of the run (default 10), the trajectory the robot would "
+        "publish at that moment, on the relations before it (metrics.json: live, live_worst_trans_m)",
+    )
     r.add_argument(
         "--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="override a SLAM parameter"
     )

@@ -23,6 +23,19 @@ def robot_name_of(path: str | Path) -> str:
     return name or "robot"
 
 
+def live_scores(res, rel, log) -> list[dict]:
+    """Each snapshot of ``res.live`` scored on the relations whose both ends lie before it."""
+    out = []
+    for snap in res.live:
+        until = rel.until(snap.stamps_s.max() + 1e-6)
+        row = {"scans": snap.scans, "at_s": float(snap.stamps_s.max() - res.stamps_s.min()), "n": len(until)}
+        if len(until):
+            err = relations_error(snap.stamps_s, snap.poses, until, *log.odometry_track())
+            row |= {k: v for k, v in err.summary().items() if k != "n"}
+        out.append(row)
+    return out
+
+
 def replay_to_dir(
     log_path: str,
     out_dir: str | Path,
@@ -32,13 +45,17 @@ def replay_to_dir(
     overrides: list[str] | None = None,
     limit: int | None = None,
     progress: bool | None = None,
+    live: int = 0,
 ) -> dict:
+    """Replay ``log_path`` and write the outputs of DESIGN.md to ``out_dir``; the metrics. With
+    ``live`` > 1 the run is cut into that many parts and the trajectory the robot would publish
+    at the end of each is scored too (``metrics["live"]``, on the relations before that moment)."""
     cfg = command_line_config(overrides or [], particles)
     log = read_log(log_path, progress=progress)
     for warning in log.warnings:  # what the reader could not use and what it did instead
         print(f"warning: {warning}", file=sys.stderr)
     rel = read_relations(relations_path) if relations_path else None
-    res = replay(log, cfg, seed=seed, progress=progress, limit=limit)
+    res = replay(log, cfg, seed=seed, progress=progress, limit=limit, snapshots=live)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     name = robot_name_of(log_path)
@@ -95,5 +112,9 @@ def replay_to_dir(
         if res.backend_stats is not None:
             raw = relations_error(res.stamps_s, res.filter_poses, rel, *log.odometry_track())
             metrics["relations_filter_only"] = raw.summary()
+        if res.live:
+            metrics["live"] = live_scores(res, rel, log)
+            scored = [s for s in metrics["live"] if s["n"]]
+            metrics["live_worst_trans_m"] = max((s["trans_mean_m"] for s in scored), default=None)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics

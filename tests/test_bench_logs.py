@@ -68,7 +68,7 @@ def test_discover_rejects_missing_paths_and_clashing_stems(bench, tmp_path):
         bench.discover([tmp_path / "one", tmp_path / "two"])
 
 
-def run(seed, trans, trans_std, rot, rot_std, filt, wall, rtf, rss, backend_s=0.5):
+def run(seed, trans, trans_std, rot, rot_std, filt, wall, rtf, rss, backend_s=0.5, live=None):
     relations = {
         "n": 10,
         "trans_mean_m": trans,
@@ -84,13 +84,15 @@ def run(seed, trans, trans_std, rot, rot_std, filt, wall, rtf, rss, backend_s=0.
         "peak_rss_mb": rss,
         "backend_s": backend_s,
     }
+    if live is not None:
+        metrics["live_worst_trans_m"] = live
     return {"log": "x", "seed": seed, "returncode": 0, "metrics": metrics}
 
 
 def test_aggregate_folds_seeds_and_leaves_failures_out(bench):
     runs = [
-        run(0, 0.10, 0.05, 1.0, 2.0, 0.20, 10.0, 8.0, 100.0),
-        run(1, 0.40, 0.15, 3.0, 4.0, 0.30, 20.0, 4.0, 150.0, backend_s=1.5),
+        run(0, 0.10, 0.05, 1.0, 2.0, 0.20, 10.0, 8.0, 100.0, live=0.7),
+        run(1, 0.40, 0.15, 3.0, 4.0, 0.30, 20.0, 4.0, 150.0, backend_s=1.5, live=0.5),
         {"log": "x", "seed": 2, "returncode": 2, "stderr_tail": ["boom"]},
     ]
     a = bench.aggregate(runs)
@@ -104,6 +106,7 @@ def test_aggregate_folds_seeds_and_leaves_failures_out(bench):
     assert a["real_time_factor_min"] == 4.0  # the worst seed
     assert a["peak_rss_mb_max"] == 150.0
     assert a["backend_s"] == pytest.approx(1.0)
+    assert a["live_worst_trans_m"] == 0.7  # the worst snapshot of any seed
 
 
 def test_aggregate_of_only_failures_is_empty_not_an_error(bench):
@@ -127,7 +130,7 @@ def test_replay_command_and_one_core_env(bench):
     assert cmd[1:5] == ["-m", "fleet_slam.cli", "replay", "/d/a.clf.gz"]
     tail = " ".join(cmd[5:])
     assert tail == (
-        "--relations /d/a.relations --seed 3 --particles 7 --out /o --set backend.enabled=false "
+        "--relations /d/a.relations --seed 3 --particles 7 --out /o --live 10 --set backend.enabled=false "
         "--set proposal.enabled=false --limit 300"
     )
     env = bench.child_env()

@@ -58,3 +58,21 @@ def test_replay_says_what_the_reader_could_not_use(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "warning:" in err and "180 beams do not fit" in err and "resolution 0.5 (line 1)" in err
     assert m["scans"] == 50 and m["log_warnings"] and "360 or 361" in m["log_warnings"][0]
+
+
+def test_live_snapshots_score_what_the_robot_would_publish_then(tmp_path):
+    """``--live K``: at the end of each K-th part of the run, the trajectory the robot would publish
+    then — the same as a run stopped there (before its back end) — scored on the relations
+    before it."""
+    from robot_agent.replay import replay
+    from robot_agent.slam.fastslam import SlamConfig
+
+    m = replay_to_dir(str(LOG), tmp_path, str(REL), limit=900, progress=False, live=3)
+    assert [row["scans"] for row in m["live"]] == [300, 600]
+    assert 0 < m["live"][0]["n"] < m["live"][1]["n"] <= m["relations"]["n"]
+    assert m["live_worst_trans_m"] == max(row["trans_mean_m"] for row in m["live"])
+    log = read_log(LOG)
+    full = replay(log, SlamConfig(), seed=0, progress=False, limit=900, snapshots=3)
+    stopped = replay(log, SlamConfig(), seed=0, progress=False, limit=600)
+    np.testing.assert_array_equal(full.live[1].poses, stopped.filter_poses)
+    np.testing.assert_array_equal(full.live[1].stamps_s, stopped.stamps_s)
