@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from robot_agent.replay import remap, replay
+from robot_agent.backend import remap
+from robot_agent.replay import replay
 from robot_agent.slam.config import command_line_config
 from robot_agent.sources import read_log
 from shared.metrics import read_relations, relations_error, write_poses, write_tum

@@ -183,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
         if scan_log is None and len(poses):  # a simulated robot past MAX_KEPT_SCANS
             print(f"agent {args.robot}: more than {MAX_KEPT_SCANS} scans, no back end at the end", flush=True)
         elif len(poses) and not stop.is_set():
-            from robot_agent.replay import correct_trajectory, remap
+            from robot_agent.backend import correct_trajectory, remap
 
             # the start gauge: the map frame stays the robot's start frame (what a prior gives)
             poses, backend = correct_trajectory(

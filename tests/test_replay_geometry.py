@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import robot_agent.backend.batch as batch_mod
 import robot_agent.replay as replay_mod
 from robot_agent.slam.config import apply_overrides
 from robot_agent.slam.extraction import scan_points
@@ -41,7 +42,7 @@ def test_the_filter_gets_each_scans_beams(logs):
             seen.append((stamp_s, ranges_m, angles_rad))
 
     for i in (0, 1, 2, 3):
-        replay_mod._step(Recorder(), varying, i)
+        batch_mod.feed(Recorder(), varying, i)
     assert [a.size for _, _, a in seen] == [180, 179, 180, 179]
     np.testing.assert_array_equal(seen[1][2][:2], np.radians([-89.0, -88.0]))
     np.testing.assert_array_equal(seen[1][1], varying.ranges_m[1, :179])
@@ -56,10 +57,10 @@ def test_the_back_end_gets_each_scans_points(logs, monkeypatch):
         got.update({i: points(i) for i in (0, 1)})
         return poses, {}
 
-    monkeypatch.setattr(replay_mod, "run_backend", backend)
+    monkeypatch.setattr(batch_mod, "run_backend", backend)
     cfg = SlamConfig()
     poses = np.zeros((4, 3))
-    replay_mod.correct_trajectory(varying, 2, np.arange(4.0), poses, cfg)
+    batch_mod.correct_trajectory(varying, 2, np.arange(4.0), poses, cfg)
     for i in (0, 1):  # scans 2 (180 beams) and 3 (179 beams)
         scan = varying.scan(2 + i)
         want = apply_points(

@@ -67,7 +67,7 @@ def test_seeded_runs_are_reproducible(intel_head):
 def test_the_back_end_keeps_the_trajectory_in_the_maps_frame(intel_head, default_run):
     """The corrected trajectory is put where the filter's fits best (the frame of the map the
     server aligns), and a piece of the log is corrected with its own scans and odometry."""
-    from robot_agent.replay import correct_trajectory
+    from robot_agent.backend import correct_trajectory
 
     log, _ = intel_head
     res, _ = default_run
@@ -82,7 +82,7 @@ def test_the_back_end_keeps_the_trajectory_in_the_maps_frame(intel_head, default
 def test_the_back_ends_gauge_is_the_filters(intel_head, default_run, monkeypatch):
     """Whatever pose the graph holds fixed, the output is put in the frame that fits the filter's
     trajectory: a back end that returned the trajectory moved rigidly changes nothing."""
-    import robot_agent.replay as replay_mod
+    import robot_agent.backend.batch as replay_mod
     from shared.geometry import compose
 
     log, _ = intel_head
@@ -106,7 +106,7 @@ def test_the_back_ends_gauge_is_the_filters(intel_head, default_run, monkeypatch
 
 
 def test_the_start_gauge_keeps_the_first_pose_and_the_corrected_motion(intel_head, default_run):
-    from robot_agent.replay import correct_trajectory
+    from robot_agent.backend import correct_trajectory
     from shared.geometry import relative
 
     log, _ = intel_head
@@ -124,7 +124,7 @@ def test_remap_builds_the_map_along_the_given_poses(intel_head, default_run):
     """Mapping with known poses (the back end's path, published by a log piece's agent): the
     particles sit exactly on the given poses, the map moves with them, and the scans drawn at
     those poses lie on it."""
-    from robot_agent.replay import remap
+    from robot_agent.backend import remap
     from shared.geometry import apply_points, apply_segments, compose
 
     log, _ = intel_head
