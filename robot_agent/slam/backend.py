@@ -69,9 +69,8 @@ class BackendConfig:
     drift_theta_rad_per_m: float = np.radians(0.1)
     max_drift_xy_m: float = 8.0
     max_drift_theta_rad: float = np.radians(25.0)
-    wide_step_m: float = 0.1  # the wide search's translation grid; its heading step keeps the far
-    # query points within a cell (at least min_wide_step_rad)
-    min_wide_step_rad: float = np.radians(0.5)
+    min_wide_step_rad: float = np.radians(0.5)  # the wide search's heading step: the far query
+    # points move by at most a cell of the field (search_step_m) from one heading to the next
     wide_points: int = 100  # query points the wide search scores (evenly thinned)
     wide_keep_ratio: float = 0.95  # it keeps poses scoring this share of the best (rivals)
     field_sigma_m: float = 0.08  # likelihood field: exp(-d^2 / 2 sigma^2)
@@ -204,7 +203,7 @@ def _wide_search(
     half_xy, half_th = cfg.search_xy_m + drift[0], cfg.search_theta_rad + drift[1]
     few = query[np.linspace(0, len(query) - 1, min(len(query), cfg.wide_points)).astype(int)]
     reach = float(np.percentile(np.hypot(few[:, 0], few[:, 1]), 90))
-    step = max(cfg.min_wide_step_rad, np.arctan2(cfg.wide_step_m, reach))  # far points within a cell
+    step = max(cfg.min_wide_step_rad, np.arctan2(fld.res_m, reach))  # far points within a cell
     depth = int(np.clip(np.ceil(np.log2(half_xy / cfg.search_step_m)) - 1, 1, 6))
     poses, scores = branch_and_bound(
         fld, few, guess, half_xy, half_th, step, cfg.min_score, cfg.wide_keep_ratio, depth

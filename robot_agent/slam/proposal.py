@@ -187,29 +187,6 @@ def _candidate_pairs(
     return pt, used[c]
 
 
-def _associate_points_dense(
-    poses: np.ndarray, points: np.ndarray, maps: SegmentMaps, gate_m: np.ndarray | float, margin_m: float
-) -> np.ndarray:
-    """:func:`associate_points` by testing every (particle, point, element) triple: the
-    reference it is tested against."""
-    qx, qy = _rotate(poses, points)
-    wx, wy = (qx + poses[:, None, 0])[..., None], (qy + poses[:, None, 1])[..., None]  # map frame
-    nx, ny = np.cos(maps.alpha)[:, None, :], np.sin(maps.alpha)[:, None, :]  # (P,1,C)
-    perp = np.abs(nx * wx + ny * wy - maps.rho[:, None, :])  # (P,N,C)
-    t_pt = ny * wx - nx * wy
-    t0 = ny * maps.seg[:, None, :, 0, 0] - nx * maps.seg[:, None, :, 0, 1]
-    t1 = ny * maps.seg[:, None, :, 1, 0] - nx * maps.seg[:, None, :, 1, 1]
-    inside = (t_pt > np.minimum(t0, t1) - margin_m) & (t_pt < np.maximum(t0, t1) + margin_m)
-    front = (
-        np.cos(maps.facing)[:, None, :] * qx[..., None] + np.sin(maps.facing)[:, None, :] * qy[..., None] < 0
-    )
-    gate = np.reshape(gate_m, (-1, 1, 1)) if np.ndim(gate_m) else gate_m
-    cost = np.where(maps.valid[:, None, :] & inside & front & (perp < gate), perp, np.inf)
-    idx = np.argmin(cost, axis=2)
-    matched = np.isfinite(np.take_along_axis(cost, idx[..., None], axis=2)[..., 0])
-    return np.where(matched, idx, -1)
-
-
 def _point_normal_equations(
     poses: np.ndarray,
     points: np.ndarray,

@@ -70,10 +70,12 @@ class Trajectory:
     def jumps(self, particle: int) -> np.ndarray:
         """Mask ``(S,)`` of the scans along ``particle``'s ancestry that were reached by a
         jump (a relocalization put the ancestor there), not by a motion from the scan before."""
-        _, jumped = self._lineage(particle)
         anchors = np.asarray(self._scan_anchor, dtype=int)
-        first = np.r_[True, anchors[1:] != anchors[:-1]] if len(anchors) else np.zeros(0, bool)
-        return first & jumped[anchors] if len(anchors) else first
+        if len(anchors) == 0:
+            return np.zeros(0, bool)
+        _, jumped = self._lineage(particle)
+        first = np.r_[True, anchors[1:] != anchors[:-1]]  # the first scan of each processed step
+        return first & jumped[anchors]
 
     def _lineage(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
         """Poses ``(K,3)`` and jump flags ``(K,)`` of ``particle``'s ancestor at every step."""

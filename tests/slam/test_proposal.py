@@ -7,7 +7,7 @@ import pytest
 from robot_agent.slam.association import AssociationConfig
 from robot_agent.slam.lines import fit_lines
 from robot_agent.slam.particles import SegmentMaps
-from robot_agent.slam.proposal import ProposalConfig, align, associate_points
+from robot_agent.slam.proposal import ProposalConfig, _rotate, align, associate_points
 from shared.geometry import apply_points, inverse, wrap_angle
 from tests.maps import put_element, seen_from, wall_points
 
@@ -173,14 +173,35 @@ def test_points_behind_an_element_or_beyond_its_extent_are_not_associated():
     np.testing.assert_array_equal(matches(TRUE_POSE, wall), 0)
 
 
+def _associate_points_dense(
+    poses: np.ndarray, points: np.ndarray, maps: SegmentMaps, gate_m: np.ndarray | float, margin_m: float
+) -> np.ndarray:
+    """:func:`associate_points` by testing every (particle, point, element) triple — the kernel
+    as it was before candidate pairs: the reference it is tested against."""
+    qx, qy = _rotate(poses, points)
+    wx, wy = (qx + poses[:, None, 0])[..., None], (qy + poses[:, None, 1])[..., None]  # map frame
+    nx, ny = np.cos(maps.alpha)[:, None, :], np.sin(maps.alpha)[:, None, :]  # (P,1,C)
+    perp = np.abs(nx * wx + ny * wy - maps.rho[:, None, :])  # (P,N,C)
+    t_pt = ny * wx - nx * wy
+    t0 = ny * maps.seg[:, None, :, 0, 0] - nx * maps.seg[:, None, :, 0, 1]
+    t1 = ny * maps.seg[:, None, :, 1, 0] - nx * maps.seg[:, None, :, 1, 1]
+    inside = (t_pt > np.minimum(t0, t1) - margin_m) & (t_pt < np.maximum(t0, t1) + margin_m)
+    front = (
+        np.cos(maps.facing)[:, None, :] * qx[..., None] + np.sin(maps.facing)[:, None, :] * qy[..., None] < 0
+    )
+    gate = np.reshape(gate_m, (-1, 1, 1)) if np.ndim(gate_m) else gate_m
+    cost = np.where(maps.valid[:, None, :] & inside & front & (perp < gate), perp, np.inf)
+    idx = np.argmin(cost, axis=2)
+    matched = np.isfinite(np.take_along_axis(cost, idx[..., None], axis=2)[..., 0])
+    return np.where(matched, idx, -1)
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_point_association_by_candidate_pairs_equals_every_pair(seed):
     """associate_points tests only the (point, element) pairs a box around every particle's copy
     of each element admits; the result must be the dense test's, element for element — with
     particles spread by up to 0.3 m / 10°, per-particle gates, elements valid in some particles
     only, and elements that differ between particles."""
-    from robot_agent.slam.proposal import _associate_points_dense
-
     rng = np.random.default_rng(seed)
     n_p, n_c = 7, 40
     maps = SegmentMaps.empty(n_p, n_c)
