@@ -223,6 +223,21 @@ def aggregate(runs: list[dict]) -> dict:
     out["filter_only_trans_mean_m"] = _mean(flt)
     live = [m["live_worst_trans_m"] for m in ok if m.get("live_worst_trans_m") is not None]
     out["live_worst_trans_m"] = max(live, default=None)  # the worst snapshot of any seed
+    # the online back end (what an agent publishes): its path at the end, the worst snapshot
+    # against it and it against the offline back end's, each the worst seed's ratio
+    online = [m for m in ok if "relations_online" in m and "relations" in m]
+    ends = [m["relations_online"]["trans_mean_m"] for m in online]
+    out["online_end_trans_mean_m"] = _mean(ends)
+    out["live_over_end_worst"] = max(
+        (m["live_worst_trans_m"] / e for m, e in zip(online, ends, strict=True) if m.get("live_worst_trans_m")),
+        default=None,
+    )
+    out["online_over_offline_worst"] = max(
+        (e / m["relations"]["trans_mean_m"] for m, e in zip(online, ends, strict=True)), default=None
+    )
+    out["online_backend_share_max"] = max(
+        (m["online_backend_share"] for m in online if m.get("online_backend_share") is not None), default=None
+    )
     out["wall_time_s"] = _mean([m["wall_time_s"] for m in ok])
     out["real_time_factor_min"] = min(rtf, default=None)
     out["peak_rss_mb_max"] = max((m["peak_rss_mb"] for m in ok), default=None)
@@ -264,7 +279,7 @@ def print_table(rows: list[tuple[str, dict]], title: str) -> None:
     for header in (
         "log", "seeds", "relations", "trans. error m\nmean ± std", "worst\nseed m",
         "rot. error °\nmean ± std", "worst\nseed °", "filter\nalone m", "worst live\nsnapshot m",
-        "wall s\n(mean)",
+        "online at\nend m", "live ÷ end\n(worst)", "online ÷\noffline", "online\nCPU %", "wall s\n(mean)",
         "× real time\n(worst)", "peak MB\n(max)", "GMapping m\n(50 particles)", "graph\nmapping m",
         "Cartographer\nm, °",
     ):  # fmt: skip
@@ -275,7 +290,11 @@ def print_table(rows: list[tuple[str, dict]], title: str) -> None:
             name, seeds, _num(a["n_relations"], "d"),
             _pm(a["trans_mean_m"], a["trans_std_m"]), _num(a["trans_worst_mean_m"]),
             _pm(a["rot_mean_deg"], a["rot_std_deg"], 2), _num(a["rot_worst_mean_deg"], ".2f"),
-            _num(a["filter_only_trans_mean_m"]), _num(a["live_worst_trans_m"]), _num(a["wall_time_s"], ".1f"),
+            _num(a["filter_only_trans_mean_m"]), _num(a["live_worst_trans_m"]),
+            _num(a.get("online_end_trans_mean_m")), _num(a.get("live_over_end_worst"), ".2f"),
+            _num(a.get("online_over_offline_worst"), ".3f"),
+            _num(None if a.get("online_backend_share_max") is None else 100 * a["online_backend_share_max"], ".1f"),
+            _num(a["wall_time_s"], ".1f"),
             _num(a["real_time_factor_min"], ".1f"), _num(a["peak_rss_mb_max"], ".0f"),
             *published_cells(name),
         )  # fmt: skip
@@ -300,6 +319,11 @@ def run_line(run: dict, name_width: int = 0) -> str:
         parts.append(f"filter alone {f['trans_mean_m']:.3f} ± {f['trans_std_m']:.3f} m")
     if m.get("live_worst_trans_m") is not None:
         parts.append(f"worst live snapshot {m['live_worst_trans_m']:.3f} m")
+    if "relations_online" in m:
+        parts.append(
+            f"online back end at the end {m['relations_online']['trans_mean_m']:.3f} m "
+            f"({m['online_backend_s']:.1f} s of updates)"
+        )
     parts.append(f"wall {m['wall_time_s']:.1f} s ({m['real_time_factor']:.1f}× real time)")
     if m.get("backend_s") is not None:
         parts.append(f"back end {m['backend_s']:.1f} s")

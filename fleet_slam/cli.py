@@ -69,8 +69,15 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         if row["n"]:
             print(
                 f"  live after {row['scans']} scans ({row['at_s']:.0f} s): "
-                f"trans {row['trans_mean_m']:.3f} m, rot {row['rot_mean_deg']:.2f}° (n={row['n']})"
+                f"trans {row['trans_mean_m']:.3f} m, rot {row['rot_mean_deg']:.2f}° (n={row['n']}; "
+                f"filter alone {row['filter_trans_mean_m']:.3f} m)"
             )
+    if "relations_online" in m:
+        r = m["relations_online"]
+        print(
+            f"  online back end at the end: trans {r['trans_mean_m']:.3f} m, rot {r['rot_mean_deg']:.2f}°; "
+            f"{m['online_backend_s']:.1f} s of updates ({100 * m['online_backend_share']:.1f} % of the log's time)"
+        )
     if "relations_note" in m:
         print(f"relations error: none — {m['relations_note']}")
     print(f"wrote {args.out}/")
@@ -210,8 +217,9 @@ def build_parser() -> argparse.ArgumentParser:
         const=10,
         default=0,
         metavar="K",
-        help="also score, at every K-th part of the run (default 10), the trajectory the robot would "
-        "publish at that moment, on the relations before it (metrics.json: live, live_worst_trans_m)",
+        help="also run the online back end as an agent does and score, at every K-th part of the run "
+        "(default 10), the trajectory the robot would publish at that moment, on the relations before it "
+        "(metrics.json: live, live_worst_trans_m, relations_online)",
     )
     r.add_argument(
         "--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="override a SLAM parameter"

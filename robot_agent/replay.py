@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robot_agent.backend import correct_trajectory, feed
+from robot_agent.backend import Correction, OnlineBackend, correct_trajectory, feed, scan_points_robot
 from robot_agent.slam.fastslam import FastSLAM, SlamConfig
 from robot_agent.sources import LaserLog
 
@@ -17,12 +17,14 @@ from robot_agent.sources import LaserLog
 @dataclass(frozen=True)
 class Snapshot:
     """What the robot would have published as its trajectory after its first ``scans`` scans:
-    ``stamps_s (S,)``, ``poses (S,3)`` (today the filter's best particle's path: the back end
-    runs when the source ends)."""
+    ``stamps_s (S,)``, ``poses (S,3)`` — the filter's best path as the online back end's latest
+    result corrects it (the one before the update in flight: a robot's back end works while the
+    filter goes on); ``filter_poses (S,3)`` the path before it."""
 
     scans: int
     stamps_s: np.ndarray
     poses: np.ndarray
+    filter_poses: np.ndarray
 
 
 @dataclass
@@ -36,6 +38,8 @@ class ReplayResult:
     backend_s: float = 0.0
     backend_stats: dict | None = None
     live: list[Snapshot] = field(default_factory=list)  # snapshots during the run (``snapshots``)
+    online_poses: np.ndarray | None = None  # (S,3) the online back end's path at the end
+    online_stats: dict | None = None  # its statistics (time per update: online_s, update_s_max)
 
     @property
     def scans(self) -> int:
@@ -50,20 +54,28 @@ def replay(
     limit: int | None = None,
     snapshots: int = 0,
 ) -> ReplayResult:
-    """Feed every scan of ``log`` (up to ``limit``) to a fresh filter seeded with ``seed``.
-    ``snapshots``: cut the run into that many equal parts and record, at the end of each but the
-    last, the trajectory the robot would publish at that moment (:class:`Snapshot`)."""
+    """Feed every scan of ``log`` (up to ``limit``) to a fresh filter seeded with ``seed``; the
+    pose-graph back end over the whole path at the end (offline).
+    ``snapshots``: also run the online back end as an agent does (an update every
+    ``online_every_s`` of log time), cut the run into that many equal parts and record, at the
+    end of each but the last, the trajectory the robot would publish at that moment
+    (:class:`Snapshot`), and the online back end's path at the end (``online_poses``)."""
     n = len(log) if limit is None else min(limit, len(log))
     slam = FastSLAM(cfg, np.random.default_rng(seed))
     marks = (
         set(np.linspace(0, n, snapshots + 1).round().astype(int)[1:-1].tolist()) if snapshots > 1 else set()
     )
     live: list[Snapshot] = []
+    online = LiveBackend(log, cfg) if snapshots > 1 and cfg.backend.enabled else None
 
     def step(i: int) -> None:
         feed(slam, log, i)
+        if online is not None:
+            online.after(slam, i)
         if i + 1 in marks:
-            live.append(Snapshot(i + 1, *slam.best_trajectory()))
+            stamps, poses = slam.best_trajectory()
+            shown = poses if online is None else online.published.apply(poses)
+            live.append(Snapshot(i + 1, stamps, shown, poses))
 
     show = sys.stderr.isatty() if progress is None else progress
     t0 = time.perf_counter()
@@ -86,8 +98,58 @@ def replay(
         for i in range(n):
             step(i)
     stamps, poses = slam.best_trajectory()
+    online_poses = online_stats = None
+    if online is not None:
+        online_poses = online.finish(slam, n).apply(poses)
+        online_stats = dict(online.backend.stats, online_s=online.seconds)
     t1 = time.perf_counter()
     corrected, stats = correct_trajectory(log, 0, stamps, poses, cfg, slam.loop_hints, slam.best_jumps())
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
-    return ReplayResult(stamps, corrected, slam, wall, peak, poses, time.perf_counter() - t1, stats, live)
+    return ReplayResult(
+        stamps, corrected, slam, wall, peak, poses, time.perf_counter() - t1, stats, live, online_poses, online_stats
+    )
+
+
+class LiveBackend:
+    """The online back end beside a replayed filter, as an agent runs it: an update every
+    ``online_every_s`` of log time over the filter's best path then; what the robot publishes
+    meanwhile is the result of the update before (``published``: the one in flight is not
+    done yet)."""
+
+    def __init__(self, log: LaserLog, cfg: SlamConfig):
+        self.log, self.cfg = log, cfg
+        self.backend = OnlineBackend(cfg.backend)
+        self.published = Correction(np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)))
+        self._pending = self.published
+        self._next_s = -np.inf
+        self._clock = -np.inf
+        self.seconds = 0.0  # spent in updates
+
+    def after(self, slam: FastSLAM, i: int) -> None:
+        """Scan ``i`` was just fed to ``slam``: update when due."""
+        self._clock = max(self._clock, float(self.log.stamps_s[i]))
+        if self._clock < self._next_s:
+            return
+        self._next_s = self._clock + self.cfg.backend.online_every_s
+        self.published = self._pending
+        self._pending = self._update(slam, i + 1, self.backend.update)
+
+    def finish(self, slam: FastSLAM, n: int) -> Correction:
+        """The last update, at the end of the source (every moved keyframe searched again)."""
+        self.published = self._pending = self._update(slam, n, self.backend.finish)
+        return self.published
+
+    def _update(self, slam: FastSLAM, n: int, how) -> Correction:
+        t0 = time.perf_counter()
+        stamps, poses = slam.best_trajectory()
+        out = how(
+            stamps,
+            poses,
+            self.log.odometry[:n],
+            lambda k: scan_points_robot(self.log, k, self.cfg),
+            slam.best_jumps(),
+            slam.loop_hints,
+        )
+        self.seconds += time.perf_counter() - t0
+        return out

@@ -68,7 +68,7 @@ def test_discover_rejects_missing_paths_and_clashing_stems(bench, tmp_path):
         bench.discover([tmp_path / "one", tmp_path / "two"])
 
 
-def run(seed, trans, trans_std, rot, rot_std, filt, wall, rtf, rss, backend_s=0.5, live=None):
+def run(seed, trans, trans_std, rot, rot_std, filt, wall, rtf, rss, backend_s=0.5, live=None, online=None):
     relations = {
         "n": 10,
         "trans_mean_m": trans,
@@ -86,13 +86,16 @@ def run(seed, trans, trans_std, rot, rot_std, filt, wall, rtf, rss, backend_s=0.
     }
     if live is not None:
         metrics["live_worst_trans_m"] = live
+    if online is not None:
+        metrics["relations_online"] = {"trans_mean_m": online}
+        metrics["online_backend_share"] = 0.01 * seed
     return {"log": "x", "seed": seed, "returncode": 0, "metrics": metrics}
 
 
 def test_aggregate_folds_seeds_and_leaves_failures_out(bench):
     runs = [
-        run(0, 0.10, 0.05, 1.0, 2.0, 0.20, 10.0, 8.0, 100.0, live=0.7),
-        run(1, 0.40, 0.15, 3.0, 4.0, 0.30, 20.0, 4.0, 150.0, backend_s=1.5, live=0.5),
+        run(0, 0.10, 0.05, 1.0, 2.0, 0.20, 10.0, 8.0, 100.0, live=0.7, online=0.35),
+        run(1, 0.40, 0.15, 3.0, 4.0, 0.30, 20.0, 4.0, 150.0, backend_s=1.5, live=0.5, online=0.40),
         {"log": "x", "seed": 2, "returncode": 2, "stderr_tail": ["boom"]},
     ]
     a = bench.aggregate(runs)
@@ -107,6 +110,10 @@ def test_aggregate_folds_seeds_and_leaves_failures_out(bench):
     assert a["peak_rss_mb_max"] == 150.0
     assert a["backend_s"] == pytest.approx(1.0)
     assert a["live_worst_trans_m"] == 0.7  # the worst snapshot of any seed
+    assert a["online_end_trans_mean_m"] == pytest.approx(0.375)
+    assert a["live_over_end_worst"] == pytest.approx(2.0)  # seed 0: 0.7 / 0.35, per seed
+    assert a["online_over_offline_worst"] == pytest.approx(3.5)  # seed 0: 0.35 / 0.10
+    assert a["online_backend_share_max"] == pytest.approx(0.01)
 
 
 def test_aggregate_of_only_failures_is_empty_not_an_error(bench):

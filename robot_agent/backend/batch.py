@@ -44,9 +44,7 @@ def correct_trajectory(
         return poses, None
 
     def points(i: int) -> np.ndarray:
-        scan = log.scan(first + i)
-        xy = scan_points(scan.ranges_m, scan.angles_rad, cfg.extraction, scan.range_max_m)
-        return apply_points(scan.laser_offset, xy)
+        return scan_points_robot(log, first + i, cfg)
 
     odometry = log.odometry[first : first + len(poses)]
     corrected, stats = run_backend(stamps, poses, odometry, points, cfg.backend, hints, jumps)
@@ -57,6 +55,13 @@ def correct_trajectory(
     # the corrected trajectory is put (relative motions, what relations score, are unchanged)
     gauge = align_se2(corrected[:, :2], poses[:, :2])
     return compose(gauge, corrected), stats
+
+
+def scan_points_robot(log: LaserLog, i: int, cfg: SlamConfig) -> np.ndarray:
+    """Scan ``i``'s points ``(N,2)`` in the robot frame (its valid beams, laser mount applied)."""
+    scan = log.scan(i)
+    xy = scan_points(scan.ranges_m, scan.angles_rad, cfg.extraction, scan.range_max_m)
+    return apply_points(scan.laser_offset, xy)
 
 
 def remap(log: LaserLog, first: int, poses: np.ndarray, cfg: SlamConfig) -> FastSLAM:

@@ -92,6 +92,10 @@ class BackendConfig:
     chain: posegraph.ChainNoise = field(default_factory=posegraph.ChainNoise)
     jump_sigma_xy_m: float = 0.3  # a relocalization's jump: its chain edge takes the odometry,
     jump_sigma_theta_rad: float = np.radians(5.0)  # held this loosely
+    # online (robot_agent/backend/online.py): an update every this much of the source's time, ...
+    online_every_s: float = 5.0
+    online_requeries: int = 100  # ... re-searching at most this many moved keyframes; loops
+    online_surprises: int = 3  # that the estimate contradicts go in when this many have come
 
 
 def select_keyframes(poses: np.ndarray, cfg: BackendConfig, jumps: np.ndarray | None = None) -> np.ndarray:
@@ -311,16 +315,23 @@ def hinted_loops(
 
 
 def optimize(
-    kf_poses: np.ndarray, loops: list[Loop], cfg: BackendConfig, stats: dict, jump_edges: dict | None = None
+    kf_poses: np.ndarray,
+    loops: list[Loop],
+    cfg: BackendConfig,
+    stats: dict,
+    jump_edges: dict | None = None,
+    x0: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Keyframe poses ``(K,3)`` after the pose graph (chain + verified loops, robust).
+    """Keyframe poses ``(K,3)`` after the pose graph (chain + verified loops, robust), from
+    ``x0 (K,3)`` (default ``kf_poses``, the path the chain is measured on).
     ``jump_edges``: chain edge index -> motion to use instead, loosely held."""
     a, b, z, info = posegraph.chain_edges(kf_poses, cfg.chain)
     for e, motion in (jump_edges or {}).items():
         z[e] = motion
         info[e] = 1.0 / np.array([cfg.jump_sigma_xy_m, cfg.jump_sigma_xy_m, cfg.jump_sigma_theta_rad]) ** 2
+    start = kf_poses if x0 is None else x0
     if not loops and not jump_edges:
-        return kf_poses.copy()
+        return start.copy()
     la = np.array([lp.old for lp in loops], dtype=int)
     lb = np.array([lp.new for lp in loops], dtype=int)
     lz = np.array([lp.z for lp in loops], dtype=float).reshape(-1, 3)
@@ -330,7 +341,7 @@ def optimize(
     for _round in range(3):
         # a wide kernel first, then narrower: loops far from the initial path (a large drift)
         # must pull it before the narrow kernel may call the ones that still disagree outliers
-        x = kf_poses.copy()
+        x = start.copy()
         for k in (cfg.robust_wide_k, np.sqrt(cfg.robust_wide_k * cfg.robust_k), cfg.robust_k):
             x = posegraph.optimize(
                 x,
