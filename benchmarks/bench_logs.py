@@ -229,7 +229,11 @@ def aggregate(runs: list[dict]) -> dict:
     ends = [m["relations_online"]["trans_mean_m"] for m in online]
     out["online_end_trans_mean_m"] = _mean(ends)
     out["live_over_end_worst"] = max(
-        (m["live_worst_trans_m"] / e for m, e in zip(online, ends, strict=True) if m.get("live_worst_trans_m")),
+        (
+            m["live_worst_trans_m"] / e
+            for m, e in zip(online, ends, strict=True)
+            if m.get("live_worst_trans_m")
+        ),
         default=None,
     )
     out["online_over_offline_worst"] = max(
@@ -250,6 +254,10 @@ def aggregate(runs: list[dict]) -> dict:
 
 def _num(value: float | None, fmt: str = ".3f") -> str:
     return "—" if value is None else format(value, fmt)
+
+
+def _percent(share: float | None) -> float | None:
+    return None if share is None else 100 * share
 
 
 def _pm(mean: float | None, std: float | None, decimals: int = 3) -> str:
@@ -293,7 +301,7 @@ def print_table(rows: list[tuple[str, dict]], title: str) -> None:
             _num(a["filter_only_trans_mean_m"]), _num(a["live_worst_trans_m"]),
             _num(a.get("online_end_trans_mean_m")), _num(a.get("live_over_end_worst"), ".2f"),
             _num(a.get("online_over_offline_worst"), ".3f"),
-            _num(None if a.get("online_backend_share_max") is None else 100 * a["online_backend_share_max"], ".1f"),
+            _num(_percent(a.get("online_backend_share_max")), ".1f"),
             _num(a["wall_time_s"], ".1f"),
             _num(a["real_time_factor_min"], ".1f"), _num(a["peak_rss_mb_max"], ".0f"),
             *published_cells(name),

@@ -76,7 +76,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         r = m["relations_online"]
         print(
             f"  online back end at the end: trans {r['trans_mean_m']:.3f} m, rot {r['rot_mean_deg']:.2f}°; "
-            f"{m['online_backend_s']:.1f} s of updates ({100 * m['online_backend_share']:.1f} % of the log's time)"
+            f"{m['online_backend_s']:.1f} s of updates "
+            f"({100 * m['online_backend_share']:.1f} % of the log's time)"
         )
     if "relations_note" in m:
         print(f"relations error: none — {m['relations_note']}")

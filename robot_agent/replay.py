@@ -107,7 +107,17 @@ def replay(
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
     return ReplayResult(
-        stamps, corrected, slam, wall, peak, poses, time.perf_counter() - t1, stats, live, online_poses, online_stats
+        stamps,
+        corrected,
+        slam,
+        wall,
+        peak,
+        poses,
+        time.perf_counter() - t1,
+        stats,
+        live,
+        online_poses,
+        online_stats,
     )
 
 

@@ -246,8 +246,8 @@ class OnlineBackend:
 
     def _query(self, f, est, stamps, new, arc) -> list[Loop]:
         """A new keyframe: candidates near it on the filter's path, widened by the drift that path
-        may hold since them, each searched that wide around the filter's path (not around the correction so far: a wrong loop there would steer the
-        search away from the right place)."""
+        may hold since them, each searched that wide around the filter's path (not around the
+        correction so far: a wrong loop there would steer the search away from the right place)."""
         self._queried[new], self._queried_at[new] = True, est[new]
         out = []
         for old in self._candidates(f, stamps, new, arc):
