@@ -98,7 +98,7 @@ def test_a_jump_is_bridged_by_odometry_when_it_arrives():
 
 
 def test_the_moved_keyframes_searched_again_per_update_are_bounded(drifted_office):
-    sim, log, drifted, points = drifted_office
+    _, log, drifted, points = drifted_office
     cfg = be.BackendConfig(online_requeries=3)
     online = OnlineBackend(cfg)
     before = 0
