@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from robot_agent.backend.live import LiveCorrector
 from robot_agent.publish import MapArrays, PublishConfig, top_particle_maps
 from robot_agent.slam.fastslam import Estimate, FastSLAM
 from robot_agent.sources.base import Scan
@@ -52,8 +53,10 @@ class AgentCore:
         prior: np.ndarray | None = None,
         prior_sigma: np.ndarray | None = None,
         session: str | None = None,
+        corrector: LiveCorrector | None = None,
     ):
         self.robot = robot
+        self.corrector = corrector  # the online back end: applied to what is published
         self.slam = slam
         self.cfg = cfg
         self.session = session or uuid.uuid4().hex[:16]
@@ -76,12 +79,36 @@ class AgentCore:
         )
         self.scans += 1
         self._last_stamp_s = max(self._last_stamp_s, float(scan.stamp_s))
+        if self.corrector is not None:
+            self.corrector.on_scan(
+                scan.stamp_s,
+                scan.odometry,
+                scan.ranges_m,
+                scan.angles_rad,
+                scan.laser_offset,
+                scan.range_max_m,
+            )
+            if self.corrector.tick():
+                self._next_map_s = -np.inf  # a new correction: the corrected map goes out now
         return self.estimate
+
+    def correction_arrived(self) -> bool:
+        """Collect a finished back-end update between scans (True when one came): the map is due."""
+        if self.corrector is None or not self.corrector.tick():
+            return False
+        self._next_map_s = -np.inf
+        return True
+
+    def published_pose(self) -> np.ndarray:
+        """The current pose as published: the filter's, corrected by the online back end."""
+        pose = self.estimate.pose
+        return pose if self.corrector is None else self.corrector.pose(pose)
 
     def rebuilt(self, slam: FastSLAM, pose: np.ndarray) -> None:
         """The back end corrected the path and ``slam`` holds the map rebuilt along it: publish
         that map and ``pose (3,)``, the corrected current pose, next (both due at once)."""
         self.slam = slam
+        self.corrector = None  # the rebuilt map and pose are in the corrected frame already
         if self.estimate is not None:
             self.estimate = dataclasses.replace(self.estimate, pose=np.asarray(pose, float).copy())
         self._next_pose_s = self._next_map_s = -np.inf
@@ -91,7 +118,7 @@ class AgentCore:
         if self.estimate is None or self._last_stamp_s < self._next_pose_s:
             return None
         self._next_pose_s = self._last_stamp_s + self.cfg.pose_period_s
-        msg = PoseUpdate(self.robot, self.session, self.pose_seq, self._last_stamp_s, self.estimate.pose)
+        msg = PoseUpdate(self.robot, self.session, self.pose_seq, self._last_stamp_s, self.published_pose())
         self.pose_seq += 1
         return msg
 
@@ -101,6 +128,14 @@ class AgentCore:
             return None
         self._next_map_s = self._last_stamp_s + self.cfg.map_period_s
         arrays = top_particle_maps(self.slam, self.cfg.publish)
+        if self.corrector is not None:  # every element moved with the keyframe it was made from
+            arrays = dataclasses.replace(
+                arrays,
+                seg=self.corrector.segments(arrays.seg, self.slam.step_index - arrays.age),
+                particle_poses=np.array([self.corrector.pose(p) for p in arrays.particle_poses]).reshape(
+                    -1, 3
+                ),
+            )
         fp = arrays.fingerprint()
         if fp == self._fingerprint and not force:
             return None

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robot_agent.backend import Correction, OnlineBackend, correct_trajectory, feed, scan_points_robot
+from robot_agent.backend import Correction, OnlineBackend, Track, correct_trajectory, feed, scan_points_robot
 from robot_agent.slam.fastslam import FastSLAM, SlamConfig
 from robot_agent.sources import LaserLog
 
@@ -135,6 +135,7 @@ class LiveBackend:
         self._next_s = -np.inf
         self._clock = -np.inf
         self.seconds = 0.0  # spent in updates
+        self._hints = 0  # the filter's relocalizations passed on so far
 
     def after(self, slam: FastSLAM, i: int) -> None:
         """Scan ``i`` was just fed to ``slam``: update when due."""
@@ -153,13 +154,8 @@ class LiveBackend:
     def _update(self, slam: FastSLAM, n: int, how) -> Correction:
         t0 = time.perf_counter()
         stamps, poses = slam.best_trajectory()
-        out = how(
-            stamps,
-            poses,
-            self.log.odometry[:n],
-            lambda k: scan_points_robot(self.log, k, self.cfg),
-            slam.best_jumps(),
-            slam.loop_hints,
-        )
+        track = Track.whole(stamps, poses, self.log.odometry[:n], slam.best_jumps())
+        hints, self._hints = slam.loop_hints[self._hints :], len(slam.loop_hints)
+        out = how(track, lambda k: scan_points_robot(self.log, k, self.cfg), hints=hints)
         self.seconds += time.perf_counter() - t0
         return out

@@ -26,9 +26,12 @@ if TYPE_CHECKING:  # the parser is built without the heavy imports (instant --he
 DEFAULT_FLEET = "default"  # = shared.keys.DEFAULT_FLEET
 
 EXPLORER_MAP_EVERY = 5  # scans between rebuilding the map the explorer plans on
-# a simulated robot keeps its scans (ranges as float32) for the back end at the end of its run;
-# beyond this many (5.5 h at 5 Hz, ~150 MB at 361 beams) it stops keeping them and ends without
-MAX_KEPT_SCANS = 100_000
+# a simulated robot keeps its scans (ranges as float32) for the map rebuilt along the corrected
+# path at the end of its run; beyond this many (1.1 h at 5 Hz, ~14 MB at 180 beams) it stops
+# keeping them: the online back end goes on, and its final map is the corrected one, not rebuilt
+MAX_KEPT_SCANS = 20_000
+FINAL_UPDATE_STOPPED_S = 5.0  # stopped: the online back end's last update waited for at most this
+FINAL_UPDATE_S = 120.0  # the source ended: this long
 
 
 def parse_pose(text: str, what: str = "pose") -> np.ndarray:
@@ -144,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
     from robot_agent.slam.config import command_line_config
     from robot_agent.slam.fastslam import FastSLAM
     from shared.bus import Bus, client_config, stop_on_signals
+    from shared.geometry import compose, inverse
     from shared.keys import Keys
     from shared.metrics import write_poses, write_tum
 
@@ -152,7 +156,18 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--speed must be >= 0, got {args.speed}")
     prior = None if args.prior is None else parse_pose(args.prior, "--prior")
     slam = FastSLAM(cfg, np.random.default_rng(args.seed))
-    core = AgentCore(args.robot, slam, AgentConfig(speed=args.speed, publish=PublishConfig()), prior=prior)
+    corrector = None
+    if cfg.backend.enabled:  # the online back end, in a process of its own
+        from robot_agent.backend.live import LiveCorrector, ProcessRunner
+
+        corrector = LiveCorrector(slam, ProcessRunner(cfg))
+    core = AgentCore(
+        args.robot,
+        slam,
+        AgentConfig(speed=args.speed, publish=PublishConfig()),
+        prior=prior,
+        corrector=corrector,
+    )
     keys = Keys(args.fleet)
     sim = None
     if args.world is not None:
@@ -171,32 +186,45 @@ def run(args: argparse.Namespace) -> int:
     bus_cfg = client_config(args.connect, args.bus_config)
     t0 = time.monotonic()
     backend = None
-    with Bus(bus_cfg, cancel=stop) as bus:
-        print(f"agent {args.robot}: session {core.session}, connected", flush=True)
-        pub = run_agent(bus, keys, core, scans, stop, on_estimate)
-        stamps, filter_poses = slam.best_trajectory()  # the best particle's, in the robot's map frame
-        poses = filter_poses
-        # at the end of the run (not when stopped): the pose-graph back end over the whole path,
-        # as `replay` does, and the map rebuilt along the corrected path is published last, so
-        # the server places the robot by the map its written poses agree with
-        first, scan_log = (0, sim.recorded_log()) if sim is not None else (args.first, laser_log)
-        if scan_log is None and len(poses):  # a simulated robot past MAX_KEPT_SCANS
-            print(f"agent {args.robot}: more than {MAX_KEPT_SCANS} scans, no back end at the end", flush=True)
-        elif len(poses) and not stop.is_set():
-            from robot_agent.backend import correct_trajectory, remap
-
-            # the start gauge: the map frame stays the robot's start frame (what a prior gives)
-            poses, backend = correct_trajectory(
-                scan_log, first, stamps, poses, cfg, slam.loop_hints, slam.best_jumps(), gauge="start"
-            )
-            if backend is not None and not stop.is_set():
-                core.rebuilt(remap(scan_log, first, poses, cfg), poses[-1])
-                pub.publish(force_map=True)
+    try:
+        with Bus(bus_cfg, cancel=stop) as bus:
+            print(f"agent {args.robot}: session {core.session}, connected", flush=True)
+            pub = run_agent(bus, keys, core, scans, stop, on_estimate)
+            stamps, filter_poses = slam.best_trajectory()  # the best particle's, in the robot's map frame
+            poses = filter_poses
+            if corrector is not None and len(poses):
+                # the last update of the online back end: bounded when stopped (SIGTERM/SIGINT:
+                # the whole exit within 10 s), complete when the source ended
+                done = corrector.finish(FINAL_UPDATE_STOPPED_S if stop.is_set() else FINAL_UPDATE_S)
+                backend = dict(corrector.stats, final_update_in_time=done, updates=corrector.updates)
+                poses = corrector.correction.apply(filter_poses)
+                pub.publish(force_map=True)  # the map and pose as the last correction moves them
                 print(
-                    f"agent {args.robot}: published the map rebuilt along the back end's path "
-                    f"({backend.get('loops', 0)} loops)",
+                    f"agent {args.robot}: published the corrected map ({backend.get('loops', 0)} loops, "
+                    f"{backend.get('keyframes', 0)} keyframes{'' if done else ', last update not in time'})",
                     flush=True,
                 )
+            # at the end of the source (not when stopped), with its scans at hand: the map rebuilt
+            # along the corrected path, published last, so the server places the robot by the map
+            # its written poses agree with
+            first, scan_log = (0, sim.recorded_log()) if sim is not None else (args.first, laser_log)
+            if corrector is not None and len(poses) and not stop.is_set() and scan_log is not None:
+                from robot_agent.backend import remap
+
+                start = compose(filter_poses[0], inverse(poses[0]))  # the start gauge: the map frame
+                poses = compose(start, poses)  # stays the robot's start frame (what a prior gives)
+                core.rebuilt(remap(scan_log, first, poses, cfg), poses[-1])
+                pub.publish(force_map=True)
+                print(f"agent {args.robot}: published the map rebuilt along the corrected path", flush=True)
+            elif scan_log is None and len(poses) and not stop.is_set():  # a long simulated run
+                print(
+                    f"agent {args.robot}: more than {MAX_KEPT_SCANS} scans kept no longer: the final map "
+                    "is the online back end's corrected one, not rebuilt",
+                    flush=True,
+                )
+    finally:
+        if corrector is not None:
+            corrector.close()
     wall = time.monotonic() - t0
     if args.out:
         out = Path(args.out)

@@ -3,6 +3,6 @@ trajectory at the end of a run (:mod:`robot_agent.backend.batch`) or while the r
 (:mod:`robot_agent.backend.online`) — and the map rebuilt along the corrected path."""
 
 from robot_agent.backend.batch import correct_trajectory, feed, remap, scan_points_robot
-from robot_agent.backend.online import Correction, OnlineBackend
+from robot_agent.backend.online import Correction, OnlineBackend, Track
 
-__all__ = ["Correction", "OnlineBackend", "correct_trajectory", "feed", "remap", "scan_points_robot"]
+__all__ = ["Correction", "OnlineBackend", "Track", "correct_trajectory", "feed", "remap", "scan_points_robot"]

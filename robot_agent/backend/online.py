@@ -32,7 +32,6 @@ from robot_agent.slam.backend import (
     BackendConfig,
     Loop,
     follow_keyframes,
-    hinted_loops,
     match_loop,
     near_old_keyframes,
     optimize,
@@ -40,6 +39,33 @@ from robot_agent.slam.backend import (
 )
 from robot_agent.slam.extraction import voxel_thin
 from shared.geometry import compose, relative, wrap_angle
+
+
+@dataclass(frozen=True)
+class Track:
+    """The filter's best path over scans ``scan (T,)`` (increasing indices into the run):
+    ``stamps_s (T,)``, ``poses (T,3)``, raw ``odometry (T,3)`` and ``jumps (T,)`` (the scan was
+    reached by a relocalization's jump, :meth:`FastSLAM.best_jumps`)."""
+
+    scan: np.ndarray
+    stamps_s: np.ndarray
+    poses: np.ndarray
+    odometry: np.ndarray
+    jumps: np.ndarray
+
+    @classmethod
+    def whole(cls, stamps_s, poses, odometry, jumps=None) -> Track:
+        """The path of scans ``0 .. S-1``."""
+        n = len(poses)
+        jumps = np.zeros(n, bool) if jumps is None else np.asarray(jumps, bool)
+        return cls(np.arange(n), np.asarray(stamps_s), np.asarray(poses), np.asarray(odometry)[:n], jumps)
+
+    def at(self, scans: np.ndarray) -> np.ndarray:
+        """Poses ``(N,3)`` of scans ``scans (N,)``, which the track must hold."""
+        t = np.searchsorted(self.scan, scans)
+        if np.any(t >= len(self.scan)) or np.any(self.scan[np.minimum(t, len(self.scan) - 1)] != scans):
+            raise ValueError("track: a keyframe's scan is not in it (pass kf_poses)")
+        return self.poses[t]
 
 
 @dataclass(frozen=True)
@@ -80,7 +106,7 @@ class OnlineBackend:
     _x: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # corrected poses, last update
     _queried_at: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # estimate when queried
     _queried: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-    _hints_seen: int = 0
+    _jump_edges: dict = field(default_factory=dict)  # chain edge -> motion across a jump
     _surprises: list[Loop] = field(default_factory=list)  # loops the estimate contradicts, waiting
     _waiting: int = 0
 
@@ -93,52 +119,46 @@ class OnlineBackend:
 
     def update(
         self,
-        stamps_s: np.ndarray,
-        poses: np.ndarray,
-        odometry: np.ndarray,
+        track: Track,
         points_of: Callable[[int], np.ndarray],
-        jumps: np.ndarray | None = None,
+        kf_poses: np.ndarray | None = None,
         hints: list[tuple[int, np.ndarray]] | None = None,
         requeries: int | None = None,
     ) -> Correction:
-        """One step over the filter's best path as it is now: ``stamps_s (S,)``, ``poses (S,3)``
-        (every scan of the run so far), ``odometry (S,3)`` raw, ``points_of(i)`` scan ``i``'s
-        points in the robot frame (asked once per new keyframe), ``jumps (S,)`` the scans reached
-        by a relocalization's jump, ``hints`` every relocalization so far (``(scan, pose)``; the
-        ones not seen before are tried). ``requeries``: at most this many moved keyframes are
-        searched again (default ``cfg.online_requeries``; ``-1``: all)."""
+        """One step over the filter's best path as it is now. ``track``: that path over the scans
+        from the last keyframe on (or the whole path); ``points_of(i)`` scan ``i``'s points in
+        the robot frame (asked once per new keyframe); ``kf_poses (K,3)``: the path's poses at the
+        keyframes so far (default: looked up in ``track``, which must then hold them);
+        ``hints``: the filter's relocalizations since the last update (``(scan, pose)``).
+        ``requeries``: at most this many moved keyframes are searched again (default
+        ``cfg.online_requeries``; ``-1``: all)."""
         t0 = time.perf_counter()
         cfg = self.cfg
-        n_scans = len(poses)
-        if n_scans == 0:
+        if len(track.scan) == 0:
             return self.correction()
-        jumps = np.zeros(n_scans, bool) if jumps is None else np.asarray(jumps, bool)
         k_prev = len(self.kf_scan)
-        self._extend(stamps_s, poses, jumps, points_of)
+        old = kf_poses if kf_poses is not None else track.at(np.asarray(self.kf_scan, int))
+        if len(old) != k_prev:
+            raise ValueError(f"kf_poses: {len(old)} poses for {k_prev} keyframes")
+        f = np.vstack([old.reshape(-1, 3), self._extend(track, points_of)])
         kf = np.asarray(self.kf_scan, int)
-        f = poses[kf]
-        jump_edges = self._jump_edges(kf, poses, odometry, jumps)
         est = self._carry(f, k_prev)
         stamps = np.asarray(self.kf_stamp)
         step = relative(f[:-1], f[1:])
         arc = np.concatenate([[0.0], np.cumsum(np.hypot(step[:, 0], step[:, 1]))])
 
         found: list[Loop] = []
-        new_hints = (hints or [])[self._hints_seen :]
-        self._hints_seen = len(hints or [])
-        if new_hints:
-            hinted = hinted_loops(stamps, f, self.kf_points, kf, poses, new_hints, cfg, self.stats)
-            self.stats["loops_hinted_total"] = self.stats.get("loops_hinted_total", 0) + len(hinted)
-            found += hinted
+        for i, pose in hints or []:
+            found += self._hinted(f, kf, track, stamps, int(i), pose)
         for new in range(k_prev, len(kf)):  # the new keyframes, searched as wide as they may drift
             if new % cfg.check_every:
                 continue
             found += self._query(f, est, stamps, new, arc)
         accepted = self._admit(found, est, final=requeries == -1)
-        changed = accepted > 0 or len(jump_edges) != self.stats.get("jumps", 0)
-        self.stats["jumps"] = len(jump_edges)
+        changed = accepted > 0 or len(self._jump_edges) != self.stats.get("jumps", 0)
+        self.stats["jumps"] = len(self._jump_edges)
         if changed:
-            est = optimize(f, self.loops, cfg, self.stats, jump_edges, x0=est)
+            est = optimize(f, self.loops, cfg, self.stats, self._jump_edges, x0=est)
             self.stats["optimizations"] = self.stats.get("optimizations", 0) + 1
         budget = cfg.online_requeries if requeries is None else requeries
         passes = 0
@@ -148,7 +168,7 @@ class OnlineBackend:
             more = self._requery(f, est, stamps, budget)
             if not self._admit(more, est, final=budget < 0):
                 break
-            est = optimize(f, self.loops, cfg, self.stats, jump_edges, x0=est)
+            est = optimize(f, self.loops, cfg, self.stats, self._jump_edges, x0=est)
             if budget < 0 and len(more) < cfg.min_pass_loops:
                 break
         self._ref, self._x = f, est
@@ -187,36 +207,57 @@ class OnlineBackend:
         self.stats["surprises_waiting"] = self._waiting
         return admitted
 
-    def _extend(self, stamps_s, poses, jumps, points_of) -> None:
+    def _extend(self, track: Track, points_of) -> np.ndarray:
+        """New keyframes from ``track`` after the last one (one every keyframe_m / keyframe_rad
+        of the path, one at each of the filter's jumps, whose chain edge is then the path up to
+        the scan before it and odometry across it); their poses ``(N,3)``."""
         cfg = self.cfg
+        added: list[np.ndarray] = []
+        t0 = 0
         if not self.kf_scan:
-            self._add(0, stamps_s, points_of)
-        last_i = self.kf_scan[-1]
-        last = poses[last_i]
-        for i in range(last_i + 1, len(poses)):
-            d = relative(last, poses[i])
-            if jumps[i] or np.hypot(d[0], d[1]) >= cfg.keyframe_m or abs(d[2]) >= cfg.keyframe_rad:
-                self._add(i, stamps_s, points_of)
-                last = poses[i]
+            self._add(track, 0, points_of)
+            added.append(track.poses[0])
+        else:
+            t0 = int(np.searchsorted(track.scan, self.kf_scan[-1]))
+            if t0 >= len(track.scan) or track.scan[t0] != self.kf_scan[-1]:
+                raise ValueError(f"track: starts after the last keyframe (scan {self.kf_scan[-1]})")
+        last_t = t0
+        for t in range(t0 + 1, len(track.scan)):
+            d = relative(track.poses[last_t], track.poses[t])
+            jump = bool(track.jumps[t])
+            if jump or np.hypot(d[0], d[1]) >= cfg.keyframe_m or abs(d[2]) >= cfg.keyframe_rad:
+                if jump:  # chain edge (previous keyframe -> this one)
+                    across = relative(track.odometry[t - 1], track.odometry[t])
+                    self._jump_edges[len(self.kf_scan) - 1] = compose(
+                        relative(track.poses[last_t], track.poses[t - 1]), across
+                    )
+                self._add(track, t, points_of)
+                added.append(track.poses[t])
+                last_t = t
+        return np.array(added).reshape(-1, 3)
 
-    def _add(self, i: int, stamps_s, points_of) -> None:
-        self.kf_scan.append(int(i))
-        self.kf_stamp.append(float(stamps_s[i]))
-        self.kf_points.append(voxel_thin(points_of(int(i)), self.cfg.voxel_m))
+    def _add(self, track: Track, t: int, points_of) -> None:
+        i = int(track.scan[t])
+        self.kf_scan.append(i)
+        self.kf_stamp.append(float(track.stamps_s[t]))
+        self.kf_points.append(voxel_thin(points_of(i), self.cfg.voxel_m))
 
-    def _jump_edges(self, kf, poses, odometry, jumps) -> dict:
-        """Chain edge ``e`` -> the motion across a jump inside it: the path up to the scan before
-        the jump, odometry over it, the path after it."""
-        out = {}
-        for i in np.flatnonzero(jumps[: kf[-1] + 1]):
-            e = int(np.searchsorted(kf, i)) - 1
-            if e < 0:
-                continue
-            across = relative(odometry[i - 1], odometry[i])
-            out[e] = compose(
-                compose(relative(poses[kf[e]], poses[i - 1]), across), relative(poses[i], poses[kf[e + 1]])
-            )
-        return out
+    def _hinted(self, f, kf, track: Track, stamps, i: int, pose: np.ndarray) -> list[Loop]:
+        """A relocalization of the filter: scan ``i`` was found at ``pose`` among old elements.
+        The search starts there: the drift it bridged is more than the window around the path."""
+        t = int(np.searchsorted(track.scan, i))
+        if t >= len(track.scan) or track.scan[t] != i:
+            return []  # the path no longer holds that scan's pose (it fell out of the track)
+        new = int(np.searchsorted(kf, i, side="right")) - 1  # the keyframe scan i hangs from
+        est = f.copy()
+        est[new] = compose(pose, relative(track.poses[t], f[new]))
+        cand, d = near_old_keyframes(stamps, est, new, self.cfg)
+        for old in cand[np.argsort(d[cand])][: self.cfg.candidates]:
+            loop = match_loop(f, self.kf_points, int(old), new, self.cfg, self.stats, est)
+            if loop is not None:
+                self.stats["loops_hinted"] = self.stats.get("loops_hinted", 0) + 1
+                return [loop]
+        return []
 
     def _carry(self, f: np.ndarray, k_prev: int) -> np.ndarray:
         """The last solution on today's path: old keyframes keep their correction (their filter

@@ -23,6 +23,7 @@ class Trajectory:
         self._scan_stamps: list[float] = []
         self._scan_anchor: list[int] = []  # processed step each scan hangs from
         self._scan_rel: list[np.ndarray] = []  # (3,) odometry from that step's pose
+        self._step_scan: list[int] = []  # per step k: the scan it processed
 
     def __len__(self) -> int:
         return len(self._scan_stamps)
@@ -35,6 +36,7 @@ class Trajectory:
         self._poses.append(poses.copy())
         self._pending = np.arange(p)
         self._jumping = np.zeros(p, bool)
+        self._step_scan.append(len(self._scan_stamps))
         self._scan_stamps.append(stamp_s)
         self._scan_anchor.append(len(self._poses) - 1)
         self._scan_rel.append(np.zeros(3))
@@ -76,6 +78,23 @@ class Trajectory:
         _, jumped = self._lineage(particle)
         first = np.r_[True, anchors[1:] != anchors[:-1]]  # the first scan of each processed step
         return first & jumped[anchors]
+
+    def lineage_at(self, particle: int, scans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Poses ``(N,3)`` and jump flags ``(N,)`` of scans ``scans (N,)`` along ``particle``'s
+        ancestry (as :meth:`backtrack` and :meth:`jumps`, for those scans only)."""
+        scans = np.asarray(scans, dtype=int)
+        if len(scans) == 0:
+            return np.zeros((0, 3)), np.zeros(0, bool)
+        line, jumped = self._lineage(particle)
+        anchors = np.asarray(self._scan_anchor, dtype=int)[scans]
+        rel = np.asarray(self._scan_rel)[scans]
+        before = np.asarray(self._scan_anchor, dtype=int)[np.maximum(scans - 1, 0)]
+        first = (scans == 0) | (before != anchors)
+        return compose(line[anchors], rel), first & jumped[anchors]
+
+    def scan_of_step(self, steps: np.ndarray) -> np.ndarray:
+        """The scan each processed step (``FastSLAM.step_index``, from 1) processed."""
+        return np.asarray(self._step_scan, dtype=int)[np.asarray(steps, dtype=int) - 1]
 
     def _lineage(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
         """Poses ``(K,3)`` and jump flags ``(K,)`` of ``particle``'s ancestor at every step."""

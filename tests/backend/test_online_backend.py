@@ -4,7 +4,7 @@ filter's path at any moment, jumps bridged, the work per update bounded."""
 import numpy as np
 import pytest
 
-from robot_agent.backend import Correction, OnlineBackend
+from robot_agent.backend import Correction, OnlineBackend, Track
 from robot_agent.slam import backend as be
 from shared.geometry import apply_points, compose, relative
 
@@ -46,10 +46,10 @@ def test_loops_close_while_the_path_grows_and_end_where_the_offline_back_end_doe
     n = len(drifted)
     seen = []  # (scans, error of the corrected prefix, of the drifted one)
     for end in range(50, n, 50):  # an update every 50 scans (10 s)
-        corr = online.update(log.stamps_s[:end], drifted[:end], log.odometry[:end], points)
+        corr = online.update(Track.whole(log.stamps_s[:end], drifted[:end], log.odometry[:end]), points)
         fixed = _ate(sim, log.stamps_s[:end], corr.apply(drifted[:end]))
         seen.append((online.stats.get("loops", 0), fixed, _ate(sim, log.stamps_s[:end], drifted[:end])))
-    final = online.finish(log.stamps_s, drifted, log.odometry, points)
+    final = online.finish(Track.whole(log.stamps_s, drifted, log.odometry), points)
     offline, _ = be.run_backend(log.stamps_s, drifted, log.odometry, points, be.BackendConfig())
     ours, theirs = _ate(sim, log.stamps_s, final.apply(drifted)), _ate(sim, log.stamps_s, offline)
     assert _ate(sim, log.stamps_s, drifted) > 0.8
@@ -90,9 +90,9 @@ def test_a_jump_is_bridged_by_odometry_when_it_arrives():
     jumps = np.arange(60) == 40
     none = lambda i: np.zeros((0, 2))  # noqa: E731 — no scan: no loop can be found
     online = OnlineBackend(be.BackendConfig())
-    first = online.update(np.arange(30.0), poses[:30], odo[:30], none, jumps[:30])
+    first = online.update(Track.whole(np.arange(30.0), poses[:30], odo[:30], jumps[:30]), none)
     np.testing.assert_allclose(first.apply(poses[:30]), poses[:30])
-    out = online.update(np.arange(60.0), poses, odo, none, jumps).apply(poses)
+    out = online.update(Track.whole(np.arange(60.0), poses, odo, jumps), none).apply(poses)
     assert online.stats["jumps"] == 1
     np.testing.assert_allclose(relative(out[39], out[40]), relative(odo[39], odo[40]), atol=1e-6)
 
@@ -103,7 +103,28 @@ def test_the_moved_keyframes_searched_again_per_update_are_bounded(drifted_offic
     online = OnlineBackend(cfg)
     before = 0
     for end in range(50, len(drifted), 50):
-        online.update(log.stamps_s[:end], drifted[:end], log.odometry[:end], points)
+        online.update(Track.whole(log.stamps_s[:end], drifted[:end], log.odometry[:end]), points)
         assert online.stats.get("requeried", 0) - before <= 3
         before = online.stats.get("requeried", 0)
     assert online.stats["loops"] >= 10
+
+
+def test_an_agent_passes_only_the_path_since_the_last_keyframe(drifted_office):
+    """An agent does not hand the whole path over at every update: the scans from the last
+    keyframe on, and the path's poses at the keyframes. Same corrections as the whole path."""
+    _, log, drifted, points = drifted_office
+    whole, tail = OnlineBackend(be.BackendConfig()), OnlineBackend(be.BackendConfig())
+    for end in range(50, len(drifted), 50):
+        a = whole.update(Track.whole(log.stamps_s[:end], drifted[:end], log.odometry[:end]), points)
+        first = tail.kf_scan[-1] if tail.kf_scan else 0
+        part = Track(np.arange(first, end), log.stamps_s[first:end], drifted[first:end],
+                     log.odometry[first:end], np.zeros(end - first, bool))  # fmt: skip
+        b = tail.update(part, points, kf_poses=drifted[tail.kf_scan])
+        np.testing.assert_array_equal(a.kf_scan, b.kf_scan)
+        np.testing.assert_allclose(a.corrected, b.corrected, atol=1e-9)
+    assert whole.stats["loops"] == tail.stats["loops"] > 0
+    with pytest.raises(ValueError, match="after the last keyframe"):
+        late = Track(
+            np.arange(end + 1, end + 5), log.stamps_s[:4], drifted[:4], log.odometry[:4], np.zeros(4, bool)
+        )
+        tail.update(late, points, kf_poses=drifted[tail.kf_scan])

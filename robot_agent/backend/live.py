@@ -1,0 +1,270 @@
+"""The online back end beside a running filter: what an agent runs.
+
+:class:`LiveCorrector` keeps the few scans the back end has not turned into keyframes yet, hands
+it the filter's best path every ``online_every_s`` of the source's time, and holds the latest
+:class:`~robot_agent.backend.online.Correction` — which the agent applies to the pose and the map
+it publishes. The back end works in a process of its own (:class:`ProcessRunner`): the filter
+never waits for it, and does not share the interpreter's lock with it; :class:`InlineRunner` runs
+it in the caller's thread instead (tests, and a replay's deterministic snapshots).
+
+What is handed over per update is bounded: the path from the back end's last keyframe on (scans
+kept for it at most ``max_tail`` — a robot that stands still for long keeps the newest), the path's
+poses at the keyframes, the relocalizations since the last update.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from robot_agent.backend.online import Correction, OnlineBackend, Track
+from robot_agent.slam.extraction import scan_points
+from robot_agent.slam.fastslam import FastSLAM, SlamConfig
+from shared.geometry import apply_points, compose, inverse
+
+
+@dataclass(frozen=True)
+class ScanRecord:
+    """What the back end needs of one scan: its index in the run, stamp, raw odometry, and its
+    points in the robot frame (valid beams, laser mount applied; float32)."""
+
+    index: int
+    stamp_s: float
+    odometry: np.ndarray
+    points: np.ndarray
+
+
+@dataclass(frozen=True)
+class Job:
+    track: Track
+    points: dict  # scan index -> (N,2) robot-frame points of the track's scans
+    kf_poses: np.ndarray
+    hints: list
+    final: bool = False
+
+
+def run_job(backend: OnlineBackend, job: Job) -> tuple[Correction, dict]:
+    def points_of(i: int) -> np.ndarray:
+        return np.asarray(job.points[i], dtype=float)
+
+    how = backend.finish if job.final else backend.update
+    corr = how(job.track, points_of, kf_poses=job.kf_poses, hints=job.hints)
+    return corr, dict(backend.stats)
+
+
+class InlineRunner:
+    """The back end in the caller's thread: ``submit`` computes at once."""
+
+    def __init__(self, cfg: SlamConfig):
+        self.backend = OnlineBackend(cfg.backend)
+        self._done: tuple[Correction, dict] | None = None
+
+    @property
+    def busy(self) -> bool:
+        return False
+
+    def submit(self, job: Job) -> None:
+        self._done = run_job(self.backend, job)
+
+    def poll(self, timeout_s: float = 0.0) -> tuple[Correction, dict] | None:
+        done, self._done = self._done, None
+        return done
+
+    def close(self) -> None:
+        pass
+
+
+def _serve(conn, cfg: SlamConfig) -> None:  # pragma: no cover - runs in the child process
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the agent decides when its back end stops
+    backend = OnlineBackend(cfg.backend)
+    while True:
+        try:
+            job = conn.recv()
+        except (EOFError, OSError):
+            return
+        if job is None:
+            return
+        conn.send(run_job(backend, job))
+
+
+class ProcessRunner:
+    """The back end in a child process (spawned: no state of the parent's bus is inherited)."""
+
+    def __init__(self, cfg: SlamConfig):
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_serve, args=(child, cfg), name="fleet-slam-backend", daemon=True)
+        self._proc.start()
+        child.close()
+        self._busy = False
+
+    @property
+    def busy(self) -> bool:
+        return self._busy
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid
+
+    def submit(self, job: Job) -> None:
+        if self._busy:
+            raise RuntimeError("the back end is still working on the last update")
+        self._conn.send(job)
+        self._busy = True
+
+    def poll(self, timeout_s: float = 0.0) -> tuple[Correction, dict] | None:
+        if not self._busy:
+            return None
+        if not self._proc.is_alive() and not self._conn.poll():
+            raise RuntimeError(f"the back end process exited (code {self._proc.exitcode})")
+        if not self._conn.poll(timeout_s):
+            return None
+        self._busy = False
+        return self._conn.recv()
+
+    def close(self) -> None:
+        try:
+            self._conn.send(None)
+        except (OSError, ValueError):
+            pass
+        self._proc.join(2.0)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(2.0)
+        self._conn.close()
+
+
+class LiveCorrector:
+    """Feeds the online back end from a running filter and holds its latest correction.
+
+    Call :meth:`on_scan` after every scan given to the filter and :meth:`tick` as often as
+    convenient (it never blocks); apply :attr:`correction` to what is published
+    (:meth:`pose`, :meth:`segments`)."""
+
+    def __init__(self, slam: FastSLAM, runner=None, max_tail: int = 2000):
+        self.slam = slam
+        self.cfg = slam.cfg
+        self.runner = InlineRunner(slam.cfg) if runner is None else runner
+        self.correction = Correction(np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)))
+        self.stats: dict = {}
+        self.max_tail = max_tail
+        self.dropped_tail = 0  # scans dropped from an overlong tail (the robot stood still)
+        self._tail: deque[ScanRecord] = deque()
+        self._kf_scan = np.zeros(0, int)  # the back end's keyframes as of its last answer
+        self._hints = 0
+        self._clock = -np.inf
+        self._next_s = -np.inf
+        self.updates = 0
+        self.seconds_waited = 0.0  # the caller's time spent waiting (only in finish)
+
+    def on_scan(
+        self, stamp_s: float, odometry, ranges_m, angles_rad, laser_offset, range_max_m=np.inf
+    ) -> None:
+        """The scan just given to the filter (the filter's scan index is the count so far)."""
+        index = len(self.slam.trajectory) - 1
+        ext = self.cfg.extraction
+        pts = apply_points(
+            laser_offset, scan_points(np.asarray(ranges_m), np.asarray(angles_rad), ext, range_max_m)
+        )
+        rec = ScanRecord(index, float(stamp_s), np.asarray(odometry, float).copy(), pts.astype(np.float32))
+        self._tail.append(rec)
+        if len(self._tail) > self.max_tail:  # keep the last keyframe's scan and the newest
+            first = self._tail.popleft()
+            self._tail.popleft()
+            self._tail.appendleft(first)
+            self.dropped_tail += 1
+        self._clock = max(self._clock, float(stamp_s))
+
+    def tick(self) -> bool:
+        """Collect a finished update (True when a new correction came) and start the next one
+        when it is due and the back end is idle."""
+        fresh = self._collect(self.runner.poll(0.0))
+        if self._tail and not self.runner.busy and self._clock >= self._next_s:
+            self._next_s = self._clock + self.cfg.backend.online_every_s
+            self.runner.submit(self._job(final=False))
+            fresh = self._collect(self.runner.poll(0.0)) or fresh
+        return fresh
+
+    def finish(self, timeout_s: float) -> bool:
+        """The last update (every moved keyframe searched again), waited for at most
+        ``timeout_s`` (the update in flight first); True when it came in time."""
+        t0 = time.monotonic()
+        try:
+            while self.runner.busy:
+                left = timeout_s - (time.monotonic() - t0)
+                if left <= 0:
+                    return False
+                self._collect(self.runner.poll(min(left, 0.1)))
+            if not self._tail:
+                return True
+            self.runner.submit(self._job(final=True))
+            while True:
+                left = timeout_s - (time.monotonic() - t0)
+                if left <= 0:
+                    return False
+                if self._collect(self.runner.poll(min(left, 0.1))):
+                    return True
+        finally:
+            self.seconds_waited += time.monotonic() - t0
+
+    def close(self) -> None:
+        self.runner.close()
+
+    # --- applying the correction -----------------------------------------------------------
+
+    def pose(self, pose: np.ndarray) -> np.ndarray:
+        """The corrected pose of the newest scan, at ``pose`` in the filter's map."""
+        return self.correction.pose(len(self.slam.trajectory) - 1, pose)
+
+    def segments(self, seg: np.ndarray, born_step: np.ndarray) -> np.ndarray:
+        """Segments ``(N,2,2)`` of the filter's map, each moved with the keyframe of the scan
+        that created it (``born_step (N,)``: :attr:`SegmentMaps.born`)."""
+        c = self.correction
+        if len(c.kf_scan) == 0 or len(seg) == 0:
+            return seg
+        scan = self.slam.trajectory.scan_of_step(np.maximum(born_step, 1))
+        k = np.maximum(np.searchsorted(c.kf_scan, scan, side="right") - 1, 0)
+        move = compose(c.corrected[k], inverse(c.filter[k]))  # (N,3): filter map -> corrected
+        cos, sin = np.cos(move[:, 2]), np.sin(move[:, 2])
+        x, y = seg[..., 0], seg[..., 1]
+        out = np.empty_like(seg)
+        out[..., 0] = cos[:, None] * x - sin[:, None] * y + move[:, 0, None]
+        out[..., 1] = sin[:, None] * x + cos[:, None] * y + move[:, 1, None]
+        return out
+
+    # --- the hand-over ---------------------------------------------------------------------
+
+    def _job(self, final: bool) -> Job:
+        slam = self.slam
+        best = slam.particles.best()
+        recs = list(self._tail)
+        idx = np.array([r.index for r in recs], dtype=int)
+        poses, jumps = slam.trajectory.lineage_at(best, idx)
+        track = Track(
+            idx,
+            np.array([r.stamp_s for r in recs]),
+            poses,
+            np.array([r.odometry for r in recs]).reshape(-1, 3),
+            jumps,
+        )
+        kf_poses, _ = slam.trajectory.lineage_at(best, self._kf_scan)
+        hints, self._hints = list(slam.loop_hints[self._hints :]), len(slam.loop_hints)
+        return Job(track, {r.index: r.points for r in recs}, kf_poses, hints, final)
+
+    def _collect(self, done) -> bool:
+        if done is None:
+            return False
+        self.correction, self.stats = done
+        self.updates += 1
+        self._kf_scan = self.correction.kf_scan
+        if len(self._kf_scan):  # the back end will not need the scans before its last keyframe
+            last = int(self._kf_scan[-1])
+            while self._tail and self._tail[0].index < last:
+                self._tail.popleft()
+        return True
