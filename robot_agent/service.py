@@ -139,6 +139,29 @@ class SimSource:
         write_poses(out / f"{robot}.truth.txt", np.array(self.stamps), np.array(self.truth).reshape(-1, 3))
 
 
+class BackendReport:
+    """One line when the online back end's loops change, at most every ``every_s`` of wall time."""
+
+    def __init__(self, robot: str, corrector, every_s: float = 10.0):
+        self.robot, self.corrector, self.every_s = robot, corrector, every_s
+        self._loops = 0
+        self._next = 0.0
+
+    def __call__(self, core) -> None:
+        if self.corrector is None:
+            return
+        loops = self.corrector.stats.get("loops", 0)
+        now = time.monotonic()
+        if loops != self._loops and now >= self._next:
+            self._loops, self._next = loops, now + self.every_s
+            st = self.corrector.stats
+            print(
+                f"agent {self.robot}: online back end: {loops} loops, {st.get('keyframes', 0)} keyframes, "
+                f"{self.corrector.updates} updates (longest {st.get('update_s_max', 0.0):.2f} s)",
+                flush=True,
+            )
+
+
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -189,7 +212,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         with Bus(bus_cfg, cancel=stop) as bus:
             print(f"agent {args.robot}: session {core.session}, connected", flush=True)
-            pub = run_agent(bus, keys, core, scans, stop, on_estimate)
+            pub = run_agent(bus, keys, core, scans, stop, on_estimate, BackendReport(args.robot, corrector))
             stamps, filter_poses = slam.best_trajectory()  # the best particle's, in the robot's map frame
             poses = filter_poses
             if corrector is not None and len(poses):
