@@ -262,7 +262,8 @@ class LiveCorrector:
             return False
         self.correction, self.stats = done
         self.updates += 1
-        self._kf_scan = self.correction.kf_scan
+        graph = self.correction.graph_scan
+        self._kf_scan = self.correction.kf_scan if graph is None else graph
         if len(self._kf_scan):  # the back end will not need the scans before its last keyframe
             last = int(self._kf_scan[-1])
             while self._tail and self._tail[0].index < last:

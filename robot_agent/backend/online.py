@@ -27,7 +27,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
+from robot_agent.slam import posegraph
 from robot_agent.slam.backend import (
     BackendConfig,
     Loop,
@@ -38,7 +40,7 @@ from robot_agent.slam.backend import (
     path_drift,
 )
 from robot_agent.slam.extraction import voxel_thin
-from shared.geometry import compose, relative, wrap_angle
+from shared.geometry import compose, inverse, relative, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -78,6 +80,8 @@ class Correction:
     filter: np.ndarray
     corrected: np.ndarray
     loops: int = 0
+    graph_scan: np.ndarray | None = None  # the keyframes still in the graph (default: kf_scan),
+    # whose poses on the filter's path the back end asks for at its next update
 
     def apply(self, poses: np.ndarray) -> np.ndarray:
         """The corrected path ``(S,3)`` of the filter's path ``poses (S,3)`` (of this run: scan
@@ -106,8 +110,20 @@ class OnlineBackend:
     _x: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # corrected poses, last update
     _queried_at: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # estimate when queried
     _queried: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-    _jump_edges: dict = field(default_factory=dict)  # chain edge -> motion across a jump
+    _jump_edges: dict = field(default_factory=dict)  # id of the keyframe after a jump -> the
+    # motion from the keyframe before it (path, then odometry across the jump)
     _surprises: list[Loop] = field(default_factory=list)  # loops the estimate contradicts, waiting
+    kf_arc: list[float] = field(default_factory=list)  # length of the filter's path up to each
+    kf_id: list[int] = field(default_factory=list)  # each keyframe's identity: positions change
+    # when older keyframes retire, identities do not
+    _broken_in: set = field(default_factory=set)  # ids whose chain edge from the keyframe before
+    # was carried over to retired ones' anchors (a virtual edge instead)
+    _virtual: dict = field(default_factory=dict)  # (id a, id b) -> (z (3,), cov (3,3)): edges
+    # carried over from retired keyframes, held like the chain
+    _ret_scan: list[int] = field(default_factory=list)  # retired keyframes: scan, ...
+    _ret_anchor: list[int] = field(default_factory=list)  # ... the keyframe (id) it follows, ...
+    _ret_rel: list[np.ndarray] = field(default_factory=list)  # ... its pose in that one's frame, ...
+    _ret_filter: list[np.ndarray] = field(default_factory=list)  # ... and its filter pose
     _waiting: int = 0
 
     @property
@@ -115,7 +131,17 @@ class OnlineBackend:
         return len(self.kf_scan)
 
     def correction(self) -> Correction:
-        return Correction(np.asarray(self.kf_scan, int), self._ref.copy(), self._x.copy(), len(self.loops))
+        """The keyframes in the graph and the retired ones (each following the keyframe it
+        retired to), in scan order."""
+        active = np.asarray(self.kf_scan, int)
+        if not self._ret_scan:
+            return Correction(active, self._ref.copy(), self._x.copy(), len(self.loops), active)
+        anchor = np.searchsorted(np.asarray(self.kf_id), np.asarray(self._ret_anchor))
+        scans = np.concatenate([active, np.asarray(self._ret_scan, int)])
+        filt = np.vstack([self._ref, np.asarray(self._ret_filter)])
+        corr = np.vstack([self._x, compose(self._x[anchor], np.asarray(self._ret_rel))])
+        order = np.argsort(scans, kind="stable")
+        return Correction(scans[order], filt[order], corr[order], len(self.loops), active)
 
     def update(
         self,
@@ -144,8 +170,7 @@ class OnlineBackend:
         kf = np.asarray(self.kf_scan, int)
         est = self._carry(f, k_prev)
         stamps = np.asarray(self.kf_stamp)
-        step = relative(f[:-1], f[1:])
-        arc = np.concatenate([[0.0], np.cumsum(np.hypot(step[:, 0], step[:, 1]))])
+        arc = np.asarray(self.kf_arc)
 
         found: list[Loop] = []
         for i, pose in hints or []:
@@ -158,7 +183,7 @@ class OnlineBackend:
         changed = accepted > 0 or len(self._jump_edges) != self.stats.get("jumps", 0)
         self.stats["jumps"] = len(self._jump_edges)
         if changed:
-            est = optimize(f, self.loops, cfg, self.stats, self._jump_edges, x0=est)
+            est = self._optimize(f, est)
             self.stats["optimizations"] = self.stats.get("optimizations", 0) + 1
         budget = cfg.online_requeries if requeries is None else requeries
         passes = 0
@@ -168,11 +193,15 @@ class OnlineBackend:
             more = self._requery(f, est, stamps, budget)
             if not self._admit(more, est, final=budget < 0):
                 break
-            est = optimize(f, self.loops, cfg, self.stats, self._jump_edges, x0=est)
+            est = self._optimize(f, est)
             if budget < 0 and len(more) < cfg.min_pass_loops:
                 break
         self._ref, self._x = f, est
-        self.stats["keyframes"] = len(kf)
+        if cfg.online_retire_m > 0:
+            self._retire()
+        self.stats["keyframes"] = len(self.kf_scan)
+        self.stats["retired"] = len(self._ret_scan)
+        self.stats["virtual_edges"] = len(self._virtual)
         self.stats["loops"] = len(self.loops)
         self.stats["updates"] = self.stats.get("updates", 0) + 1
         dt = time.perf_counter() - t0
@@ -207,6 +236,131 @@ class OnlineBackend:
         self.stats["surprises_waiting"] = self._waiting
         return admitted
 
+    def _optimize(self, f: np.ndarray, est: np.ndarray) -> np.ndarray:
+        """The graph: the chain between keyframes (but where retired ones were: their edges,
+        carried over to the keyframes they retired to), the jumps, the loops."""
+        pos = {k: p for p, k in enumerate(self.kf_id)}
+        jumps = {pos[k] - 1: motion for k, motion in self._jump_edges.items() if k in pos and pos[k] > 0}
+        keep = np.array([k not in self._broken_in for k in self.kf_id[1:]], bool)
+        extra = None
+        if self._virtual:
+            pairs = list(self._virtual.items())
+            a = np.array([pos[i] for (i, _), _ in pairs], int)
+            b = np.array([pos[j] for (_, j), _ in pairs], int)
+            z = np.array([v[0] for _, v in pairs]).reshape(-1, 3)
+            info = np.linalg.inv(np.array([v[1] for _, v in pairs]).reshape(-1, 3, 3))
+            extra = (a, b, z, info)
+        return optimize(f, self.loops, self.cfg, self.stats, jumps, x0=est, chain_keep=keep, extra=extra)
+
+    def _retire(self) -> None:
+        """Keyframes older than the window that the corrected path puts within online_retire_m /
+        _rad of a keyframe at least min_gap_keyframes older, near a loop (their place is known,
+        and they are tied to it), leave the graph: the robot passing a known place again adds
+        nothing to it for good. A retired keyframe's scans follow the older one rigidly; its
+        edges are carried over to that one (chain and virtual edges composed with the offset
+        between the two, one edge per pair of keyframes: the stronger), loops from it as well;
+        its own loops, which tied it there, go with it."""
+        cfg = self.cfg
+        n = len(self.kf_scan)
+        limit = n - cfg.online_window
+        if limit <= 1 or not self.loops:
+            return
+        x = self._x
+        ids = list(self.kf_id)
+        pos = {k: p for p, k in enumerate(ids)}
+        near_loop = np.zeros(n, bool)
+        for lp in self.loops:
+            near_loop[max(lp.new - 2, 0) : lp.new + 3] = True
+        after_jump = [pos[k] for k in self._jump_edges if k in pos]
+        fixed = {0} | set(after_jump) | {p - 1 for p in after_jump}  # a jump's two ends stay
+        tree = cKDTree(x[:limit, :2])
+        targets: dict[int, tuple[int, np.ndarray]] = {}
+        for k in range(1, limit):
+            if k in fixed or not near_loop[k]:
+                continue
+            best = None
+            for j in tree.query_ball_point(x[k, :2], cfg.online_retire_m):
+                if j > k - cfg.min_gap_keyframes or j in targets:
+                    continue
+                rel = relative(x[j], x[k])
+                d = float(np.hypot(rel[0], rel[1]))
+                if abs(rel[2]) < cfg.online_retire_rad and (best is None or d < best[0]):
+                    best = (d, j, rel)
+            if best is not None:
+                targets[k] = (best[1], best[2])
+        if not targets:
+            return
+        gone = np.zeros(n, bool)
+        cov_rel = np.diag([cfg.loop_sigma_xy_m**2, cfg.loop_sigma_xy_m**2, cfg.loop_sigma_theta_rad**2])
+        ret_anchor = np.asarray(self._ret_anchor, int)
+        for k in sorted(targets):
+            j, rel = targets[k]
+            ik, ij = ids[k], ids[j]
+            prev = next(p for p in range(k - 1, -1, -1) if not gone[p])
+            nxt = next((p for p in range(k + 1, n) if not gone[p]), None)
+            # the chain edges into and out of k become edges of their own ...
+            if ik not in self._broken_in:
+                self._add_virtual(ids[prev], ik, relative(self._ref[prev], self._ref[k]), None)
+            if nxt is not None and ids[nxt] not in self._broken_in:
+                self._add_virtual(ik, ids[nxt], relative(self._ref[k], self._ref[nxt]), None)
+                self._broken_in.add(ids[nxt])
+            self._broken_in.discard(ik)
+            # ... and every edge of k is carried over to j
+            for (a, b), (z, cov) in list(self._virtual.items()):
+                if ik not in (a, b):
+                    continue
+                del self._virtual[(a, b)]
+                if a == ik:  # k -> b: j -> b
+                    z2, cov2 = compose(rel, z), _rotated(cov, rel[2]) + cov_rel
+                    a = ij
+                else:  # a -> k: a -> j
+                    z2, cov2 = compose(z, inverse(rel)), cov + cov_rel
+                    b = ij
+                if a != b:
+                    self._add_virtual(a, b, z2, cov2)
+            self._ret_scan.append(self.kf_scan[k])
+            self._ret_anchor.append(ij)
+            self._ret_rel.append(rel)
+            self._ret_filter.append(self._ref[k].copy())
+            for r in np.flatnonzero(ret_anchor == ik):  # those that followed k now follow j
+                self._ret_anchor[r] = ij
+                self._ret_rel[r] = compose(rel, self._ret_rel[r])
+            gone[k] = True
+        newpos = np.cumsum(~gone) - 1
+
+        def moved(lp: Loop) -> Loop | None:
+            if gone[lp.new]:
+                return None
+            old, z, info = lp.old, lp.z, lp.info
+            if gone[old]:  # a loop from k: from the keyframe k follows
+                j, rel = targets[old]
+                z, info, old = compose(rel, z), _rotated(info, rel[2]), j
+            return Loop(int(newpos[old]), int(newpos[lp.new]), z, lp.score, info, lp.inliers)
+
+        self.loops = [m for m in map(moved, self.loops) if m is not None]
+        self._surprises = [m for m in map(moved, self._surprises) if m is not None]
+        self._waiting = len(self._surprises)
+        keep = ~gone
+        self.kf_scan = [v for v, g in zip(self.kf_scan, gone, strict=True) if not g]
+        self.kf_stamp = [v for v, g in zip(self.kf_stamp, gone, strict=True) if not g]
+        self.kf_points = [v for v, g in zip(self.kf_points, gone, strict=True) if not g]
+        self.kf_id = [v for v, g in zip(self.kf_id, gone, strict=True) if not g]
+        self.kf_arc = [v for v, g in zip(self.kf_arc, gone, strict=True) if not g]
+        self._ref, self._x = self._ref[keep], self._x[keep]
+        self._queried, self._queried_at = self._queried[keep], self._queried_at[keep]
+
+    def _add_virtual(self, a: int, b: int, z: np.ndarray, cov: np.ndarray | None) -> None:
+        """Edge ``a -> b`` (ids); ``cov`` None: a chain edge's. One per pair: the stronger."""
+        if cov is None:
+            cov = np.diag(1.0 / posegraph.chain_information(z[None], self.cfg.chain)[0])
+        key, rev = (a, b), (b, a)
+        if rev in self._virtual:  # the same pair the other way round: compare as b -> a
+            z, cov, key = inverse(z), _rotated(cov, -z[2]), rev
+            # (the inverse motion's covariance, rotated into b's frame: close enough to compare)
+        old = self._virtual.get(key)
+        if old is None or np.trace(cov) < np.trace(old[1]):
+            self._virtual[key] = (np.asarray(z, float), np.asarray(cov, float))
+
     def _extend(self, track: Track, points_of) -> np.ndarray:
         """New keyframes from ``track`` after the last one (one every keyframe_m / keyframe_rad
         of the path, one at each of the filter's jumps, whose chain edge is then the path up to
@@ -215,29 +369,34 @@ class OnlineBackend:
         added: list[np.ndarray] = []
         t0 = 0
         if not self.kf_scan:
-            self._add(track, 0, points_of)
+            self._add(track, 0, points_of, 0.0)
             added.append(track.poses[0])
         else:
             t0 = int(np.searchsorted(track.scan, self.kf_scan[-1]))
             if t0 >= len(track.scan) or track.scan[t0] != self.kf_scan[-1]:
                 raise ValueError(f"track: starts after the last keyframe (scan {self.kf_scan[-1]})")
         last_t = t0
+        step = relative(track.poses[:-1], track.poses[1:])
+        run = np.concatenate([[0.0], np.cumsum(np.hypot(step[:, 0], step[:, 1]))])  # along the track
+        base = self.kf_arc[-1] - run[t0]
         for t in range(t0 + 1, len(track.scan)):
             d = relative(track.poses[last_t], track.poses[t])
             jump = bool(track.jumps[t])
             if jump or np.hypot(d[0], d[1]) >= cfg.keyframe_m or abs(d[2]) >= cfg.keyframe_rad:
-                if jump:  # chain edge (previous keyframe -> this one)
+                self._add(track, t, points_of, base + run[t])
+                if jump:  # the chain edge (previous keyframe -> this one)
                     across = relative(track.odometry[t - 1], track.odometry[t])
-                    self._jump_edges[len(self.kf_scan) - 1] = compose(
+                    self._jump_edges[self.kf_id[-1]] = compose(
                         relative(track.poses[last_t], track.poses[t - 1]), across
                     )
-                self._add(track, t, points_of)
                 added.append(track.poses[t])
                 last_t = t
         return np.array(added).reshape(-1, 3)
 
-    def _add(self, track: Track, t: int, points_of) -> None:
+    def _add(self, track: Track, t: int, points_of, arc_m: float) -> None:
         i = int(track.scan[t])
+        self.kf_arc.append(float(arc_m))
+        self.kf_id.append(self.kf_id[-1] + 1 if self.kf_id else 0)
         self.kf_scan.append(i)
         self.kf_stamp.append(float(track.stamps_s[t]))
         self.kf_points.append(voxel_thin(points_of(i), self.cfg.voxel_m))
@@ -286,14 +445,27 @@ class OnlineBackend:
         return picked
 
     def _query(self, f, est, stamps, new, arc) -> list[Loop]:
-        """A new keyframe: candidates near it on the filter's path, widened by the drift that path
-        may hold since them, each searched that wide around the filter's path (not around the
-        correction so far: a wrong loop there would steer the search away from the right place)."""
+        """A new keyframe: candidates near it, widened by the drift its estimate may hold, each
+        searched that wide. First around the filter's path, as far as it may have drifted since
+        the old keyframe (not around the correction so far: a wrong loop there would steer the
+        search away from the right place). When that finds nothing and loops tie the path down:
+        around the corrected path, as far as it may have drifted since the newest keyframe a
+        loop ties — where the robot comes back to a place it passed long ago (drifted farther
+        than the first search reaches) while loops since kept its estimate right."""
         self._queried[new], self._queried_at[new] = True, est[new]
+        out = self._search(f, f, stamps, new, arc)
+        tied = [lp.new for lp in self.loops if lp.new < new]
+        if not out and tied:
+            span = np.full(len(arc), arc[max(tied)])
+            span[new] = arc[new]
+            out = self._search(f, est, stamps, new, span)
+        return out
+
+    def _search(self, f, centre, stamps, new, span) -> list[Loop]:
         out = []
-        for old in self._candidates(f, stamps, new, arc):
-            drift = path_drift(arc, old, new, self.cfg)
-            loop = match_loop(f, self.kf_points, old, new, self.cfg, self.stats, None, drift)
+        for old in self._candidates(centre, stamps, new, span):
+            drift = path_drift(span, old, new, self.cfg)
+            loop = match_loop(f, self.kf_points, old, new, self.cfg, self.stats, centre, drift)
             if loop is not None:
                 out.append(loop)
         return out
@@ -317,3 +489,11 @@ class OnlineBackend:
                     out.append(loop)
         self.stats["requeried"] = self.stats.get("requeried", 0) + len(idx)
         return out
+
+
+def _rotated(m: np.ndarray, theta: float) -> np.ndarray:
+    """A pose covariance or information ``(3,3)`` expressed in a frame turned by ``theta``."""
+    rot = np.eye(3)
+    c, s = np.cos(theta), np.sin(theta)
+    rot[:2, :2] = [[c, -s], [s, c]]
+    return rot @ m @ rot.T

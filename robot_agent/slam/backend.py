@@ -96,6 +96,12 @@ class BackendConfig:
     online_every_s: float = 5.0
     online_requeries: int = 100  # ... re-searching at most this many moved keyframes; loops
     online_surprises: int = 3  # that the estimate contradicts go in when this many have come
+    # a keyframe the corrected path puts within this of an older one (the robot passing a known
+    # place again) leaves the graph once this many keyframes are newer: its scans follow that
+    # older one from then on, its edges are carried over to it (robot_agent/backend/online.py)
+    online_retire_m: float = 0.3  # (0: never)
+    online_retire_rad: float = np.radians(10.0)
+    online_window: int = 100
 
 
 def select_keyframes(poses: np.ndarray, cfg: BackendConfig, jumps: np.ndarray | None = None) -> np.ndarray:
@@ -321,22 +327,31 @@ def optimize(
     stats: dict,
     jump_edges: dict | None = None,
     x0: np.ndarray | None = None,
+    chain_keep: np.ndarray | None = None,
+    extra: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Keyframe poses ``(K,3)`` after the pose graph (chain + verified loops, robust), from
     ``x0 (K,3)`` (default ``kf_poses``, the path the chain is measured on).
-    ``jump_edges``: chain edge index -> motion to use instead, loosely held."""
+    ``jump_edges``: chain edge index -> motion to use instead, loosely held; ``chain_keep (K-1,)``:
+    the chain edges used (default all); ``extra``: more edges ``a, b (E,), z (E,3), info (E,3,3)``
+    held like the chain (not robust)."""
     a, b, z, info = posegraph.chain_edges(kf_poses, cfg.chain)
     for e, motion in (jump_edges or {}).items():
         z[e] = motion
         info[e] = 1.0 / np.array([cfg.jump_sigma_xy_m, cfg.jump_sigma_xy_m, cfg.jump_sigma_theta_rad]) ** 2
+    info = posegraph.full_information(info)
+    if chain_keep is not None:
+        a, b, z, info = a[chain_keep], b[chain_keep], z[chain_keep], info[chain_keep]
+    if extra is not None and len(extra[0]):
+        a, b = np.concatenate([a, extra[0]]), np.concatenate([b, extra[1]])
+        z, info = np.vstack([z, extra[2]]), np.vstack([info, extra[3]])
     start = kf_poses if x0 is None else x0
-    if not loops and not jump_edges:
+    if not loops and not jump_edges and extra is None:
         return start.copy()
     la = np.array([lp.old for lp in loops], dtype=int)
     lb = np.array([lp.new for lp in loops], dtype=int)
     lz = np.array([lp.z for lp in loops], dtype=float).reshape(-1, 3)
     li = np.array([lp.info for lp in loops], dtype=float).reshape(-1, 3, 3)
-    info = posegraph.full_information(info)
     keep = np.ones(len(la), bool)
     for _round in range(3):
         # a wide kernel first, then narrower: loops far from the initial path (a large drift)

@@ -128,3 +128,49 @@ def test_an_agent_passes_only_the_path_since_the_last_keyframe(drifted_office):
             np.arange(end + 1, end + 5), log.stamps_s[:4], drifted[:4], log.odometry[:4], np.zeros(4, bool)
         )
         tail.update(late, points, kf_poses=drifted[tail.kf_scan])
+
+
+def test_passing_known_places_again_adds_nothing_to_the_graph_for_good():
+    """Three rounds of the office along a path drifted 0.2°/m and 2 % long: after the first
+    round the keyframes the robot adds where it has been retire onto the older ones (their
+    edges carried over), so the graph stops growing; the path comes out as accurate as with every
+    keyframe kept."""
+    from robot_agent.sim import SimConfig, builtin_world, simulate_robot
+    from robot_agent.slam.extraction import ExtractionConfig, scan_points
+    from shared.metrics import ate
+
+    sim = simulate_robot(builtin_world("office"), 0, 600.0, 0, SimConfig())
+    log, truth = sim.to_log(), sim.truth
+    u = relative(truth[:-1], truth[1:])
+    u[:, :2] *= 1.02
+    u[:, 2] += np.radians(0.2) * np.hypot(u[:, 0], u[:, 1])
+    drifted = [truth[0]]
+    for step in u:
+        drifted.append(compose(drifted[-1], step))
+    drifted = np.array(drifted)
+
+    def points(i):
+        s = log.scan(i)
+        return apply_points(
+            s.laser_offset, scan_points(s.ranges_m, s.angles_rad, ExtractionConfig(), s.range_max_m)
+        )
+
+    def run(cfg):
+        online, sizes = OnlineBackend(cfg), []
+        for end in range(50, len(drifted), 50):
+            online.update(Track.whole(log.stamps_s[:end], drifted[:end], log.odometry[:end]), points)
+            sizes.append(online.keyframes)
+        final = online.finish(Track.whole(log.stamps_s, drifted, log.odometry), points)
+        return online, sizes, ate(log.stamps_s, final.apply(drifted), sim.stamps_s, truth).rmse_m
+
+    kept, kept_sizes, kept_err = run(be.BackendConfig(online_retire_m=0.0))
+    lean, lean_sizes, lean_err = run(be.BackendConfig())
+    assert kept_sizes[-1] > 550 and kept.stats.get("retired", 0) == 0  # measured 621
+    assert lean_sizes[-1] < 320 and lean.stats["retired"] > 300  # measured 286 and 391
+    assert max(lean_sizes[-20:]) - min(lean_sizes[-20:]) < 40  # the last 100 s: flat
+    assert len(lean.kf_points) == lean.keyframes  # the retired ones' points are gone
+    assert lean_err < 0.25 and lean_err < 1.1 * kept_err  # measured 0.172 m against 0.192 m
+    # every scan still has a corrected pose: a retired keyframe's scans follow its anchor
+    corr = lean.correction()
+    assert len(corr.kf_scan) == lean.keyframes + lean.stats["retired"]
+    assert np.all(np.diff(corr.kf_scan) > 0) and np.array_equal(corr.graph_scan, lean.kf_scan)
