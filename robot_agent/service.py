@@ -81,8 +81,10 @@ class SimSource:
         start = None if args.start is None else parse_pose(args.start, "--start")
         self.sim = LiveSim(world, args.route, seed=args.seed, start=start)
         self.duration_s = args.duration
-        self.truth: list[np.ndarray] = []
-        self.stamps: list[float] = []
+        from robot_agent.slam.trajectory import GrowingArray
+
+        self.stamps = GrowingArray()  # every scan's (24 bytes a scan with the truth)
+        self.truth = GrowingArray((3,))
         self.explorer = None
         self.slam = slam
         self._map = np.zeros((0, 2, 2))
@@ -116,7 +118,7 @@ class SimSource:
             return None
         f = self._first  # the sim's beams, laser mount and range are the same in every scan
         return LaserLog.from_arrays(
-            self.stamps, self._ranges, f.angles_rad, self._odometry, f.laser_offset, f.range_max_m
+            self.stamps.view(), self._ranges, f.angles_rad, self._odometry, f.laser_offset, f.range_max_m
         )
 
     def on_estimate(self, scan: Scan, est: Estimate) -> None:
@@ -132,11 +134,9 @@ class SimSource:
         self.sim.set_velocity(v, w)
 
     def write_truth(self, out: Path, robot: str) -> None:
-        import numpy as np
-
         from shared.metrics import write_poses
 
-        write_poses(out / f"{robot}.truth.txt", np.array(self.stamps), np.array(self.truth).reshape(-1, 3))
+        write_poses(out / f"{robot}.truth.txt", self.stamps.view(), self.truth.view())
 
 
 class BackendReport:

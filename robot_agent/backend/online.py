@@ -234,6 +234,7 @@ class OnlineBackend:
             self._surprises = []
         self._waiting = len(self._surprises)
         self.stats["surprises_waiting"] = self._waiting
+        self.stats["loops_admitted"] = self.stats.get("loops_admitted", 0) + admitted
         return admitted
 
     def _optimize(self, f: np.ndarray, est: np.ndarray) -> np.ndarray:

@@ -72,6 +72,8 @@ class FilterConfig:
     # its pose then comes from the scan, not from odometry whose timing may lag the laser's
     bridge_sigma_xy_m: float = 0.05  # extra prior std of a bridged scan's pose: odometry and
     bridge_sigma_theta_rad: float = np.radians(2.0)  # laser clocks disagree while turning fast
+    max_open_steps: int = 4000  # every particle's own history kept this many steps back at most
+    # (beyond, when the particles have not coalesced there, the best one's: trajectory.py)
 
 
 @dataclass(frozen=True)
@@ -121,6 +123,7 @@ class FastSLAM:
             "injections": 0,
             "relocalizations": 0,
             "relocalization_candidates": 0,
+            "history_closed": 0,  # steps closed along the best particle's history (max_open_steps)
         }
         self._reloc_pending: reloc_mod.Pending | None = None
         self._odometer_m = 0.0  # distance driven (odometry), and at the last relocalization
@@ -240,6 +243,8 @@ class FastSLAM:
         add_new(ps.maps, obs, assoc, k, cfg.update)
 
         self.trajectory.record(stamp_s, ps.poses)
+        if self.trajectory.open_steps > cfg.filter.max_open_steps:  # particles that do not coalesce
+            self.stats["history_closed"] += self.trajectory.close(ps.best(), cfg.filter.max_open_steps // 2)
         # 8. resampling
         ess = effective_sample_size(ps.log_weights)
         if ess < cfg.filter.ess_threshold * ps.n:

@@ -4,6 +4,11 @@ Each processed step stores the propagated poses ``(P,3)`` and each particle's pa
 the previous step; the best particle's trajectory is read back by walking the parents. Scans
 skipped for too little motion are stored as an odometry increment from the last processed step,
 so the output has one pose for every scan, with the scan's own timestamp.
+
+Bounded by what is still open: once every living particle descends from one ancestor at some
+step (the lineages coalesce, as they do within a few resamplings), the steps up to it have one
+history left, and are kept as that one pose per step (24 bytes instead of ``P`` poses and
+parents). What stays per scan is its stamp, its step and its offset from it (40 bytes).
 """
 
 from __future__ import annotations
@@ -12,25 +17,73 @@ import numpy as np
 
 from shared.geometry import compose
 
+COMPACT_EVERY = 32  # processed steps between looks for a common ancestor
+
+
+class GrowingArray:
+    """A numpy array that grows at its end (amortized doubling)."""
+
+    def __init__(self, tail: tuple = (), dtype=float):
+        self._a = np.zeros((64, *tail), dtype)
+        self.n = 0
+
+    def append(self, row) -> None:
+        if self.n == len(self._a):
+            self._a = np.concatenate([self._a, np.zeros_like(self._a)])
+        self._a[self.n] = row
+        self.n += 1
+
+    def extend(self, rows: np.ndarray) -> None:
+        while self.n + len(rows) > len(self._a):
+            self._a = np.concatenate([self._a, np.zeros_like(self._a)])
+        self._a[self.n : self.n + len(rows)] = rows
+        self.n += len(rows)
+
+    def view(self) -> np.ndarray:
+        return self._a[: self.n]
+
+    def __len__(self) -> int:
+        return self.n
+
 
 class Trajectory:
-    def __init__(self) -> None:
-        self._poses: list[np.ndarray] = []  # per step k: (P,3) poses of the propagated set
-        self._parents: list[np.ndarray] = []  # per step k: (P,) parent index in step k-1
+    def __init__(self, compact_every: int = COMPACT_EVERY) -> None:
+        # steps before ``_frozen``'s length: one history (the lineages coalesced there)
+        self._frozen = GrowingArray((3,))
+        self._frozen_jumped = GrowingArray((), bool)
+        # the open steps after them, per step k: (P,3) poses of the propagated set, (P,) parent
+        # index in step k-1, (P,) whether the pose was reached by a jump
+        self._poses: list[np.ndarray] = []
+        self._parents: list[np.ndarray] = []
+        self._jumped: list[np.ndarray] = []
         self._pending: np.ndarray | None = None  # current particle -> index in the last record
-        self._jumped: list[np.ndarray] = []  # per step k: (P,) the pose was reached by a jump
         self._jumping: np.ndarray | None = None  # current particle: injected since the last record
-        self._scan_stamps: list[float] = []
-        self._scan_anchor: list[int] = []  # processed step each scan hangs from
-        self._scan_rel: list[np.ndarray] = []  # (3,) odometry from that step's pose
-        self._step_scan: list[int] = []  # per step k: the scan it processed
+        self._scan_stamps = GrowingArray()
+        self._scan_anchor = GrowingArray((), np.int64)  # processed step each scan hangs from
+        self._scan_rel = GrowingArray((3,))  # odometry from that step's pose
+        self._step_scan = GrowingArray((), np.int64)  # per step k: the scan it processed
+        self.compact_every = compact_every
+        self._since_compact = 0
 
     def __len__(self) -> int:
         return len(self._scan_stamps)
 
+    @property
+    def steps(self) -> int:
+        return len(self._frozen) + len(self._poses)
+
+    @property
+    def open_steps(self) -> int:
+        """Steps still kept per particle (after the last common ancestor)."""
+        return len(self._poses)
+
     def record(self, stamp_s: float, poses: np.ndarray) -> None:
         """A processed scan: the particles' poses ``(P,3)`` (before any resampling)."""
         p = len(poses)
+        self._since_compact += 1
+        if self.compact_every and self._since_compact >= self.compact_every:
+            self._since_compact = 0
+            self._compact()
         self._parents.append(self._pending if self._pending is not None else np.arange(p))
         self._jumped.append(self._jumping if self._jumping is not None else np.zeros(p, bool))
         self._poses.append(poses.copy())
@@ -38,16 +91,16 @@ class Trajectory:
         self._jumping = np.zeros(p, bool)
         self._step_scan.append(len(self._scan_stamps))
         self._scan_stamps.append(stamp_s)
-        self._scan_anchor.append(len(self._poses) - 1)
+        self._scan_anchor.append(self.steps - 1)
         self._scan_rel.append(np.zeros(3))
 
     def bridge(self, stamp_s: float, odometry_from_last: np.ndarray) -> None:
         """A scan not processed: its pose is the last step's composed with odometry."""
-        if not self._poses:
+        if self.steps == 0:
             raise ValueError("bridge() before the first processed scan")
         self._scan_stamps.append(stamp_s)
-        self._scan_anchor.append(len(self._poses) - 1)
-        self._scan_rel.append(np.asarray(odometry_from_last, dtype=float).copy())
+        self._scan_anchor.append(self.steps - 1)
+        self._scan_rel.append(np.asarray(odometry_from_last, dtype=float))
 
     def reparent(self, idx: np.ndarray) -> None:
         """After resampling: new particle ``j`` is old particle ``idx[j]``."""
@@ -62,17 +115,16 @@ class Trajectory:
 
     def backtrack(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
         """``stamps (S,)`` and poses ``(S,3)`` for every scan along ``particle``'s ancestry."""
-        line, _ = self._lineage(particle)
-        if len(line) == 0:
+        if len(self) == 0:
             return np.zeros(0), np.zeros((0, 3))
-        anchors = np.asarray(self._scan_anchor)
-        poses = compose(line[anchors], np.asarray(self._scan_rel))
-        return np.asarray(self._scan_stamps), poses
+        line, _ = self._lineage(particle)
+        poses = compose(line[self._scan_anchor.view()], self._scan_rel.view())
+        return self._scan_stamps.view().copy(), poses
 
     def jumps(self, particle: int) -> np.ndarray:
         """Mask ``(S,)`` of the scans along ``particle``'s ancestry that were reached by a
         jump (a relocalization put the ancestor there), not by a motion from the scan before."""
-        anchors = np.asarray(self._scan_anchor, dtype=int)
+        anchors = self._scan_anchor.view()
         if len(anchors) == 0:
             return np.zeros(0, bool)
         _, jumped = self._lineage(particle)
@@ -81,31 +133,86 @@ class Trajectory:
 
     def lineage_at(self, particle: int, scans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Poses ``(N,3)`` and jump flags ``(N,)`` of scans ``scans (N,)`` along ``particle``'s
-        ancestry (as :meth:`backtrack` and :meth:`jumps`, for those scans only)."""
+        ancestry (as :meth:`backtrack` and :meth:`jumps`, for those scans only: the closed steps
+        are read, only the open ones walked)."""
         scans = np.asarray(scans, dtype=int)
         if len(scans) == 0:
             return np.zeros((0, 3)), np.zeros(0, bool)
-        line, jumped = self._lineage(particle)
-        anchors = np.asarray(self._scan_anchor, dtype=int)[scans]
-        rel = np.asarray(self._scan_rel)[scans]
-        before = np.asarray(self._scan_anchor, dtype=int)[np.maximum(scans - 1, 0)]
+        f = len(self._frozen)
+        open_line, open_jumped = self._open_lineage(particle)
+        all_anchors = self._scan_anchor.view()
+        anchors = all_anchors[scans]
+        closed = anchors < f
+        at = np.empty((len(scans), 3))
+        jumped = np.zeros(len(scans), bool)
+        at[closed] = self._frozen.view()[anchors[closed]]
+        jumped[closed] = self._frozen_jumped.view()[anchors[closed]]
+        at[~closed] = open_line[anchors[~closed] - f]
+        jumped[~closed] = open_jumped[anchors[~closed] - f]
+        before = all_anchors[np.maximum(scans - 1, 0)]
         first = (scans == 0) | (before != anchors)
-        return compose(line[anchors], rel), first & jumped[anchors]
+        return compose(at, self._scan_rel.view()[scans]), first & jumped
 
     def scan_of_step(self, steps: np.ndarray) -> np.ndarray:
         """The scan each processed step (``FastSLAM.step_index``, from 1) processed."""
-        return np.asarray(self._step_scan, dtype=int)[np.asarray(steps, dtype=int) - 1]
+        return self._step_scan.view()[np.asarray(steps, dtype=int) - 1]
 
-    def _lineage(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
-        """Poses ``(K,3)`` and jump flags ``(K,)`` of ``particle``'s ancestor at every step."""
-        k_steps = len(self._poses)
-        line = np.empty((k_steps, 3))
-        jumped = np.zeros(k_steps, bool)
-        if k_steps == 0:
+    def _open_lineage(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
+        """Poses ``(L,3)`` and jump flags ``(L,)`` of ``particle``'s ancestor at every open step."""
+        n = len(self._poses)
+        line = np.empty((n, 3))
+        jumped = np.zeros(n, bool)
+        if n == 0:
             return line, jumped
         i = int(self._pending[particle])
-        for k in range(k_steps - 1, -1, -1):
+        for k in range(n - 1, -1, -1):
             line[k] = self._poses[k][i]
             jumped[k] = self._jumped[k][i]
             i = int(self._parents[k][i])
         return line, jumped
+
+    def _lineage(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
+        """Poses ``(K,3)`` and jump flags ``(K,)`` of ``particle``'s ancestor at every step."""
+        open_line, open_jumped = self._open_lineage(particle)
+        return (
+            np.concatenate([self._frozen.view(), open_line]),
+            np.concatenate([self._frozen_jumped.view(), open_jumped]),
+        )
+
+    def close(self, particle: int, keep: int) -> int:
+        """Close every open step but the newest ``keep`` along ``particle``'s ancestry, whether
+        or not the other particles descend from it there (a bound for runs whose particles do not
+        coalesce: their older history becomes ``particle``'s). Returns how many were closed."""
+        n = len(self._poses) - keep
+        if n <= 0:
+            return 0
+        i = int(self._pending[particle])
+        for k in range(len(self._poses) - 1, n - 1, -1):  # its ancestor at step n - 1
+            i = int(self._parents[k][i])
+        self._freeze(n - 1, i)
+        return n
+
+    def _compact(self) -> None:
+        """Close the steps up to the newest common ancestor of every living particle."""
+        if self._pending is None or not self._poses:
+            return
+        alive = np.unique(self._pending)  # indices into the last open step
+        k = len(self._poses) - 1
+        while len(alive) > 1 and k > 0:
+            alive = np.unique(self._parents[k][alive])
+            k -= 1
+        if len(alive) > 1:
+            return
+        self._freeze(k, int(alive[0]))
+
+    def _freeze(self, k: int, i: int) -> None:
+        """Open steps ``0..k`` become closed, along the history of particle ``i`` at step ``k``."""
+        line = np.empty((k + 1, 3))
+        jumped = np.zeros(k + 1, bool)
+        for j in range(k, -1, -1):
+            line[j] = self._poses[j][i]
+            jumped[j] = self._jumped[j][i]
+            i = int(self._parents[j][i])
+        self._frozen.extend(line)
+        self._frozen_jumped.extend(jumped)
+        del self._poses[: k + 1], self._parents[: k + 1], self._jumped[: k + 1]

@@ -132,3 +132,46 @@ def test_an_injected_particle_reached_its_next_pose_by_a_jump():
     np.testing.assert_allclose(poses[2], poses_at(1)[2])  # its history is particle 2's
     for j in (1, 2):
         assert not traj.jumps(j).any()
+
+
+def test_closing_coalesced_steps_changes_no_path_and_keeps_few_open():
+    """The steps up to the particles' newest common ancestor are kept as one history: the best
+    path, its jumps and any scans' poses read back exactly as with every step kept open."""
+    from pathlib import Path
+
+    from robot_agent.backend import feed
+    from robot_agent.slam.fastslam import FastSLAM, SlamConfig
+    from robot_agent.sources import read_log
+
+    log = read_log(Path(__file__).parents[1] / "data" / "intel_head.clf.gz")
+    runs = []
+    for every in (0, 8):
+        slam = FastSLAM(SlamConfig(particles=10), np.random.default_rng(0))
+        slam.trajectory = Trajectory(compact_every=every)
+        for i in range(700):
+            feed(slam, log, i)
+        best = slam.particles.best()
+        idx = np.arange(0, 700, 3)
+        at = slam.trajectory.lineage_at(best, idx)
+        runs.append((*slam.best_trajectory(), slam.best_jumps(), *at, slam))
+    (s0, p0, j0, lp0, lj0, open_all), (s1, p1, j1, lp1, lj1, closed) = runs
+    for a, b in ((s0, s1), (p0, p1), (j0, j1), (lp0, lp1), (lj0, lj1)):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(lp1, p1[np.arange(0, 700, 3)])
+    assert open_all.trajectory.open_steps == open_all.trajectory.steps
+    assert closed.trajectory.open_steps < 0.5 * closed.trajectory.steps
+
+
+def test_particles_that_never_coalesce_keep_a_bounded_history():
+    """Without resampling every particle keeps its own path: beyond the bound the older steps
+    are closed along the given particle's history (others' older parts become its)."""
+    traj = Trajectory(compact_every=4)
+    for k in range(50):
+        traj.record(float(k), poses_at(k))
+        if traj.open_steps > 10:
+            traj.close(1, 5)
+    assert traj.open_steps <= 10 and traj.steps == 50
+    _, p1 = traj.backtrack(1)
+    np.testing.assert_allclose(p1[:, 1], 1.0)  # particle 1's own path throughout
+    _, p2 = traj.backtrack(2)
+    assert np.all(p2[-5:, 1] == 2.0) and np.all(p2[:40, 1] == 1.0)  # its older part: particle 1's

@@ -1,0 +1,141 @@
+"""A simulated agent for a long time, faster than real time: does its memory stay bounded, and
+does its online back end still find and close loops at the end?
+
+    .venv/bin/python benchmarks/bench_soak.py [--hours 24] [--world office] [--route 0]
+        [--explore] [--particles 10] [--seed 0] [--every-min 30] [--json PATH]
+
+The agent's own parts, as ``fleet-slam agent --world W`` runs them, without the bus: the
+simulated robot and its scan store (:class:`robot_agent.service.SimSource`), the filter, the
+online back end in its own process (:class:`~robot_agent.backend.live.ProcessRunner`), the pose
+and map messages encoded as the publisher sends them (only the latest kept). Every
+``--every-min`` simulated minutes: resident memory of the agent and of its back-end process
+(``VmRSS``), the back end's keyframes (in the graph, retired), the loops it took in since the last
+row, the filter's open trajectory steps. Prints a table and writes
+``benchmarks/results/bench_soak.json``.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from _results import save_results  # noqa: E402
+
+from robot_agent.agent import AgentConfig, AgentCore  # noqa: E402
+from robot_agent.backend.live import LiveCorrector, ProcessRunner  # noqa: E402
+from robot_agent.service import SimSource  # noqa: E402
+from robot_agent.slam.config import command_line_config  # noqa: E402
+from robot_agent.slam.fastslam import FastSLAM  # noqa: E402
+from shared import codec  # noqa: E402
+
+
+def rss_mb(pid: int | str = "self") -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--hours", type=float, default=24.0)
+    p.add_argument("--world", default="office")
+    p.add_argument("--route", type=int, default=0)
+    p.add_argument("--explore", action="store_true")
+    p.add_argument("--particles", type=int, default=10)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--every-min", type=float, default=30.0)
+    p.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE")
+    p.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "bench_soak.json"))
+    args = p.parse_args(argv)
+
+    cfg = command_line_config(args.set, args.particles)
+    slam = FastSLAM(cfg, np.random.default_rng(args.seed))
+    runner = ProcessRunner(cfg)
+    corrector = LiveCorrector(slam, runner)
+    core = AgentCore("soak", slam, AgentConfig(speed=0), corrector=corrector)
+    src_args = argparse.Namespace(
+        world=args.world, route=args.route, seed=args.seed, start=None, duration=args.hours * 3600.0,
+        explore=args.explore,
+    )  # fmt: skip
+    sim = SimSource(src_args, slam)
+    rows: list[dict] = []
+    latest: list[bytes] = []  # what the publisher keeps: the last map's payloads
+    every_s = 60.0 * args.every_min
+    next_s = every_s
+    t0_wall = time.perf_counter()
+    t0_src = None
+    loops_before = 0
+    try:
+        for scan in sim.scans():
+            est = core.step(scan)
+            sim.on_estimate(scan, est)
+            if (pose := core.pose_message()) is not None:
+                codec.encode(pose)
+            if (chunks := core.map_messages()) is not None:
+                latest = [codec.encode(c) for c in chunks]
+            t0_src = scan.stamp_s if t0_src is None else t0_src
+            if scan.stamp_s - t0_src >= next_s:
+                next_s += every_s
+                st = corrector.stats
+                admitted = st.get("loops_admitted", 0)
+                row = {
+                    "sim_h": (scan.stamp_s - t0_src) / 3600.0,
+                    "wall_s": time.perf_counter() - t0_wall,
+                    "scans": core.scans,
+                    "rss_agent_mb": rss_mb(),
+                    "rss_backend_mb": rss_mb(runner.pid),
+                    "keyframes": st.get("keyframes", 0),
+                    "retired": st.get("retired", 0),
+                    "loops_in_graph": st.get("loops", 0),
+                    "loops_taken_since_last_row": admitted - loops_before,
+                    "updates": corrector.updates,
+                    "update_s_max": st.get("update_s_max", 0.0),
+                    "open_steps": slam.trajectory.open_steps,
+                    "map_bytes": sum(len(b) for b in latest),
+                }
+                row["rss_total_mb"] = row["rss_agent_mb"] + row["rss_backend_mb"]
+                loops_before = admitted
+                rows.append(row)
+                print(_line(row), flush=True)
+    finally:
+        corrector.close()
+    out = {"settings": vars(args), "rows": rows}
+    one = next((r for r in rows if r["sim_h"] >= 1.0 - 1e-6), None)
+    if one is not None and rows:
+        out["rss_total_1h_mb"] = one["rss_total_mb"]
+        out["rss_total_end_mb"] = rows[-1]["rss_total_mb"]
+        out["rss_end_over_1h"] = rows[-1]["rss_total_mb"] / one["rss_total_mb"]
+        print(
+            f"resident memory: {one['rss_total_mb']:.0f} MB after {one['sim_h']:.1f} h, "
+            f"{rows[-1]['rss_total_mb']:.0f} MB after {rows[-1]['sim_h']:.1f} h "
+            f"({100 * (out['rss_end_over_1h'] - 1):+.1f} %); loops taken in the last row: "
+            f"{rows[-1]['loops_taken_since_last_row']}"
+        )
+    save_results(args.json, "bench_soak", out)
+    return 0
+
+
+def _line(r: dict) -> str:
+    return (
+        f"{r['sim_h']:6.2f} h sim, {r['wall_s']:7.0f} s wall: RSS agent {r['rss_agent_mb']:.0f} MB "
+        f"+ back end {r['rss_backend_mb']:.0f} MB; keyframes {r['keyframes']} (+{r['retired']} retired), loops "
+        f"{r['loops_in_graph']} in the graph, {r['loops_taken_since_last_row']} taken since; "
+        f"longest update {r['update_s_max']:.2f} s; {r['open_steps']} open steps"
+    )
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
