@@ -131,8 +131,8 @@ def main(argv: list[str] | None = None) -> int:
 def _line(r: dict) -> str:
     return (
         f"{r['sim_h']:6.2f} h sim, {r['wall_s']:7.0f} s wall: RSS agent {r['rss_agent_mb']:.0f} MB "
-        f"+ back end {r['rss_backend_mb']:.0f} MB; keyframes {r['keyframes']} (+{r['retired']} retired), loops "
-        f"{r['loops_in_graph']} in the graph, {r['loops_taken_since_last_row']} taken since; "
+        f"+ back end {r['rss_backend_mb']:.0f} MB; keyframes {r['keyframes']} (+{r['retired']} retired), "
+        f"loops {r['loops_in_graph']} in the graph, {r['loops_taken_since_last_row']} taken since; "
         f"longest update {r['update_s_max']:.2f} s; {r['open_steps']} open steps"
     )
 
