@@ -59,7 +59,7 @@ def _agent_args(
         args += ["--particles", cfg.particles]
     if cfg.log:
         a, b = split.pieces[i]
-        return [*args, "--log", cfg.log, "--from", a, "--to", b]
+        return [*args, "--log", cfg.log, "--from", a, "--to", b, "--snapshot-at", 0.5]
     from robot_agent.sim import builtin_world
 
     world = builtin_world(cfg.world)

@@ -146,7 +146,52 @@ def write_report(cfg, out: Path, final: FusedMap, updates: list[Update], t0: flo
     metrics["wrong_merges"] = wrong
     if split is not None and all_stamps:
         metrics.update(_log_scores(cfg, out, all_stamps, all_poses, split))
+    if split is not None and cfg.relations:
+        half = _half_time(cfg, agents_dir, names, updates, t0, split)
+        if half is not None:
+            metrics["half_time"] = half
     return metrics
+
+
+def _half_time(cfg, agents_dir: Path, names, updates: list[Update], t0: float, split) -> dict | None:
+    """The fleet as a user saw it at half time: each piece's trajectory published when half its
+    scans were done (``--snapshot-at``), in the global frame of the fused map the server had
+    published by the moment the last piece got there, scored on the relations both of whose ends
+    lie in the merged pieces' snapshots."""
+    snaps = {}
+    for n in names:
+        info = json_or_empty(agents_dir / f"{n}.snapshot.json")
+        if "monotonic_s" not in info:
+            return None
+        snaps[n] = (info["monotonic_s"], *read_poses(agents_dir / f"{n}.snapshot.poses.txt"))
+    moment = max(t for t, _, _ in snaps.values())
+    before = [u for u in updates if u.wall_s <= moment]
+    if not before:
+        return {"at_s": moment - t0, "fused_version": None, "merged": []}
+    fused = before[-1].fused
+    stamps, poses, merged = [], [], []
+    for n, (_, st, own) in snaps.items():
+        status = fused.robot(n)
+        if status is not None and status.merged:
+            merged.append(n)
+            stamps.append(st)
+            poses.append(compose(status.transform, own))
+    out = {"at_s": moment - t0, "fused_version": fused.version, "merged": merged}
+    if not merged:
+        return out
+    rel = read_relations(cfg.relations)
+    spans = [(s.min(), s.max()) for s in stamps]
+
+    def covered(t: np.ndarray) -> np.ndarray:
+        return np.any([(t >= a - 0.5) & (t <= b + 0.5) for a, b in spans], axis=0)
+
+    keep = covered(rel.t1_s) & covered(rel.t2_s)
+    out["relations_scored"] = int(keep.sum())
+    if keep.any():
+        sub = Relations(rel.t1_s[keep], rel.t2_s[keep], rel.delta[keep])
+        st, ps = np.concatenate(stamps), np.concatenate(poses)
+        out["relations"] = relations_error(st, ps, sub, *split.log.odometry_track()).summary()
+    return out
 
 
 def json_or_empty(path: Path) -> dict:

@@ -34,6 +34,14 @@ def print_summary(m: dict, cfg) -> None:
             f"relations error (global poses): {e['trans_mean_m']:.3f} m, "
             f"{e['rot_mean_deg']:.2f}° (n={e['n']} of {m['relations_total']} relations: both ends merged)"
         )
+    half = m.get("half_time")
+    if half is not None:
+        line = f"at half time ({half['at_s']:.0f} s, fused v{half['fused_version']}): "
+        line += f"{len(half['merged'])} pieces placed"
+        if "relations" in half:
+            e = half["relations"]
+            line += f", relations error {e['trans_mean_m']:.3f} m, {e['rot_mean_deg']:.2f}° (n={e['n']})"
+        print(line)
     if m.get("wrong_merges"):
         print(f"WRONG MERGES: {m['wrong_merges']}")
     print(f"wrote {cfg.out}/ in {m['wall_time_s']:.0f} s")

@@ -67,6 +67,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bus-config", default=None, metavar="FILE", help="zenoh config file (TLS; deploy/)")
     p.add_argument("--fleet", default=DEFAULT_FLEET, help="fleet id (key prefix fleet/<id>/)")
     p.add_argument("--out", default=None, help="write <robot>.poses.txt, .tum (and .truth.txt) here")
+    p.add_argument(
+        "--snapshot-at",
+        type=float,
+        default=None,
+        metavar="F",
+        help="log: when this share of the scans is done, write the trajectory published then to "
+        "--out (<robot>.snapshot.poses.txt, .snapshot.json: the moment, time.monotonic())",
+    )
 
 
 class SimSource:
@@ -139,6 +147,27 @@ class SimSource:
         write_poses(out / f"{robot}.truth.txt", self.stamps.view(), self.truth.view())
 
 
+class SnapshotWriter:
+    """At scan ``at``: the trajectory the robot publishes then (the filter's path as the online
+    back end's latest correction moves it) to ``out``, with the moment (``time.monotonic()``)."""
+
+    def __init__(self, out: Path, robot: str, at: int, corrector):
+        self.out, self.robot, self.at, self.corrector = out, robot, at, corrector
+
+    def __call__(self, core) -> None:
+        if core.scans != self.at:
+            return
+        from shared.metrics import write_poses
+
+        stamps, poses = core.slam.best_trajectory()
+        if self.corrector is not None:
+            poses = self.corrector.correction.apply(poses)
+        self.out.mkdir(parents=True, exist_ok=True)
+        write_poses(self.out / f"{self.robot}.snapshot.poses.txt", stamps, poses)
+        info = {"monotonic_s": time.monotonic(), "scans": core.scans}
+        (self.out / f"{self.robot}.snapshot.json").write_text(json.dumps(info))
+
+
 class BackendReport:
     """One line when the online back end's loops change, at most every ``every_s`` of wall time."""
 
@@ -177,6 +206,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = command_line_config(args.set, args.particles)
     if args.speed < 0:
         raise ValueError(f"--speed must be >= 0, got {args.speed}")
+    if args.snapshot_at is not None and not 0 < args.snapshot_at < 1:
+        raise ValueError(f"--snapshot-at must be between 0 and 1, got {args.snapshot_at}")
     prior = None if args.prior is None else parse_pose(args.prior, "--prior")
     slam = FastSLAM(cfg, np.random.default_rng(args.seed))
     corrector = None
@@ -212,7 +243,18 @@ def run(args: argparse.Namespace) -> int:
     try:
         with Bus(bus_cfg, cancel=stop) as bus:
             print(f"agent {args.robot}: session {core.session}, connected", flush=True)
-            pub = run_agent(bus, keys, core, scans, stop, on_estimate, BackendReport(args.robot, corrector))
+            hooks = [BackendReport(args.robot, corrector)]
+            if args.snapshot_at is not None and args.out and args.log is not None:
+                n = (args.last if args.last is not None else len(laser_log)) - args.first
+                hooks.append(
+                    SnapshotWriter(Path(args.out), args.robot, max(1, round(args.snapshot_at * n)), corrector)
+                )
+
+            def on_progress(c) -> None:
+                for hook in hooks:
+                    hook(c)
+
+            pub = run_agent(bus, keys, core, scans, stop, on_estimate, on_progress)
             stamps, filter_poses = slam.best_trajectory()  # the best particle's, in the robot's map frame
             poses = filter_poses
             if corrector is not None and len(poses):
