@@ -92,13 +92,6 @@ class AgentCore:
                 self._next_map_s = -np.inf  # a new correction: the corrected map goes out now
         return self.estimate
 
-    def correction_arrived(self) -> bool:
-        """Collect a finished back-end update between scans (True when one came): the map is due."""
-        if self.corrector is None or not self.corrector.tick():
-            return False
-        self._next_map_s = -np.inf
-        return True
-
     def published_pose(self) -> np.ndarray:
         """The current pose as published: the filter's, corrected by the online back end."""
         pose = self.estimate.pose

@@ -276,19 +276,19 @@ class OnlineBackend:
         fixed = {0} | set(after_jump) | {p - 1 for p in after_jump}  # a jump's two ends stay
         tree = cKDTree(x[:limit, :2])
         targets: dict[int, tuple[int, np.ndarray]] = {}
-        for k in range(1, limit):
-            if k in fixed or not near_loop[k]:
+        cand = [k for k in np.flatnonzero(near_loop[1:limit]) + 1 if k not in fixed]
+        near = tree.query_ball_point(x[cand, :2], cfg.online_retire_m) if cand else []
+        # oldest first: a keyframe retired in this pass is no anchor for a later one
+        for k, around in zip(cand, near, strict=True):
+            older = np.array([j for j in around if j <= k - cfg.min_gap_keyframes and j not in targets], int)
+            if len(older) == 0:
                 continue
-            best = None
-            for j in tree.query_ball_point(x[k, :2], cfg.online_retire_m):
-                if j > k - cfg.min_gap_keyframes or j in targets:
-                    continue
-                rel = relative(x[j], x[k])
-                d = float(np.hypot(rel[0], rel[1]))
-                if abs(rel[2]) < cfg.online_retire_rad and (best is None or d < best[0]):
-                    best = (d, j, rel)
-            if best is not None:
-                targets[k] = (best[1], best[2])
+            rel = relative(x[older], x[k])
+            d = np.hypot(rel[:, 0], rel[:, 1])
+            d[np.abs(rel[:, 2]) >= cfg.online_retire_rad] = np.inf
+            best = int(np.argmin(d))
+            if np.isfinite(d[best]):
+                targets[int(k)] = (int(older[best]), rel[best])
         if not targets:
             return
         gone = np.zeros(n, bool)

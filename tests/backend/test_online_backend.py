@@ -6,32 +6,15 @@ import pytest
 
 from robot_agent.backend import Correction, OnlineBackend, Track
 from robot_agent.slam import backend as be
-from shared.geometry import apply_points, compose, relative
+from shared.geometry import compose, relative
+from tests import rooms
 
 
 @pytest.fixture(scope="module")
 def drifted_office():
     """The simulated office round (100 m) along a path drifted 0.2°/m and 2 % long: where it comes
     back it is 1.5 m and 20° off (as in test_backend's wide-search test)."""
-    from robot_agent.sim import SimConfig, builtin_world, simulate_robot
-    from robot_agent.slam.extraction import ExtractionConfig, scan_points
-
-    sim = simulate_robot(builtin_world("office"), 0, 200.0, 0, SimConfig())
-    log, truth = sim.to_log(), sim.truth
-    u = relative(truth[:-1], truth[1:])
-    u[:, :2] *= 1.02
-    u[:, 2] += np.radians(0.2) * np.hypot(u[:, 0], u[:, 1])
-    drifted = [truth[0]]
-    for step in u:
-        drifted.append(compose(drifted[-1], step))
-
-    def points(i):
-        s = log.scan(i)
-        return apply_points(
-            s.laser_offset, scan_points(s.ranges_m, s.angles_rad, ExtractionConfig(), s.range_max_m)
-        )
-
-    return sim, log, np.array(drifted), points
+    return rooms.drifted_office(200.0)
 
 
 def _ate(sim, stamps, poses):
@@ -135,25 +118,10 @@ def test_passing_known_places_again_adds_nothing_to_the_graph_for_good():
     round the keyframes the robot adds where it has been retire onto the older ones (their
     edges carried over), so the graph stops growing; the path comes out as accurate as with every
     keyframe kept."""
-    from robot_agent.sim import SimConfig, builtin_world, simulate_robot
-    from robot_agent.slam.extraction import ExtractionConfig, scan_points
     from shared.metrics import ate
 
-    sim = simulate_robot(builtin_world("office"), 0, 600.0, 0, SimConfig())
-    log, truth = sim.to_log(), sim.truth
-    u = relative(truth[:-1], truth[1:])
-    u[:, :2] *= 1.02
-    u[:, 2] += np.radians(0.2) * np.hypot(u[:, 0], u[:, 1])
-    drifted = [truth[0]]
-    for step in u:
-        drifted.append(compose(drifted[-1], step))
-    drifted = np.array(drifted)
-
-    def points(i):
-        s = log.scan(i)
-        return apply_points(
-            s.laser_offset, scan_points(s.ranges_m, s.angles_rad, ExtractionConfig(), s.range_max_m)
-        )
+    sim, log, drifted, points = rooms.drifted_office(600.0)
+    truth = sim.truth
 
     def run(cfg):
         online, sizes = OnlineBackend(cfg), []

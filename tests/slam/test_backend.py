@@ -207,25 +207,11 @@ def test_the_first_pass_searches_as_wide_as_the_path_may_have_drifted():
     """The simulated office round (100 m) along a path drifted 0.2°/m and 2 % long — where it
     comes back it is 1.5 m and 20° off: the search window around the path (0.8 m, 8°) finds no
     loop at all, the window widened by the drift the path may hold (branch and bound) closes it."""
-    from robot_agent.sim import SimConfig, builtin_world, simulate_robot
-    from robot_agent.slam.extraction import ExtractionConfig, scan_points
     from shared.metrics import ate
+    from tests.rooms import drifted_office
 
-    sim = simulate_robot(builtin_world("office"), 0, 200.0, 0, SimConfig())
-    log, truth = sim.to_log(), sim.truth
-    u = relative(truth[:-1], truth[1:])
-    u[:, :2] *= 1.02
-    u[:, 2] += np.radians(0.2) * np.hypot(u[:, 0], u[:, 1])
-    drifted = [truth[0]]
-    for step in u:
-        drifted.append(compose(drifted[-1], step))
-    drifted = np.array(drifted)
-
-    def points(i):
-        s = log.scan(i)
-        return apply_points(
-            s.laser_offset, scan_points(s.ranges_m, s.angles_rad, ExtractionConfig(), s.range_max_m)
-        )
+    sim, log, drifted, points = drifted_office(200.0)
+    truth = sim.truth
 
     def corrected(cfg):
         out, stats = be.run_backend(log.stamps_s, drifted, log.odometry, points, cfg)
