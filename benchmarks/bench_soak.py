@@ -35,17 +35,16 @@ from _results import save_results  # noqa: E402
 
 from robot_agent.agent import AgentConfig, AgentCore  # noqa: E402
 from robot_agent.backend.live import LiveCorrector, ProcessRunner  # noqa: E402
-from robot_agent.service import SimSource  # noqa: E402
+from robot_agent.service import SimSource, endless_config  # noqa: E402
 from robot_agent.slam.config import command_line_config  # noqa: E402
 from robot_agent.slam.fastslam import FastSLAM  # noqa: E402
 from shared import codec  # noqa: E402
+from shared.memory import release_free_memory, resident_mb  # noqa: E402
+
+SAMPLE_EVERY = 200  # scans between samples of resident memory
 
 
-def rss_mb(pid: int | str = "self") -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
+rss_mb = resident_mb
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "bench_soak.json"))
     args = p.parse_args(argv)
 
-    cfg = command_line_config(args.set, args.particles)
+    cfg = endless_config(command_line_config(args.set, args.particles))  # as the agent does
     slam = FastSLAM(cfg, np.random.default_rng(args.seed))
     runner = ProcessRunner(cfg)
     corrector = LiveCorrector(slam, runner)
@@ -78,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     t0_wall = time.perf_counter()
     t0_src = None
     loops_before = 0
+    peak_agent = peak_backend = 0.0
     try:
         for scan in sim.scans():
             est = core.step(scan)
@@ -87,6 +87,9 @@ def main(argv: list[str] | None = None) -> int:
             if (chunks := core.map_messages()) is not None:
                 latest = [codec.encode(c) for c in chunks]
             t0_src = scan.stamp_s if t0_src is None else t0_src
+            if core.scans % SAMPLE_EVERY == 0:  # resident memory between rows: its peak
+                peak_agent = max(peak_agent, rss_mb())
+                peak_backend = max(peak_backend, rss_mb(runner.pid))
             if scan.stamp_s - t0_src >= next_s:
                 next_s += every_s
                 st = corrector.stats
@@ -97,6 +100,8 @@ def main(argv: list[str] | None = None) -> int:
                     "scans": core.scans,
                     "rss_agent_mb": rss_mb(),
                     "rss_backend_mb": rss_mb(runner.pid),
+                    "rss_agent_peak_mb": peak_agent,  # the highest sample since the last row
+                    "rss_backend_peak_mb": peak_backend,
                     "keyframes": st.get("keyframes", 0),
                     "retired": st.get("retired", 0),
                     "loops_in_graph": st.get("loops", 0),
@@ -104,36 +109,58 @@ def main(argv: list[str] | None = None) -> int:
                     "updates": corrector.updates,
                     "update_s_max": st.get("update_s_max", 0.0),
                     "open_steps": slam.trajectory.open_steps,
+                    "kept_scans": slam.trajectory.kept_scans,
+                    "retired_thinned": st.get("retired_thinned", 0),
+                    "retired_forgotten": st.get("forgotten", 0),
                     "map_bytes": sum(len(b) for b in latest),
                 }
                 row["rss_total_mb"] = row["rss_agent_mb"] + row["rss_backend_mb"]
+                row["rss_total_peak_mb"] = peak_agent + peak_backend
+                release_free_memory()  # what the agent holds (its own trims come every 30 s)
+                row["rss_agent_held_mb"] = rss_mb()
+                peak_agent = peak_backend = 0.0
                 loops_before = admitted
                 rows.append(row)
                 print(_line(row), flush=True)
+                save_results(args.json, "bench_soak", _summary(args, rows, done=False))  # so far
     finally:
         corrector.close()
-    out = {"settings": vars(args), "rows": rows}
+    out = _summary(args, rows, done=True)
+    save_results(args.json, "bench_soak", out)
+    return 0
+
+
+def _summary(args, rows: list[dict], done: bool) -> dict:
+    out = {"settings": vars(args), "finished": done, "rows": rows}
     one = next((r for r in rows if r["sim_h"] >= 1.0 - 1e-6), None)
     if one is not None and rows:
         out["rss_total_1h_mb"] = one["rss_total_mb"]
         out["rss_total_end_mb"] = rows[-1]["rss_total_mb"]
         out["rss_end_over_1h"] = rows[-1]["rss_total_mb"] / one["rss_total_mb"]
-        print(
-            f"resident memory: {one['rss_total_mb']:.0f} MB after {one['sim_h']:.1f} h, "
-            f"{rows[-1]['rss_total_mb']:.0f} MB after {rows[-1]['sim_h']:.1f} h "
-            f"({100 * (out['rss_end_over_1h'] - 1):+.1f} %); loops taken in the last row: "
-            f"{rows[-1]['loops_taken_since_last_row']}"
-        )
-    save_results(args.json, "bench_soak", out)
-    return 0
+        out["rss_peak_1h_mb"] = one["rss_total_peak_mb"]
+        out["rss_peak_end_mb"] = rows[-1]["rss_total_peak_mb"]
+        out["rss_peak_end_over_1h"] = rows[-1]["rss_total_peak_mb"] / one["rss_total_peak_mb"]
+        if done:
+            print(
+                f"resident memory: {one['rss_total_mb']:.0f} MB after {one['sim_h']:.1f} h, "
+                f"{rows[-1]['rss_total_mb']:.0f} MB after {rows[-1]['sim_h']:.1f} h "
+                f"({100 * (out['rss_end_over_1h'] - 1):+.1f} %); peak between rows "
+                f"{one['rss_total_peak_mb']:.0f} -> {rows[-1]['rss_total_peak_mb']:.0f} MB "
+                f"({100 * (out['rss_peak_end_over_1h'] - 1):+.1f} %); loops taken in the last row: "
+                f"{rows[-1]['loops_taken_since_last_row']}"
+            )
+    return out
 
 
 def _line(r: dict) -> str:
     return (
         f"{r['sim_h']:6.2f} h sim, {r['wall_s']:7.0f} s wall: RSS agent {r['rss_agent_mb']:.0f} MB "
-        f"+ back end {r['rss_backend_mb']:.0f} MB; keyframes {r['keyframes']} (+{r['retired']} retired), "
+        f"(peak {r['rss_agent_peak_mb']:.0f}, held {r['rss_agent_held_mb']:.0f}) + back end "
+        f"{r['rss_backend_mb']:.0f} MB (peak {r['rss_backend_peak_mb']:.0f}); "
+        f"keyframes {r['keyframes']} (+{r['retired']} retired), "
         f"loops {r['loops_in_graph']} in the graph, {r['loops_taken_since_last_row']} taken since; "
-        f"longest update {r['update_s_max']:.2f} s; {r['open_steps']} open steps"
+        f"longest update {r['update_s_max']:.2f} s; {r['open_steps']} open steps, "
+        f"{r['kept_scans']} scans kept"
     )
 
 

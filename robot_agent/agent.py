@@ -27,6 +27,7 @@ from robot_agent.slam.fastslam import Estimate, FastSLAM
 from robot_agent.sources.base import Scan
 from shared import codec
 from shared.keys import Keys
+from shared.memory import Trimmer
 from shared.messages import PoseUpdate, RobotMap
 
 log = logging.getLogger("fleet_slam.agent")
@@ -72,6 +73,7 @@ class AgentCore:
         self._next_pose_s = -np.inf
         self._next_map_s = -np.inf
         self._last_stamp_s = 0.0
+        self._trimmer = Trimmer()  # freed memory back to the system now and then (runs for days)
 
     def step(self, scan: Scan) -> Estimate:
         self.estimate = self.slam.step(
@@ -90,6 +92,7 @@ class AgentCore:
             )
             if self.corrector.tick():
                 self._next_map_s = -np.inf  # a new correction: the corrected map goes out now
+        self._trimmer.maybe()
         return self.estimate
 
     def published_pose(self) -> np.ndarray:

@@ -155,7 +155,7 @@ class LiveBackend:
         t0 = time.perf_counter()
         stamps, poses = slam.best_trajectory()
         track = Track.whole(stamps, poses, self.log.odometry[:n], slam.best_jumps())
-        hints, self._hints = slam.loop_hints[self._hints :], len(slam.loop_hints)
+        hints, self._hints = slam.hints_since(self._hints)
         out = how(track, lambda k: scan_points_robot(self.log, k, self.cfg), hints=hints)
         self.seconds += time.perf_counter() - t0
         return out

@@ -30,6 +30,20 @@ EXPLORER_MAP_EVERY = 5  # scans between rebuilding the map the explorer plans on
 # path at the end of its run; beyond this many (1.1 h at 5 Hz, ~14 MB at 180 beams) it stops
 # keeping them: the online back end goes on, and its final map is the corrected one, not rebuilt
 MAX_KEPT_SCANS = 20_000
+SIM_HISTORY_SCANS = 100_000  # a simulated robot runs without end: the filter keeps its path for
+# the newest this many scans (5.6 h at 5 scans/s), and so does the truth beside it
+
+
+def endless_config(cfg):
+    """``cfg`` for a source without end (a simulated robot): the path kept for the newest
+    SIM_HISTORY_SCANS scans, unless ``--set filter.history_scans`` chose."""
+    import dataclasses
+
+    if cfg.filter.history_scans:
+        return cfg
+    return dataclasses.replace(cfg, filter=dataclasses.replace(cfg.filter, history_scans=SIM_HISTORY_SCANS))
+
+
 FINAL_UPDATE_STOPPED_S = 5.0  # stopped: the online back end's last update waited for at most this
 FINAL_UPDATE_S = 120.0  # the source ended: this long
 
@@ -91,8 +105,10 @@ class SimSource:
         self.duration_s = args.duration
         from robot_agent.slam.trajectory import GrowingArray
 
-        self.stamps = GrowingArray()  # every scan's (24 bytes a scan with the truth)
+        self.stamps = GrowingArray()  # every scan's (32 bytes a scan with the truth) ...
         self.truth = GrowingArray((3,))
+        # ... kept as long as the filter's path
+        self.history = 0 if slam is None else slam.cfg.filter.history_scans
         self.explorer = None
         self.slam = slam
         self._map = np.zeros((0, 2, 2))
@@ -110,6 +126,9 @@ class SimSource:
         for scan in self.sim.scans(self.duration_s):
             self.truth.append(self.sim.truth)
             self.stamps.append(scan.stamp_s)
+            if self.history and len(self.stamps) > self.history * 5 // 4:
+                self.stamps.drop_front(len(self.stamps) - self.history)
+                self.truth.drop_front(len(self.truth) - self.history)
             if self._first is None:
                 self._first = scan
             if len(self._ranges) < MAX_KEPT_SCANS:
@@ -161,7 +180,7 @@ class SnapshotWriter:
 
         stamps, poses = core.slam.best_trajectory()
         if self.corrector is not None:
-            poses = self.corrector.correction.apply(poses)
+            poses = self.corrector.correction.apply(poses, core.slam.trajectory.first_scan)
         self.out.mkdir(parents=True, exist_ok=True)
         write_poses(self.out / f"{self.robot}.snapshot.poses.txt", stamps, poses)
         info = {"monotonic_s": time.monotonic(), "scans": core.scans}
@@ -204,6 +223,8 @@ def run(args: argparse.Namespace) -> int:
     from shared.metrics import write_poses, write_tum
 
     cfg = command_line_config(args.set, args.particles)
+    if args.world is not None:
+        cfg = endless_config(cfg)
     if args.speed < 0:
         raise ValueError(f"--speed must be >= 0, got {args.speed}")
     if args.snapshot_at is not None and not 0 < args.snapshot_at < 1:
@@ -262,7 +283,7 @@ def run(args: argparse.Namespace) -> int:
                 # the whole exit within 10 s), complete when the source ended
                 done = corrector.finish(FINAL_UPDATE_STOPPED_S if stop.is_set() else FINAL_UPDATE_S)
                 backend = dict(corrector.stats, final_update_in_time=done, updates=corrector.updates)
-                poses = corrector.correction.apply(filter_poses)
+                poses = corrector.correction.apply(filter_poses, slam.trajectory.first_scan)
                 pub.publish(force_map=True)  # the map and pose as the last correction moves them
                 print(
                     f"agent {args.robot}: published the corrected map ({backend.get('loops', 0)} loops, "

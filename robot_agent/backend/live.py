@@ -25,6 +25,7 @@ from robot_agent.backend.online import Correction, OnlineBackend, Track
 from robot_agent.slam.extraction import scan_points
 from robot_agent.slam.fastslam import FastSLAM, SlamConfig
 from shared.geometry import apply_points, compose, inverse
+from shared.memory import release_free_memory
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,7 @@ class Job:
     kf_poses: np.ndarray
     hints: list
     final: bool = False
+    keep: tuple | None = None  # (scans, first): what the caller will still ask corrections of
 
 
 def run_job(backend: OnlineBackend, job: Job) -> tuple[Correction, dict]:
@@ -52,7 +54,7 @@ def run_job(backend: OnlineBackend, job: Job) -> tuple[Correction, dict]:
         return np.asarray(job.points[i], dtype=float)
 
     how = backend.finish if job.final else backend.update
-    corr = how(job.track, points_of, kf_poses=job.kf_poses, hints=job.hints)
+    corr = how(job.track, points_of, kf_poses=job.kf_poses, hints=job.hints, keep=job.keep)
     return corr, dict(backend.stats)
 
 
@@ -91,6 +93,8 @@ def _serve(conn, cfg: SlamConfig) -> None:  # pragma: no cover - runs in the chi
         if job is None:
             return
         conn.send(run_job(backend, job))
+        del job
+        release_free_memory()  # the update's temporaries back to the system (runs for days)
 
 
 class ProcessRunner:
@@ -245,7 +249,9 @@ class LiveCorrector:
         best = slam.particles.best()
         recs = list(self._tail)
         idx = np.array([r.index for r in recs], dtype=int)
-        poses, jumps = slam.trajectory.lineage_at(best, idx)
+        poses, jumps = slam.trajectory.lineage_at(best, np.maximum(idx, slam.trajectory.first_scan))
+        if idx[0] < slam.trajectory.first_scan:  # the last keyframe's scan, forgotten by the filter
+            poses[0] = self._filter_poses(best, idx[:1])[0]
         track = Track(
             idx,
             np.array([r.stamp_s for r in recs]),
@@ -253,9 +259,32 @@ class LiveCorrector:
             np.array([r.odometry for r in recs]).reshape(-1, 3),
             jumps,
         )
-        kf_poses, _ = slam.trajectory.lineage_at(best, self._kf_scan)
-        hints, self._hints = list(slam.loop_hints[self._hints :]), len(slam.loop_hints)
-        return Job(track, {r.index: r.points for r in recs}, kf_poses, hints, final)
+        kf_poses = self._filter_poses(best, self._kf_scan)
+        hints, self._hints = slam.hints_since(self._hints)
+        keep = None
+        traj = slam.trajectory
+        if traj.first_scan > 0:  # a run without end: what the map and the kept path refer to
+            keep = (traj.scan_of_step(np.maximum(slam.referenced_steps(), 1)), traj.first_scan)
+        return Job(track, {r.index: r.points for r in recs}, kf_poses, list(hints), final, keep)
+
+    def _filter_poses(self, particle: int, scans: np.ndarray) -> np.ndarray:
+        """The filter's poses ``(N,3)`` of scans ``scans (N,)`` along ``particle``'s history; of
+        scans the filter no longer keeps (its path's oldest part is closed, and forgotten in a run
+        without end), those the back end reported last."""
+        first = self.slam.trajectory.first_scan
+        old = scans < first
+        if not old.any():
+            return self.slam.trajectory.lineage_at(particle, scans)[0]
+        out = np.empty((len(scans), 3))
+        out[~old] = self.slam.trajectory.lineage_at(particle, scans[~old])[0]
+        c = self.correction
+        at = np.searchsorted(c.kf_scan, scans[old])
+        if np.any(at >= len(c.kf_scan)) or np.any(
+            c.kf_scan[np.minimum(at, len(c.kf_scan) - 1)] != scans[old]
+        ):
+            raise ValueError("a keyframe's scan is neither kept by the filter nor in the last correction")
+        out[old] = c.filter[at]
+        return out
 
     def _collect(self, done) -> bool:
         if done is None:

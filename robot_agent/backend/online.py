@@ -83,12 +83,15 @@ class Correction:
     graph_scan: np.ndarray | None = None  # the keyframes still in the graph (default: kf_scan),
     # whose poses on the filter's path the back end asks for at its next update
 
-    def apply(self, poses: np.ndarray) -> np.ndarray:
+    def apply(self, poses: np.ndarray, first: int = 0) -> np.ndarray:
         """The corrected path ``(S,3)`` of the filter's path ``poses (S,3)`` (of this run: scan
-        ``i`` is ``poses[i]``), which may reach past the last keyframe."""
+        ``first + i`` is ``poses[i]``), which may reach past the last keyframe."""
         if len(self.kf_scan) == 0:
             return np.array(poses, dtype=float, copy=True)
-        return follow_keyframes(poses, self.kf_scan, self.filter, self.corrected)
+        lo = max(int(np.searchsorted(self.kf_scan, first, side="right")) - 1, 0)
+        index = self.kf_scan[lo:] - first
+        index[0] = min(index[0], 0)
+        return follow_keyframes(poses, index, self.filter[lo:], self.corrected[lo:])
 
     def pose(self, scan: int, pose: np.ndarray) -> np.ndarray:
         """The corrected pose of scan ``scan``, at ``pose`` on the filter's path."""
@@ -120,10 +123,13 @@ class OnlineBackend:
     # was carried over to retired ones' anchors (a virtual edge instead)
     _virtual: dict = field(default_factory=dict)  # (id a, id b) -> (z (3,), cov (3,3)): edges
     # carried over from retired keyframes, held like the chain
-    _ret_scan: list[int] = field(default_factory=list)  # retired keyframes: scan, ...
-    _ret_anchor: list[int] = field(default_factory=list)  # ... the keyframe (id) it follows, ...
-    _ret_rel: list[np.ndarray] = field(default_factory=list)  # ... its pose in that one's frame, ...
-    _ret_filter: list[np.ndarray] = field(default_factory=list)  # ... and its filter pose
+    _ret_scan: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # retired
+    # keyframes: scan, ...
+    _ret_anchor: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # ... the
+    # keyframe (id) it follows, ...
+    _ret_rel: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # ... its pose in that
+    # one's frame, ...
+    _ret_filter: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # ... its filter pose
     _waiting: int = 0
 
     @property
@@ -134,12 +140,12 @@ class OnlineBackend:
         """The keyframes in the graph and the retired ones (each following the keyframe it
         retired to), in scan order."""
         active = np.asarray(self.kf_scan, int)
-        if not self._ret_scan:
+        if not len(self._ret_scan):
             return Correction(active, self._ref.copy(), self._x.copy(), len(self.loops), active)
-        anchor = np.searchsorted(np.asarray(self.kf_id), np.asarray(self._ret_anchor))
-        scans = np.concatenate([active, np.asarray(self._ret_scan, int)])
-        filt = np.vstack([self._ref, np.asarray(self._ret_filter)])
-        corr = np.vstack([self._x, compose(self._x[anchor], np.asarray(self._ret_rel))])
+        anchor = np.searchsorted(np.asarray(self.kf_id), self._ret_anchor)
+        scans = np.concatenate([active, self._ret_scan])
+        filt = np.vstack([self._ref, self._ret_filter])
+        corr = np.vstack([self._x, compose(self._x[anchor], self._ret_rel)])
         order = np.argsort(scans, kind="stable")
         return Correction(scans[order], filt[order], corr[order], len(self.loops), active)
 
@@ -150,6 +156,7 @@ class OnlineBackend:
         kf_poses: np.ndarray | None = None,
         hints: list[tuple[int, np.ndarray]] | None = None,
         requeries: int | None = None,
+        keep: tuple[np.ndarray, int] | None = None,
     ) -> Correction:
         """One step over the filter's best path as it is now. ``track``: that path over the scans
         from the last keyframe on (or the whole path); ``points_of(i)`` scan ``i``'s points in
@@ -157,7 +164,10 @@ class OnlineBackend:
         keyframes so far (default: looked up in ``track``, which must then hold them);
         ``hints``: the filter's relocalizations since the last update (``(scan, pose)``).
         ``requeries``: at most this many moved keyframes are searched again (default
-        ``cfg.online_requeries``; ``-1``: all)."""
+        ``cfg.online_requeries``; ``-1``: all). ``keep``: ``(scans, first)``, the only scans
+        the caller will still ask corrections of — ``scans`` (its map's elements were made
+        from them) and every scan from ``first`` on; a retired keyframe that none of them
+        follows is forgotten (default: every retired keyframe is kept)."""
         t0 = time.perf_counter()
         cfg = self.cfg
         if len(track.scan) == 0:
@@ -197,8 +207,9 @@ class OnlineBackend:
             if budget < 0 and len(more) < cfg.min_pass_loops:
                 break
         self._ref, self._x = f, est
-        if cfg.online_retire_m > 0:
-            self._retire()
+        self._retire()
+        if keep is not None:
+            self._forget(*keep)
         self.stats["keyframes"] = len(self.kf_scan)
         self.stats["retired"] = len(self._ret_scan)
         self.stats["virtual_edges"] = len(self._virtual)
@@ -254,46 +265,101 @@ class OnlineBackend:
         return optimize(f, self.loops, self.cfg, self.stats, jumps, x0=est, chain_keep=keep, extra=extra)
 
     def _retire(self) -> None:
-        """Keyframes older than the window that the corrected path puts within online_retire_m /
-        _rad of a keyframe at least min_gap_keyframes older, near a loop (their place is known,
-        and they are tied to it), leave the graph: the robot passing a known place again adds
-        nothing to it for good. A retired keyframe's scans follow the older one rigidly; its
+        """Keyframes older than the window leave the graph (:meth:`_retire_onto`): those that the
+        corrected path puts within online_retire_m / _rad of a keyframe at least
+        min_gap_keyframes older, near a loop (their place is known, and they are tied to it:
+        the robot passing a known place again adds nothing to it for good); and, while the graph
+        holds more than online_max_keyframes, those nearest an older keyframe (:meth:`_thin`)."""
+        cfg = self.cfg
+        n = len(self.kf_scan)
+        limit = n - cfg.online_window
+        if limit <= 1:
+            return
+        x = self._x
+        ids = list(self.kf_id)
+        pos = {k: p for p, k in enumerate(ids)}
+        after_jump = [pos[k] for k in self._jump_edges if k in pos]
+        fixed = {0} | set(after_jump) | {p - 1 for p in after_jump}  # a jump's two ends stay
+        targets: dict[int, tuple[int, np.ndarray]] = {}
+        if self.loops and cfg.online_retire_m > 0:
+            near_loop = np.zeros(n, bool)
+            for lp in self.loops:
+                near_loop[max(lp.new - 2, 0) : lp.new + 3] = True
+            tree = cKDTree(x[:limit, :2])
+            cand = [k for k in np.flatnonzero(near_loop[1:limit]) + 1 if k not in fixed]
+            near = tree.query_ball_point(x[cand, :2], cfg.online_retire_m) if cand else []
+            # oldest first: a keyframe retired in this pass is no anchor for a later one
+            for k, around in zip(cand, near, strict=True):
+                older = np.array(
+                    [j for j in around if j <= k - cfg.min_gap_keyframes and j not in targets], int
+                )
+                if len(older) == 0:
+                    continue
+                rel = relative(x[older], x[k])
+                d = np.hypot(rel[:, 0], rel[:, 1])
+                d[np.abs(rel[:, 2]) >= cfg.online_retire_rad] = np.inf
+                best = int(np.argmin(d))
+                if np.isfinite(d[best]):
+                    targets[int(k)] = (int(older[best]), rel[best])
+        thinned = 0
+        if cfg.online_max_keyframes and n - len(targets) > cfg.online_max_keyframes:
+            thinned = self._thin(targets, fixed, limit)
+        if targets:
+            self._retire_onto(targets)
+            self.stats["retired_thinned"] = self.stats.get("retired_thinned", 0) + thinned
+
+    def _thin(self, targets: dict, fixed: set, limit: int) -> int:
+        """More retirements into ``targets``, until the graph keeps 90 % of online_max_keyframes:
+        keyframes older than the window, each onto its nearest older keyframe (the distance in
+        the plane plus the turn, weighed as online_retire_m to online_retire_rad), nearest first —
+        the graph thinned where it is densest, every place it covers still covered."""
+        cfg = self.cfg
+        x = self._x[:limit]
+        n_graph = len(self.kf_scan) - len(targets)
+        excess = n_graph - int(0.9 * cfg.online_max_keyframes)
+        thinned = 0
+        cand = np.array([k for k in range(1, limit) if k not in fixed and k not in targets], int)
+        if excess <= 0 or len(cand) == 0:
+            return 0
+        anchors = {j for j, _ in targets.values()}
+        per_rad = cfg.online_retire_m / max(cfg.online_retire_rad, 1e-9)
+        k_near = min(16, limit)
+        _, near = cKDTree(x[:, :2]).query(x[cand, :2], k=k_near)
+        near = np.asarray(near).reshape(len(cand), -1)
+        older = near < cand[:, None]
+        rel = relative(
+            x[np.minimum(near, limit - 1)].reshape(-1, 3), np.repeat(x[cand], near.shape[1], axis=0)
+        )
+        d = (np.hypot(rel[:, 0], rel[:, 1]) + per_rad * np.abs(rel[:, 2])).reshape(near.shape)
+        d[~older] = np.inf
+        best = np.argmin(d, axis=1)
+        dist = d[np.arange(len(cand)), best]
+        for c in np.argsort(dist):
+            if excess <= 0 or not np.isfinite(dist[c]):
+                break
+            k, j = int(cand[c]), int(near[c, best[c]])
+            if k in anchors or j in targets:
+                continue
+            targets[k] = (j, relative(x[j], x[k]))
+            anchors.add(j)
+            excess -= 1
+            thinned += 1
+        return thinned
+
+    def _retire_onto(self, targets: dict) -> None:
+        """Keyframes ``targets`` (position -> (older position it follows, its pose in that one's
+        frame)) leave the graph. A retired keyframe's scans follow the older one rigidly; its
         edges are carried over to that one (chain and virtual edges composed with the offset
         between the two, one edge per pair of keyframes: the stronger), loops from it as well;
         its own loops, which tied it there, go with it."""
         cfg = self.cfg
         n = len(self.kf_scan)
-        limit = n - cfg.online_window
-        if limit <= 1 or not self.loops:
-            return
-        x = self._x
         ids = list(self.kf_id)
-        pos = {k: p for p, k in enumerate(ids)}
-        near_loop = np.zeros(n, bool)
-        for lp in self.loops:
-            near_loop[max(lp.new - 2, 0) : lp.new + 3] = True
-        after_jump = [pos[k] for k in self._jump_edges if k in pos]
-        fixed = {0} | set(after_jump) | {p - 1 for p in after_jump}  # a jump's two ends stay
-        tree = cKDTree(x[:limit, :2])
-        targets: dict[int, tuple[int, np.ndarray]] = {}
-        cand = [k for k in np.flatnonzero(near_loop[1:limit]) + 1 if k not in fixed]
-        near = tree.query_ball_point(x[cand, :2], cfg.online_retire_m) if cand else []
-        # oldest first: a keyframe retired in this pass is no anchor for a later one
-        for k, around in zip(cand, near, strict=True):
-            older = np.array([j for j in around if j <= k - cfg.min_gap_keyframes and j not in targets], int)
-            if len(older) == 0:
-                continue
-            rel = relative(x[older], x[k])
-            d = np.hypot(rel[:, 0], rel[:, 1])
-            d[np.abs(rel[:, 2]) >= cfg.online_retire_rad] = np.inf
-            best = int(np.argmin(d))
-            if np.isfinite(d[best]):
-                targets[int(k)] = (int(older[best]), rel[best])
-        if not targets:
-            return
         gone = np.zeros(n, bool)
         cov_rel = np.diag([cfg.loop_sigma_xy_m**2, cfg.loop_sigma_xy_m**2, cfg.loop_sigma_theta_rad**2])
-        ret_anchor = np.asarray(self._ret_anchor, int)
+        ret_anchor = self._ret_anchor.copy()
+        ret_rel = self._ret_rel.copy()
+        new_scan, new_anchor, new_rel, new_filter = [], [], [], []
         for k in sorted(targets):
             j, rel = targets[k]
             ik, ij = ids[k], ids[j]
@@ -319,14 +385,18 @@ class OnlineBackend:
                     b = ij
                 if a != b:
                     self._add_virtual(a, b, z2, cov2)
-            self._ret_scan.append(self.kf_scan[k])
-            self._ret_anchor.append(ij)
-            self._ret_rel.append(rel)
-            self._ret_filter.append(self._ref[k].copy())
-            for r in np.flatnonzero(ret_anchor == ik):  # those that followed k now follow j
-                self._ret_anchor[r] = ij
-                self._ret_rel[r] = compose(rel, self._ret_rel[r])
+            new_scan.append(self.kf_scan[k])
+            new_anchor.append(ij)
+            new_rel.append(rel)
+            new_filter.append(self._ref[k])
+            follow = np.flatnonzero(ret_anchor == ik)  # those that followed k now follow j
+            ret_anchor[follow] = ij
+            ret_rel[follow] = compose(rel, ret_rel[follow])
             gone[k] = True
+        self._ret_scan = np.concatenate([self._ret_scan, np.asarray(new_scan, np.int64)])
+        self._ret_anchor = np.concatenate([ret_anchor, np.asarray(new_anchor, np.int64)])
+        self._ret_rel = np.vstack([ret_rel, np.asarray(new_rel).reshape(-1, 3)])
+        self._ret_filter = np.vstack([self._ret_filter, np.asarray(new_filter).reshape(-1, 3)])
         newpos = np.cumsum(~gone) - 1
 
         def moved(lp: Loop) -> Loop | None:
@@ -349,6 +419,28 @@ class OnlineBackend:
         self.kf_arc = [v for v, g in zip(self.kf_arc, gone, strict=True) if not g]
         self._ref, self._x = self._ref[keep], self._x[keep]
         self._queried, self._queried_at = self._queried[keep], self._queried_at[keep]
+
+    def _forget(self, scans: np.ndarray, first: int) -> None:
+        """Retired keyframes that no scan of ``scans`` and none from ``first`` on follows (the
+        last keyframe at or before it) are forgotten: what the retired ones hold grows with the
+        run, what a caller asks about does not."""
+        if not len(self._ret_scan):
+            return
+        active = np.asarray(self.kf_scan, np.int64)
+        every = np.concatenate([active, self._ret_scan])
+        order = np.argsort(every, kind="stable")
+        ranked = every[order]
+        asked = np.concatenate([np.asarray(scans, np.int64).ravel(), [int(first)]])
+        need = np.zeros(len(every), bool)
+        at = np.searchsorted(ranked, asked, side="right") - 1
+        need[order[at[at >= 0]]] = True
+        need[every >= first] = True
+        keep = need[len(active) :]
+        if keep.all():
+            return
+        self.stats["forgotten"] = self.stats.get("forgotten", 0) + int((~keep).sum())
+        self._ret_scan, self._ret_anchor = self._ret_scan[keep], self._ret_anchor[keep]
+        self._ret_rel, self._ret_filter = self._ret_rel[keep], self._ret_filter[keep]
 
     def _add_virtual(self, a: int, b: int, z: np.ndarray, cov: np.ndarray | None) -> None:
         """Edge ``a -> b`` (ids); ``cov`` None: a chain edge's. One per pair: the stronger."""

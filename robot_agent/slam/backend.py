@@ -102,6 +102,8 @@ class BackendConfig:
     online_retire_m: float = 0.3  # (0: never)
     online_retire_rad: float = np.radians(10.0)
     online_window: int = 100
+    online_max_keyframes: int = 3000  # the graph's bound: beyond it, keyframes older than the
+    # window retire onto their nearest older one, nearest first, down to 90 % of it (0: no bound)
 
 
 def select_keyframes(poses: np.ndarray, cfg: BackendConfig, jumps: np.ndarray | None = None) -> np.ndarray:

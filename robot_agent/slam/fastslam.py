@@ -74,6 +74,8 @@ class FilterConfig:
     bridge_sigma_theta_rad: float = np.radians(2.0)  # laser clocks disagree while turning fast
     max_open_steps: int = 4000  # every particle's own history kept this many steps back at most
     # (beyond, when the particles have not coalesced there, the best one's: trajectory.py)
+    history_scans: int = 0  # the path kept for the newest this many scans (0: the whole run's);
+    # a source without end sets it (robot_agent/service.py)
 
 
 @dataclass(frozen=True)
@@ -113,7 +115,7 @@ class FastSLAM:
         self.particles = ParticleSet.create(
             cfg.particles, start, (m.slip_scale_prior_sigma, m.slip_drift_prior_sigma_rad_per_m)
         )
-        self.trajectory = Trajectory()
+        self.trajectory = Trajectory(max_scans=cfg.filter.history_scans)
         self.step_index = 0
         self._last_odo: np.ndarray | None = None
         self.global_map: consensus_mod.GlobalMap | None = None
@@ -131,6 +133,7 @@ class FastSLAM:
         # (scan index, pose (3,)): where each confirmed relocalization put the robot, for the
         # back end — its loop search window is too small for the drift a relocalization bridges
         self.loop_hints: list[tuple[int, np.ndarray]] = []
+        self.hints_forgotten = 0  # the oldest hints, dropped with the path they refer to
 
     # -- the loop ---------------------------------------------------------------------------
 
@@ -245,6 +248,8 @@ class FastSLAM:
         self.trajectory.record(stamp_s, ps.poses)
         if self.trajectory.open_steps > cfg.filter.max_open_steps:  # particles that do not coalesce
             self.stats["history_closed"] += self.trajectory.close(ps.best(), cfg.filter.max_open_steps // 2)
+        if self.trajectory.over:  # a run without end: its oldest path goes
+            self._forget_history()
         # 8. resampling
         ess = effective_sample_size(ps.log_weights)
         if ess < cfg.filter.ess_threshold * ps.n:
@@ -359,10 +364,37 @@ class FastSLAM:
         self.stats["injections"] += len(targets)
         self.trajectory.inherit(targets, sources)
 
+    def referenced_steps(self) -> np.ndarray:
+        """The steps (sorted, unique) at which the elements of the particles' maps and of the
+        global map were made (:attr:`SegmentMaps.born`)."""
+        maps = self.particles.maps
+        parts = [maps.born[maps.valid]]
+        if self.global_map is not None:
+            parts.append(self.global_map.born)
+        return np.unique(np.concatenate(parts).astype(np.int64))
+
+    def _forget_history(self) -> None:
+        n = self.trajectory.forget(self.referenced_steps())
+        self.stats["scans_forgotten"] = self.stats.get("scans_forgotten", 0) + n
+        first = self.trajectory.first_scan
+        old = 0
+        while old < len(self.loop_hints) and self.loop_hints[old][0] < first:
+            old += 1
+        del self.loop_hints[:old]
+        self.hints_forgotten += old
+
+    def hints_since(self, count: int) -> tuple[list[tuple[int, np.ndarray]], int]:
+        """The relocalizations after the first ``count`` of the run (those forgotten left out)
+        and the count of the run's so far."""
+        return self.loop_hints[max(count - self.hints_forgotten, 0) :], self.hints_forgotten + len(
+            self.loop_hints
+        )
+
     # -- outputs ------------------------------------------------------------------------------
 
     def best_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        """``stamps (S,)`` and poses ``(S,3)`` of the best particle's whole history, one per scan."""
+        """``stamps (S,)`` and poses ``(S,3)`` of the best particle's whole history, one per scan
+        (from ``trajectory.first_scan`` on)."""
         return self.trajectory.backtrack(self.particles.best())
 
     def best_jumps(self) -> np.ndarray:

@@ -9,6 +9,11 @@ Bounded by what is still open: once every living particle descends from one ance
 step (the lineages coalesce, as they do within a few resamplings), the steps up to it have one
 history left, and are kept as that one pose per step (24 bytes instead of ``P`` poses and
 parents). What stays per scan is its stamp, its step and its offset from it (40 bytes).
+
+A run without end keeps the newest ``max_scans`` scans (:meth:`Trajectory.forget`; 0: all):
+scan and step numbers stay those of the whole run (``first_scan`` is the first still kept), and
+the scan of a forgotten step is remembered for the steps the caller still refers to (its map's
+elements were made there).
 """
 
 from __future__ import annotations
@@ -42,12 +47,19 @@ class GrowingArray:
     def view(self) -> np.ndarray:
         return self._a[: self.n]
 
+    def drop_front(self, k: int) -> None:
+        """Forget the first ``k`` rows (in place: the capacity stays)."""
+        k = min(max(int(k), 0), self.n)
+        if k:
+            self._a[: self.n - k] = self._a[k : self.n].copy()
+            self.n -= k
+
     def __len__(self) -> int:
         return self.n
 
 
 class Trajectory:
-    def __init__(self, compact_every: int = COMPACT_EVERY) -> None:
+    def __init__(self, compact_every: int = COMPACT_EVERY, max_scans: int = 0) -> None:
         # steps before ``_frozen``'s length: one history (the lineages coalesced there)
         self._frozen = GrowingArray((3,))
         self._frozen_jumped = GrowingArray((), bool)
@@ -64,13 +76,54 @@ class Trajectory:
         self._step_scan = GrowingArray((), np.int64)  # per step k: the scan it processed
         self.compact_every = compact_every
         self._since_compact = 0
+        self.max_scans = max_scans
+        self.first_scan = 0  # the first scan still kept (the run's scan numbers throughout)
+        self._step0 = 0  # the first step still kept (0-based)
+        self._old_step = np.zeros(0, np.int64)  # forgotten steps still referred to (from 1) ...
+        self._old_scan = np.zeros(0, np.int64)  # ... and the scan each processed
 
     def __len__(self) -> int:
-        return len(self._scan_stamps)
+        """Scans so far (in the whole run, forgotten ones too)."""
+        return self.first_scan + len(self._scan_stamps)
 
     @property
     def steps(self) -> int:
-        return len(self._frozen) + len(self._poses)
+        return self._step0 + len(self._frozen) + len(self._poses)
+
+    @property
+    def kept_scans(self) -> int:
+        return len(self._scan_stamps)
+
+    @property
+    def over(self) -> bool:
+        """More than max_scans by a quarter: time for :meth:`forget`."""
+        return bool(self.max_scans) and len(self._scan_stamps) > self.max_scans * 5 // 4
+
+    def forget(self, keep_steps: np.ndarray) -> int:
+        """The oldest scans beyond the newest ``max_scans`` (and the closed steps they hang
+        from) are forgotten; the scans of the forgotten steps in ``keep_steps`` (from 1) are
+        remembered. Returns how many scans were forgotten."""
+        if not self.max_scans or len(self._scan_stamps) <= self.max_scans:
+            return 0
+        anchors = self._scan_anchor.view() - self._step0
+        cut = len(self._scan_stamps) - self.max_scans
+        fcut = min(int(anchors[cut]), len(self._frozen))  # closed steps only
+        cut = int(np.searchsorted(anchors, fcut, side="left"))  # the scans hanging from them
+        if cut <= 0 or fcut <= 0:
+            return 0
+        keep_steps = np.unique(np.asarray(keep_steps, np.int64))
+        gone = np.arange(self._step0 + 1, self._step0 + fcut + 1)
+        asked = np.isin(gone, keep_steps, assume_unique=True)
+        still = np.isin(self._old_step, keep_steps, assume_unique=True)
+        self._old_step = np.concatenate([self._old_step[still], gone[asked]])
+        self._old_scan = np.concatenate([self._old_scan[still], self._step_scan.view()[:fcut][asked]])
+        for a in (self._frozen, self._frozen_jumped, self._step_scan):
+            a.drop_front(fcut)
+        for a in (self._scan_stamps, self._scan_anchor, self._scan_rel):
+            a.drop_front(cut)
+        self._step0 += fcut
+        self.first_scan += cut
+        return cut
 
     @property
     def open_steps(self) -> int:
@@ -89,7 +142,7 @@ class Trajectory:
         self._poses.append(poses.copy())
         self._pending = np.arange(p)
         self._jumping = np.zeros(p, bool)
-        self._step_scan.append(len(self._scan_stamps))
+        self._step_scan.append(len(self))
         self._scan_stamps.append(stamp_s)
         self._scan_anchor.append(self.steps - 1)
         self._scan_rel.append(np.zeros(3))
@@ -114,17 +167,18 @@ class Trajectory:
         self._jumping[targets] = True
 
     def backtrack(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
-        """``stamps (S,)`` and poses ``(S,3)`` for every scan along ``particle``'s ancestry."""
-        if len(self) == 0:
+        """``stamps (S,)`` and poses ``(S,3)`` for every scan along ``particle``'s ancestry (the
+        scans kept: from ``first_scan`` on)."""
+        if self.kept_scans == 0:
             return np.zeros(0), np.zeros((0, 3))
         line, _ = self._lineage(particle)
-        poses = compose(line[self._scan_anchor.view()], self._scan_rel.view())
+        poses = compose(line[self._scan_anchor.view() - self._step0], self._scan_rel.view())
         return self._scan_stamps.view().copy(), poses
 
     def jumps(self, particle: int) -> np.ndarray:
         """Mask ``(S,)`` of the scans along ``particle``'s ancestry that were reached by a
         jump (a relocalization put the ancestor there), not by a motion from the scan before."""
-        anchors = self._scan_anchor.view()
+        anchors = self._scan_anchor.view() - self._step0
         if len(anchors) == 0:
             return np.zeros(0, bool)
         _, jumped = self._lineage(particle)
@@ -140,7 +194,10 @@ class Trajectory:
             return np.zeros((0, 3)), np.zeros(0, bool)
         f = len(self._frozen)
         open_line, open_jumped = self._open_lineage(particle)
-        all_anchors = self._scan_anchor.view()
+        if np.any(scans < self.first_scan):
+            raise ValueError(f"scan {int(scans.min())} is forgotten (kept from {self.first_scan} on)")
+        scans = scans - self.first_scan
+        all_anchors = self._scan_anchor.view() - self._step0
         anchors = all_anchors[scans]
         closed = anchors < f
         at = np.empty((len(scans), 3))
@@ -154,8 +211,18 @@ class Trajectory:
         return compose(at, self._scan_rel.view()[scans]), first & jumped
 
     def scan_of_step(self, steps: np.ndarray) -> np.ndarray:
-        """The scan each processed step (``FastSLAM.step_index``, from 1) processed."""
-        return self._step_scan.view()[np.asarray(steps, dtype=int) - 1]
+        """The scan each processed step (``FastSLAM.step_index``, from 1) processed (of a
+        forgotten step not remembered: of the newest remembered before it)."""
+        steps = np.asarray(steps, dtype=np.int64)
+        local = steps - 1 - self._step0
+        kept = local >= 0
+        if kept.all():
+            return self._step_scan.view()[local]
+        out = np.empty(steps.shape, np.int64)
+        out[kept] = self._step_scan.view()[local[kept]]
+        at = np.searchsorted(self._old_step, steps[~kept], side="right") - 1
+        out[~kept] = self._old_scan[np.maximum(at, 0)] if len(self._old_step) else self.first_scan
+        return out
 
     def _open_lineage(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
         """Poses ``(L,3)`` and jump flags ``(L,)`` of ``particle``'s ancestor at every open step."""

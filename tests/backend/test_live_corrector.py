@@ -111,3 +111,49 @@ def test_a_tail_too_long_keeps_its_first_and_newest_scans():
     idx = [r.index for r in c._tail]
     assert len(idx) == 10 and idx[0] == 0 and idx[-1] == len(slam.trajectory) - 1
     assert c.dropped_tail == len(slam.trajectory) - 10
+
+
+def test_a_run_without_end_forgets_its_oldest_path_and_publishes_the_same(office_run):
+    """The same 200 s with the filter keeping its path for the newest 200 scans only (as a
+    source without end does, for days): the oldest path, relocalization hints and retired
+    keyframes nothing refers to forgotten, yet the filter, its corrections, the published
+    poses and maps are exactly those of the run that keeps everything."""
+    import dataclasses
+
+    core0, _, poses0, maps0, _ = office_run
+    cfg = SlamConfig(particles=10)
+    cfg = dataclasses.replace(cfg, filter=dataclasses.replace(cfg.filter, history_scans=200))
+    sim = LiveSim(builtin_world("office"), 0, seed=0)
+    slam = FastSLAM(cfg, np.random.default_rng(0))
+    runner = Recording(slam.cfg)
+    core = AgentCore("robot1", slam, AgentConfig(), corrector=LiveCorrector(slam, runner))
+    poses, maps = [], []
+    for s in sim.scans(200.0):
+        core.step(s)
+        if (p := core.pose_message()) is not None:
+            poses.append(p)
+        if (m := core.map_messages()) is not None:
+            maps.append(m)
+    traj = slam.trajectory
+    # 426 forgotten: the open steps (particles not yet coalesced) stay whatever the bound
+    assert traj.first_scan > 400 and slam.stats["scans_forgotten"] == traj.first_scan
+    assert len(traj) == len(core0.slam.trajectory)
+    # what the map and the kept path refer to went with each update once the path was cut
+    # (retired keyframes nothing refers to are forgotten: test_online_backend)
+    assert runner.jobs[-1].keep is not None and runner.jobs[-1].keep[1] == traj.first_scan
+    assert len(poses) == len(poses0) and len(maps) == len(maps0)
+    for a, b in zip(poses, poses0, strict=True):
+        np.testing.assert_allclose(a.pose, b[0].pose, atol=1e-9)
+    for a, b in zip(maps[-5:], maps0[-5:], strict=True):
+        got = codec.Assembler().add(codec.decode(codec.encode(a[0])))
+        want = codec.Assembler().add(codec.decode(codec.encode(b[0])))
+        np.testing.assert_array_equal(got.seg, want.seg)
+    stamps, filt = slam.best_trajectory()
+    stamps0, filt0 = core0.slam.best_trajectory()
+    np.testing.assert_array_equal(stamps, stamps0[traj.first_scan :])
+    np.testing.assert_allclose(filt, filt0[traj.first_scan :], atol=1e-12)
+    np.testing.assert_allclose(
+        core.corrector.correction.apply(filt, traj.first_scan),
+        core0.corrector.correction.apply(filt0)[traj.first_scan :],
+        atol=1e-9,
+    )

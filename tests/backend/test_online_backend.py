@@ -113,14 +113,20 @@ def test_an_agent_passes_only_the_path_since_the_last_keyframe(drifted_office):
         tail.update(late, points, kf_poses=drifted[tail.kf_scan])
 
 
-def test_passing_known_places_again_adds_nothing_to_the_graph_for_good():
+@pytest.fixture(scope="module")
+def three_rounds():
+    """Three rounds of the office (600 s) along the drifted path."""
+    return rooms.drifted_office(600.0)
+
+
+def test_passing_known_places_again_adds_nothing_to_the_graph_for_good(three_rounds):
     """Three rounds of the office along a path drifted 0.2°/m and 2 % long: after the first
     round the keyframes the robot adds where it has been retire onto the older ones (their
     edges carried over), so the graph stops growing; the path comes out as accurate as with every
     keyframe kept."""
     from shared.metrics import ate
 
-    sim, log, drifted, points = rooms.drifted_office(600.0)
+    sim, log, drifted, points = three_rounds
     truth = sim.truth
 
     def run(cfg):
@@ -142,3 +148,51 @@ def test_passing_known_places_again_adds_nothing_to_the_graph_for_good():
     corr = lean.correction()
     assert len(corr.kf_scan) == lean.keyframes + lean.stats["retired"]
     assert np.all(np.diff(corr.kf_scan) > 0) and np.array_equal(corr.graph_scan, lean.kf_scan)
+
+
+def test_a_graph_over_its_bound_is_thinned_where_it_is_densest(three_rounds):
+    """Without retirement by loops, the graph of three rounds grows to ~620 keyframes; bounded
+    to 200, the keyframes nearest an older one retire first, the graph never holds more than the
+    bound past an update, and the path stays about as accurate."""
+    from shared.metrics import ate
+
+    sim, log, drifted, points = three_rounds
+
+    def run(cfg):
+        online, sizes = OnlineBackend(cfg), []
+        for end in range(50, len(drifted), 50):
+            online.update(Track.whole(log.stamps_s[:end], drifted[:end], log.odometry[:end]), points)
+            sizes.append(online.keyframes)
+        final = online.finish(Track.whole(log.stamps_s, drifted, log.odometry), points)
+        return online, sizes, ate(log.stamps_s, final.apply(drifted), sim.stamps_s, sim.truth).rmse_m
+
+    _, _, free_err = run(be.BackendConfig(online_retire_m=0.0))
+    capped, sizes, capped_err = run(be.BackendConfig(online_retire_m=0.0, online_max_keyframes=200))
+    assert max(sizes) <= 200 and sizes[-1] >= 180  # thinned to 90 % of the bound when over it
+    assert capped.stats["retired_thinned"] > 400 and len(capped.kf_points) == capped.keyframes  # 487
+    assert capped_err < 0.2 and capped_err < 1.1 * free_err, (capped_err, free_err)  # 0.165, 0.192
+    corr = capped.correction()  # every scan still has a corrected pose
+    assert len(corr.kf_scan) == capped.keyframes + capped.stats["retired"]
+
+
+def test_retired_keyframes_no_scan_is_asked_about_are_forgotten(three_rounds):
+    """``keep``: the scans a caller will still ask about (its map's) and every scan from a point
+    on. Retired keyframes none of them follows are forgotten; the corrections of the asked scans
+    are those without forgetting."""
+    _, log, drifted, points = three_rounds
+    n = len(drifted)
+    asked = np.array([5, 40, 333, 1001, 1500])
+    first = n - 400
+    both = [OnlineBackend(be.BackendConfig()), OnlineBackend(be.BackendConfig())]
+    for end in range(50, n, 50):
+        track = Track.whole(log.stamps_s[:end], drifted[:end], log.odometry[:end])
+        whole = both[0].update(track, points)
+        lean = both[1].update(track, points, keep=(asked, min(first, end)))
+    assert both[1].stats["forgotten"] > 350  # measured 389 of 391 retired
+    assert len(lean.kf_scan) <= both[1].keyframes + len(asked) < len(whole.kf_scan) - 300
+    scans = np.concatenate([asked, np.arange(first, end)])
+    np.testing.assert_allclose(
+        lean.apply(drifted[first:end], first), whole.apply(drifted[:end])[first:end], atol=1e-9
+    )
+    for i in scans:
+        np.testing.assert_allclose(lean.pose(int(i), drifted[i]), whole.pose(int(i), drifted[i]), atol=1e-9)

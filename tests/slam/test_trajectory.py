@@ -175,3 +175,48 @@ def test_particles_that_never_coalesce_keep_a_bounded_history():
     np.testing.assert_allclose(p1[:, 1], 1.0)  # particle 1's own path throughout
     _, p2 = traj.backtrack(2)
     assert np.all(p2[-5:, 1] == 2.0) and np.all(p2[:40, 1] == 1.0)  # its older part: particle 1's
+
+
+def test_a_run_without_end_keeps_its_newest_scans_and_the_steps_its_map_refers_to():
+    """With ``max_scans`` the oldest scans (and the closed steps they hang from) are forgotten;
+    what is kept reads back exactly as without forgetting, scan and step numbers stay the
+    run's, and the scans of forgotten steps the map still refers to are remembered."""
+    rng = np.random.default_rng(3)
+    runs = []
+    for max_scans in (0, 40):
+        traj = Trajectory(compact_every=4, max_scans=max_scans)
+        forgotten = 0
+        rng = np.random.default_rng(3)
+        for k in range(300):
+            traj.record(float(k), poses_at(k) + rng.normal(0, 0.01, (3, 3)))
+            for b in range(int(rng.integers(0, 3))):  # bridged scans between steps
+                traj.bridge(k + 0.1 * (b + 1), np.array([0.01 * (b + 1), 0.0, 0.0]))
+            traj.reparent(np.array([0, 0, 1]))  # lineages coalesce
+            if traj.over:
+                forgotten += traj.forget(keep_steps=np.array([3, 7, 150]))
+        runs.append((traj, forgotten))
+    (whole, _), (window, forgotten) = runs
+    assert forgotten > 0 and len(window) == len(whole)  # the run's count of scans
+    assert window.kept_scans <= 50 and window.first_scan == len(whole) - window.kept_scans
+    s0, p0 = whole.backtrack(0)
+    s1, p1 = window.backtrack(0)
+    np.testing.assert_array_equal(s1, s0[window.first_scan :])
+    np.testing.assert_allclose(p1, p0[window.first_scan :])
+    np.testing.assert_array_equal(window.jumps(0), whole.jumps(0)[window.first_scan :])
+    idx = np.arange(window.first_scan, len(whole), 3)
+    np.testing.assert_allclose(window.lineage_at(0, idx)[0], whole.lineage_at(0, idx)[0])
+    assert window.steps == whole.steps
+    kept_steps = np.arange(window.steps - 5, window.steps + 1)
+    np.testing.assert_array_equal(window.scan_of_step(kept_steps), whole.scan_of_step(kept_steps))
+    np.testing.assert_array_equal(window.scan_of_step([3, 7, 150]), whole.scan_of_step([3, 7, 150]))
+    with pytest.raises(ValueError, match="forgotten"):
+        window.lineage_at(0, np.array([window.first_scan - 1]))
+
+
+def test_forgetting_keeps_the_open_steps():
+    """Steps whose particles have not coalesced are never forgotten, whatever max_scans says."""
+    traj = Trajectory(compact_every=1000, max_scans=5)  # nothing closes
+    for k in range(30):
+        traj.record(float(k), poses_at(k))
+    assert traj.over and traj.forget(np.zeros(0, int)) == 0
+    assert traj.first_scan == 0 and traj.kept_scans == 30
