@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import resource
 import sys
 import time
@@ -125,11 +126,12 @@ class LiveBackend:
     """The online back end beside a replayed filter, as an agent runs it: an update every
     ``online_every_s`` of log time over the filter's best path then; what the robot publishes
     meanwhile is the result of the update before (``published``: the one in flight is not
-    done yet)."""
+    done yet). Without the agent's time budget per update (``online_budget_s``): a replay gives
+    the same result on any machine (on the development logs no update comes near it)."""
 
     def __init__(self, log: LaserLog, cfg: SlamConfig):
         self.log, self.cfg = log, cfg
-        self.backend = OnlineBackend(cfg.backend)
+        self.backend = OnlineBackend(dataclasses.replace(cfg.backend, online_budget_s=0.0))
         self.published = Correction(np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)))
         self._pending = self.published
         self._next_s = -np.inf

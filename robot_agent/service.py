@@ -203,9 +203,16 @@ class BackendReport:
         if loops != self._loops and now >= self._next:
             self._loops, self._next = loops, now + self.every_s
             st = self.corrector.stats
+            bounds = ""  # what the bounds of a run without end dropped so far
+            forgot = core.slam.stats.get("scans_forgotten", 0)
+            if forgot or st.get("retired_thinned", 0):
+                bounds = (
+                    f"; bounds: path of the oldest {forgot} scans forgotten, "
+                    f"{st.get('retired_thinned', 0)} keyframes thinned from the graph"
+                )
             print(
                 f"agent {self.robot}: online back end: {loops} loops, {st.get('keyframes', 0)} keyframes, "
-                f"{self.corrector.updates} updates (longest {st.get('update_s_max', 0.0):.2f} s)",
+                f"{self.corrector.updates} updates (longest {st.get('update_s_max', 0.0):.2f} s){bounds}",
                 flush=True,
             )
 
@@ -326,6 +333,7 @@ def run(args: argparse.Namespace) -> int:
             "session": core.session,
             "scans": core.scans,
             "processed_scans": slam.step_index,
+            "poses_from_scan": slam.trajectory.first_scan,  # a run without end writes its newest path
             "wall_time_s": wall,
             "source_duration_s": span,
             "bytes_sent": pub.bytes_sent,

@@ -32,3 +32,37 @@ def test_past_the_cap_it_keeps_no_more_and_has_no_log(monkeypatch):
     src = _source(3.0)
     assert len(list(src.scans())) > 5
     assert len(src._ranges) == 5 and src.recorded_log() is None
+
+
+def test_a_simulated_robot_runs_without_end_and_keeps_its_newest_truth():
+    """An agent on a simulated world keeps its path (and the truth beside it) for the newest
+    SIM_HISTORY_SCANS scans unless told otherwise; the truth goes with that bound."""
+    import dataclasses
+
+    from robot_agent.slam.config import command_line_config
+
+    cfg = service.endless_config(command_line_config([], 10))
+    assert cfg.filter.history_scans == service.SIM_HISTORY_SCANS
+    chosen = service.endless_config(command_line_config(["filter.history_scans=500"], 10))
+    assert chosen.filter.history_scans == 500
+    small = dataclasses.replace(cfg, filter=dataclasses.replace(cfg.filter, history_scans=10))
+    slam = type("Slam", (), {"cfg": small})()
+    args = argparse.Namespace(world="office", route=0, start=None, duration=20.0, explore=False, seed=0)
+    src = service.SimSource(args, slam=slam)
+    scans = list(src.scans())
+    assert len(scans) > 40 and 10 <= len(src.truth) <= 12 and len(src.stamps) == len(src.truth)
+    np.testing.assert_array_equal(src.stamps.view(), [s.stamp_s for s in scans][-len(src.stamps) :])
+
+
+class _Corrector:
+    def __init__(self):
+        self.stats = {"loops": 3, "keyframes": 40, "update_s_max": 0.5, "retired_thinned": 7}
+        self.updates = 9
+
+
+def test_the_back_end_report_says_what_the_bounds_dropped(capsys):
+    core = type("Core", (), {"slam": type("Slam", (), {"stats": {"scans_forgotten": 1234}})()})()
+    service.BackendReport("robot1", _Corrector())(core)
+    out = capsys.readouterr().out
+    assert "3 loops, 40 keyframes, 9 updates" in out
+    assert "path of the oldest 1234 scans forgotten, 7 keyframes thinned from the graph" in out

@@ -196,11 +196,12 @@ class OnlineBackend:
             est = self._optimize(f, est)
             self.stats["optimizations"] = self.stats.get("optimizations", 0) + 1
         budget = cfg.online_requeries if requeries is None else requeries
+        deadline = t0 + cfg.online_budget_s if budget >= 0 and cfg.online_budget_s > 0 else np.inf
         passes = 0
         while changed and passes < (cfg.passes if budget < 0 else 1):
             # keyframes without a loop that the correction moved: searched again, narrow
             passes += 1
-            more = self._requery(f, est, stamps, budget)
+            more = self._requery(f, est, stamps, budget, deadline)
             if not self._admit(more, est, final=budget < 0):
                 break
             est = self._optimize(f, est)
@@ -563,7 +564,10 @@ class OnlineBackend:
                 out.append(loop)
         return out
 
-    def _requery(self, f, est, stamps, budget: int) -> list[Loop]:
+    def _requery(self, f, est, stamps, budget: int, deadline: float = np.inf) -> list[Loop]:
+        """Moved keyframes without a loop searched again, the most moved first, at most
+        ``budget`` of them (``-1``: all) and none after ``deadline`` (``time.perf_counter()``):
+        those left wait for the next update."""
         cfg = self.cfg
         has_loop = np.zeros(len(f), bool)
         has_loop[[lp.new for lp in self.loops]] = True
@@ -574,13 +578,18 @@ class OnlineBackend:
             size = np.hypot(d[idx, 0], d[idx, 1]) + np.abs(d[idx, 2])
             idx = idx[np.argsort(-size)[:budget]]
         out = []
+        done = 0
         for new in idx:
+            if time.perf_counter() > deadline:
+                self.stats["requeries_deferred"] = self.stats.get("requeries_deferred", 0) + len(idx) - done
+                break
+            done += 1
             self._queried_at[new] = est[new]
             for old in self._candidates(est, stamps, int(new)):
                 loop = match_loop(f, self.kf_points, old, int(new), cfg, self.stats, est)
                 if loop is not None:
                     out.append(loop)
-        self.stats["requeried"] = self.stats.get("requeried", 0) + len(idx)
+        self.stats["requeried"] = self.stats.get("requeried", 0) + done
         return out
 
 

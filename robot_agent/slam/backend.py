@@ -94,7 +94,8 @@ class BackendConfig:
     jump_sigma_theta_rad: float = np.radians(5.0)  # held this loosely
     # online (robot_agent/backend/online.py): an update every this much of the source's time, ...
     online_every_s: float = 5.0
-    online_requeries: int = 100  # ... re-searching at most this many moved keyframes; loops
+    online_requeries: int = 100  # ... re-searching at most this many moved keyframes, and none
+    online_budget_s: float = 2.0  # once the update took this long (the rest wait); loops
     online_surprises: int = 3  # that the estimate contradicts go in when this many have come
     # a keyframe the corrected path puts within this of an older one (the robot passing a known
     # place again) leaves the graph once this many keyframes are newer: its scans follow that

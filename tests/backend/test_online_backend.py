@@ -196,3 +196,20 @@ def test_retired_keyframes_no_scan_is_asked_about_are_forgotten(three_rounds):
     )
     for i in scans:
         np.testing.assert_allclose(lean.pose(int(i), drifted[i]), whole.pose(int(i), drifted[i]), atol=1e-9)
+
+
+def test_an_update_past_its_time_budget_leaves_the_remaining_requeries_for_the_next(drifted_office):
+    """With a budget of no time at all, an update that brings loops searches no moved keyframe
+    again (they all wait); without a budget it searches them."""
+    import dataclasses
+
+    _, log, drifted, points = drifted_office
+    out = {}
+    for budget in (0.0, 1e-9):
+        cfg = dataclasses.replace(be.BackendConfig(), online_budget_s=budget)
+        online = OnlineBackend(cfg)
+        for end in range(50, len(drifted), 50):
+            online.update(Track.whole(log.stamps_s[:end], drifted[:end], log.odometry[:end]), points)
+        out[budget] = online.stats
+    assert out[0.0].get("requeried", 0) > 0 and out[0.0].get("requeries_deferred", 0) == 0
+    assert out[1e-9].get("requeried", 0) == 0 and out[1e-9]["requeries_deferred"] > 0
