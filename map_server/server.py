@@ -24,6 +24,7 @@ from map_server.fleet import Fleet, FleetConfig
 from map_server.store import StateError, Store
 from shared import codec
 from shared.keys import Keys
+from shared.memory import Trimmer
 from shared.messages import MAX_ROBOTS, FusedMap, PoseUpdate, RobotMap, WireFormatError
 
 log = logging.getLogger("fleet_slam.server")
@@ -258,11 +259,13 @@ class MapServer:
 
     def run(self, stop: threading.Event) -> None:
         self.start()
+        trimmer = Trimmer()  # freed memory back to the system now and then (runs for days)
         while not stop.is_set():
             t = time.monotonic()
             self._wake.clear()
             self.tick()
             self._log_status()
+            trimmer.maybe()
             self._wake.wait(self.cfg.idle_period_s)  # a new map (or stop) ends the wait early
             stop.wait(max(0.0, self.cfg.min_fuse_gap_s - (time.monotonic() - t)))
         self.tick()

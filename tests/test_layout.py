@@ -34,6 +34,7 @@ IO_MODULES = {
     "shared.codec",  # the msgpack user: bytes on the wire
     "shared.viz",  # draws with matplotlib, writes SVG / PNG / GeoJSON files
     "shared.metrics",  # reads and writes relations, pose and TUM files (open, np.loadtxt/savetxt)
+    "shared.memory",  # reads /proc, calls the C library's malloc_trim (ctypes)
 }
 # Read and found pure: shared.chunks (splits and reassembles messages in memory; its threading.Lock
 # only guards the Assembler's state — no bytes, no file, no clock), shared.messages, shared.keys,
