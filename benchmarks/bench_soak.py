@@ -112,6 +112,8 @@ def main(argv: list[str] | None = None) -> int:
                     "kept_scans": slam.trajectory.kept_scans,
                     "retired_thinned": st.get("retired_thinned", 0),
                     "retired_forgotten": st.get("forgotten", 0),
+                    "jump_edges": st.get("jumps", 0),  # their keyframes stay in the graph
+                    "loop_hints_kept": len(slam.loop_hints),
                     "map_bytes": sum(len(b) for b in latest),
                 }
                 row["rss_total_mb"] = row["rss_agent_mb"] + row["rss_backend_mb"]

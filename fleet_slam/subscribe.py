@@ -15,14 +15,31 @@ def describe(f: FusedMap) -> str:
     return f"v{f.version} {len(f.seg)} segments, {len(f.robots)} robots [{robots}]"
 
 
+HISTORY = 16  # updates a subscriber keeps (it prints each as it comes): it may run for days
+
+
 def save(path: str, f: FusedMap) -> None:
+    """``path`` (``.svg``, else GeoJSON) replaced at once by the map: written beside it, then
+    renamed over it, so a reader sees the old file or the new one, never half of one."""
+    import os
+    import tempfile
+
     from fleet_slam.report import fused_geojson
     from shared.viz import Picture, SegmentLayer, save_geojson, save_svg
 
-    if path.endswith(".svg"):
-        save_svg(path, Picture([SegmentLayer(f.seg, "#222222", 0.05, "fused map")], title=describe(f)))
-    else:
-        save_geojson(path, fused_geojson(f))
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=target.suffix or ".tmp", dir=target.parent)
+    os.close(fd)
+    try:
+        if path.endswith(".svg"):
+            save_svg(tmp, Picture([SegmentLayer(f.seg, "#222222", 0.05, "fused map")], title=describe(f)))
+        else:
+            save_geojson(tmp, fused_geojson(f))
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def run(args: argparse.Namespace) -> int:
@@ -41,7 +58,9 @@ def run(args: argparse.Namespace) -> int:
 
     bus_cfg = client_config(args.connect, args.bus_config)
     with Bus(bus_cfg, cancel=stop) as bus:
-        watcher = FusedWatcher(bus, Keys(args.fleet), on_update=None if args.once else on_update)
+        watcher = FusedWatcher(
+            bus, Keys(args.fleet), on_update=None if args.once else on_update, history=HISTORY
+        )
         if args.once:
             f = watcher.fetch(timeout_s=5.0)
             if f is None:

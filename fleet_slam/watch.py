@@ -1,16 +1,23 @@
 """A fused-map subscriber: the latest fused map (query at start, then every update) and a history
-of updates (what `fleet-slam subscribe` prints and what the demo measures)."""
+of updates (what `fleet-slam subscribe` prints and what the demo measures) — the newest
+``history`` of them, for a subscriber that lives for days."""
 
 from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from shared import codec
 from shared.keys import Keys
 from shared.messages import FusedMap, WireFormatError
+
+# a server publishes a new version per fusion, its fusions spaced (--min-gap, 0.05 s by default):
+# a version further ahead of the last one taken than this allows for the time since is not its
+MAX_VERSIONS_PER_S = 1000.0
+VERSION_SLACK = 64
 
 
 @dataclass(frozen=True)
@@ -21,12 +28,22 @@ class Update:
 
 
 class FusedWatcher:
-    def __init__(self, bus, keys: Keys, on_update: Callable[[Update], None] | None = None):
+    def __init__(
+        self,
+        bus,
+        keys: Keys,
+        on_update: Callable[[Update], None] | None = None,
+        history: int | None = None,
+    ):
+        """``history``: the updates kept (the newest; ``None``: all — a run with an end)."""
         self.bus, self.keys, self.on_update = bus, keys, on_update
         self._lock = threading.Lock()
         self._assembler = codec.Assembler()
         self.latest: FusedMap | None = None
-        self.updates: list[Update] = []
+        self.updates: deque[Update] = deque(maxlen=history)
+        self.received = 0  # updates taken in, all of them
+        self.implausible = 0  # fused maps refused: a version jump no server could have made
+        self._last: tuple[str, str, int, float] | None = None  # server, session, version, when
         self.rejected = 0
         self.changed = threading.Condition(self._lock)
 
@@ -49,15 +66,24 @@ class FusedWatcher:
                 self.rejected += 1
             return
         with self._lock:
+            now = time.monotonic()
+            last = self._last
+            if last is not None and (msg.server, msg.session) == last[:2]:
+                allowed = last[2] + VERSION_SLACK + MAX_VERSIONS_PER_S * (now - last[3])
+                if msg.version > allowed:  # forged (the plain profile lets anyone put it)
+                    self.implausible += 1
+                    return
             try:  # refuses stale versions too: e.g. the query answer after a newer put
                 done = self._assembler.add(msg)
             except WireFormatError:
                 return
             if done is None:
                 return
+            self._last = (done.server, done.session, done.version, now)
             self.latest = done
             upd = Update(time.monotonic(), done, via)
             self.updates.append(upd)
+            self.received += 1
             self.changed.notify_all()
         if self.on_update is not None:
             self.on_update(upd)

@@ -22,19 +22,35 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from map_server.server import MapServer, ServerConfig
-    from map_server.store import Store
-    from shared.bus import Bus, client_config, stop_on_signals
-    from shared.keys import Keys
+    from map_server.store import StateLock, Store
+    from shared.bus import stop_on_signals
 
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO, format="%(asctime)s %(name)s: %(message)s"
     )
     if args.min_gap < 0:
         raise ValueError(f"--min-gap must be >= 0, got {args.min_gap}")
+    lock = StateLock(args.state) if args.state else None  # first: a second server exits 2 at once
+    if lock is not None and lock.stale:
+        print(
+            f"server {args.server_id}: {args.state}: taking over the state from {lock.stale} "
+            "(gone without releasing it)",
+            flush=True,
+        )
     stop = threading.Event()
     stop_on_signals(stop)
-    store = Store(args.state) if args.state else None
+    try:
+        return _serve(args, stop, Store(args.state) if args.state else None)
+    finally:
+        if lock is not None:
+            lock.release()
+
+
+def _serve(args: argparse.Namespace, stop: threading.Event, store) -> int:
+    from map_server.server import MapServer, ServerConfig
+    from shared.bus import Bus, client_config
+    from shared.keys import Keys
+
     bus_cfg = client_config(args.connect, args.bus_config)
     with Bus(bus_cfg, cancel=stop) as bus:
         server = MapServer(

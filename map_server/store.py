@@ -4,6 +4,10 @@ Layout: ``DIR/state.json`` (the index: format version, JSON metadata, the names 
 blobs with their SHA-256, and a SHA-256 of all that) and ``DIR/blobs/<sha256>.bin`` (content-
 addressed binary blobs, e.g. the encoded robot maps).
 
+One server owns a state directory (:class:`StateLock`: an advisory lock on ``DIR/lock``, held
+for the server's life and released on any exit, naming its holder). Temp files carry their
+writer's process id; only the writer, or anyone once that process is gone, deletes them.
+
 Writes are atomic and ordered: new blobs are written (temp file, fsync, rename) before the index
 that names them replaces the old index (temp file, fsync, rename, fsync of the directory), and
 only then are unreferenced blobs deleted. A crash at any point leaves either the old or the new
@@ -13,10 +17,13 @@ state, never a mix. Loading verifies every checksum: a damaged or foreign state 
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
+import socket
 import tempfile
+import time
 from pathlib import Path
 
 STATE_FORMAT = 1
@@ -36,7 +43,7 @@ def _canonical(obj: dict) -> bytes:
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
@@ -55,6 +62,66 @@ def _fsync_dir(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def _writer_gone(tmp: Path) -> bool:
+    """A temp file ``.<name>.<pid>.<random>.tmp`` is this process's or its writer is gone."""
+    parts = tmp.name.split(".")
+    try:
+        pid = int(parts[-3])
+    except (IndexError, ValueError):
+        return True  # not ours by its name: an older build's
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False  # alive, someone else's
+    return False
+
+
+class StateLock:
+    """The one owner of a state directory: an advisory lock (``flock``) on ``DIR/lock``, which
+    the system releases on any exit of the holder, with the holder written in it. Taken: a
+    :class:`StateError` naming the directory and the holder. A holder named in the file whose
+    lock is gone (it was killed) is reported in ``stale``, and the lock taken over."""
+
+    def __init__(self, directory: str | os.PathLike[str]):
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.path = self.dir / "lock"
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 4096).decode(errors="replace").strip() or "another process"
+            os.close(fd)
+            raise StateError(
+                f"{self.dir}: state directory in use by {holder} (one server per state directory; "
+                "stop that one or give this one another --state)"
+            ) from None
+        self.stale = os.read(fd, 4096).decode(errors="replace").strip() or None
+        stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()} since {stamp}\n".encode(), 0)
+        self._fd: int | None = fd
+
+    def release(self) -> None:
+        """Unlock (emptied first: a name left in the file means its holder died holding it)."""
+        if self._fd is None:
+            return
+        os.ftruncate(self._fd, 0)
+        fcntl.flock(self._fd, fcntl.LOCK_UN)
+        os.close(self._fd)
+        self._fd = None
+
+    def __enter__(self) -> StateLock:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
 
 
 class Store:
@@ -88,7 +155,8 @@ class Store:
             if path.name not in keep:
                 path.unlink(missing_ok=True)
         for path in [*self.blob_dir.glob(".*.tmp"), *self.dir.glob(f".{self.index.name}.*.tmp")]:
-            path.unlink(missing_ok=True)  # left by a crash mid-write
+            if _writer_gone(path):  # left by a crash mid-write (not another live writer's)
+                path.unlink(missing_ok=True)
 
     def load(self) -> tuple[dict, dict[str, bytes]] | None:
         """The saved state, ``None`` if the directory holds none; :class:`StateError` if damaged."""

@@ -1,6 +1,7 @@
 """The durable state: atomic, verified, and a damaged state is reported, never loaded."""
 
 import json
+import os
 
 import pytest
 
@@ -145,3 +146,45 @@ def test_opening_a_damaged_state_reports_it_at_once(tmp_path):
     with pytest.raises(StateError, match=r"state\.json: not valid JSON"):
         Store(tmp_path)
     assert Store(tmp_path, check=False).index.exists()  # opened unchecked: nothing read yet
+
+
+def test_a_state_directory_has_one_owner(tmp_path):
+    """The lock names its holder; a second one is refused naming the directory and the holder;
+    released, the next takes it; a holder named in the file without the lock held (killed) is
+    reported as stale and taken over."""
+    from map_server.store import StateLock
+
+    first = StateLock(tmp_path)
+    assert first.stale is None
+    with pytest.raises(StateError, match=rf"{tmp_path}: state directory in use by pid {os.getpid()} on "):
+        StateLock(tmp_path)
+    first.release()
+    assert (tmp_path / "lock").read_text() == ""  # released cleanly: no name left
+    with StateLock(tmp_path) as again:
+        assert again.stale is None
+    (tmp_path / "lock").write_text("pid 999999 on robot-host since 2026-01-01T00:00:00Z\n")
+    taken = StateLock(tmp_path)
+    assert taken.stale == "pid 999999 on robot-host since 2026-01-01T00:00:00Z"
+    taken.release()
+
+
+def test_temp_files_of_a_live_writer_are_left_alone(tmp_path):
+    """A save deletes the temp files of writers that are gone (a crash mid-write), never those of
+    a process still running."""
+    import subprocess
+    import sys
+
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        s = Store(tmp_path)
+        s.save({"v": 1}, {"a": b"x"})
+        theirs = tmp_path / f".state.json.{live.pid}.abc.tmp"
+        dead = tmp_path / ".state.json.999999.abc.tmp"
+        mine = tmp_path / "blobs" / f".x.bin.{os.getpid()}.abc.tmp"
+        for path in (theirs, dead, mine):
+            path.write_bytes(b"half")
+        s.save({"v": 2}, {"a": b"y"})
+        assert theirs.exists() and not dead.exists() and not mine.exists()
+    finally:
+        live.kill()
+        live.wait()
