@@ -108,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
                     "loops_taken_since_last_row": admitted - loops_before,
                     "updates": corrector.updates,
                     "update_s_max": st.get("update_s_max", 0.0),
+                    "update_s_max_since_last_row": corrector.update_s_recent,
                     "open_steps": slam.trajectory.open_steps,
                     "kept_scans": slam.trajectory.kept_scans,
                     "retired_thinned": st.get("retired_thinned", 0),
@@ -121,6 +122,7 @@ def main(argv: list[str] | None = None) -> int:
                 release_free_memory()  # what the agent holds (its own trims come every 30 s)
                 row["rss_agent_held_mb"] = rss_mb()
                 peak_agent = peak_backend = 0.0
+                corrector.update_s_recent = 0.0
                 loops_before = admitted
                 rows.append(row)
                 print(_line(row), flush=True)
@@ -161,7 +163,8 @@ def _line(r: dict) -> str:
         f"{r['rss_backend_mb']:.0f} MB (peak {r['rss_backend_peak_mb']:.0f}); "
         f"keyframes {r['keyframes']} (+{r['retired']} retired), "
         f"loops {r['loops_in_graph']} in the graph, {r['loops_taken_since_last_row']} taken since; "
-        f"longest update {r['update_s_max']:.2f} s; {r['open_steps']} open steps, "
+        f"longest update {r['update_s_max_since_last_row']:.2f} s (since the last row); "
+        f"{r['open_steps']} open steps, "
         f"{r['kept_scans']} scans kept"
     )
 

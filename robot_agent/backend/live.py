@@ -166,6 +166,7 @@ class LiveCorrector:
         self._next_s = -np.inf
         self.updates = 0
         self.seconds_waited = 0.0  # the caller's time spent waiting (only in finish)
+        self.update_s_recent = 0.0  # the longest update collected since the caller reset it
 
     def on_scan(
         self, stamp_s: float, odometry, ranges_m, angles_rad, laser_offset, range_max_m=np.inf
@@ -291,6 +292,7 @@ class LiveCorrector:
             return False
         self.correction, self.stats = done
         self.updates += 1
+        self.update_s_recent = max(self.update_s_recent, self.stats.get("update_s_last", 0.0))
         graph = self.correction.graph_scan
         self._kf_scan = self.correction.kf_scan if graph is None else graph
         if len(self._kf_scan):  # the back end will not need the scans before its last keyframe

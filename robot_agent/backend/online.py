@@ -219,6 +219,7 @@ class OnlineBackend:
         dt = time.perf_counter() - t0
         self.stats["update_s_total"] = self.stats.get("update_s_total", 0.0) + dt
         self.stats["update_s_max"] = max(self.stats.get("update_s_max", 0.0), dt)
+        self.stats["update_s_last"] = dt
         return self.correction()
 
     def finish(self, *args, **kwargs) -> Correction:
