@@ -53,6 +53,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         overrides=args.set,
         limit=args.limit,
         live=args.live,
+        strict=args.strict,
     )
     rtf = m["real_time_factor"]
     print(
@@ -211,6 +212,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, default=0, help="random seed")
     r.add_argument("--out", default="out/replay", help="output directory")
     r.add_argument("--limit", type=int, default=None, help="only the first N scans")
+    r.add_argument(
+        "--strict",
+        action="store_true",
+        help="refuse a log whose last line is cut short or that has laser lines without beams "
+        "(by default they are left out with a warning)",
+    )
     r.add_argument(
         "--live",
         type=int,

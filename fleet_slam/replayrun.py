@@ -49,13 +49,14 @@ def replay_to_dir(
     limit: int | None = None,
     progress: bool | None = None,
     live: int = 0,
+    strict: bool = False,
 ) -> dict:
     """Replay ``log_path`` and write the outputs of DESIGN.md to ``out_dir``; the metrics. With
     ``live`` > 1 the run is cut into that many parts and the trajectory the robot would publish
     at the end of each is scored too (``metrics["live"]``, on the relations before that moment),
     and the online back end's path at the end (``metrics["relations_online"]``)."""
     cfg = command_line_config(overrides or [], particles)
-    log = read_log(log_path, progress=progress)
+    log = read_log(log_path, progress=progress, strict=strict)
     for warning in log.warnings:  # what the reader could not use and what it did instead
         print(f"warning: {warning}", file=sys.stderr)
     rel = read_relations(relations_path) if relations_path else None

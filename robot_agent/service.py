@@ -72,6 +72,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, default=None, help="simulated seconds (default: until stopped)")
     p.add_argument("--from", dest="first", type=int, default=0, help="log: first scan index")
     p.add_argument("--to", dest="last", type=int, default=None, help="log: end scan index (exclusive)")
+    p.add_argument(
+        "--strict",
+        action="store_true",
+        help="log: refuse it if its last line is cut short or it has laser lines without beams "
+        "(by default they are left out with a warning)",
+    )
     p.add_argument("--prior", default=None, help="X,Y,THETA: start in the global frame, for the server")
     p.add_argument("--speed", type=float, default=1.0, help="source seconds per wall second (0: no waiting)")
     p.add_argument("--particles", type=int, default=None, help="particles (default 30)")
@@ -258,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         from robot_agent.sources import read_log
 
-        laser_log = read_log(args.log, progress=False)
+        laser_log = read_log(args.log, progress=False, strict=getattr(args, "strict", False))
         for warning in laser_log.warnings:  # what the reader could not use and what it did instead
             print(f"agent {args.robot}: warning: {warning}", flush=True)
         scans = itertools.islice(laser_log.scans(), args.first, args.last)

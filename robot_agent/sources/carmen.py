@@ -153,11 +153,13 @@ class LogFormatError(ValueError):
         return type(self), (self.path, self.line_no, self.message_type, self.field, self.problem)
 
 
-def read_log(path: str | os.PathLike[str], progress: bool | None = None) -> LaserLog:
+def read_log(path: str | os.PathLike[str], progress: bool | None = None, strict: bool = False) -> LaserLog:
     """Read a CARMEN log (plain or gzip, told by its magic bytes) into a :class:`LaserLog`.
 
     ``progress``: a bar over bytes read on stderr; ``None`` shows it when stderr is a TTY.
-    Raises :class:`LogFormatError` naming file, line and field for any malformed line.
+    Raises :class:`LogFormatError` naming file, line and field for any malformed line — but, as
+    logs come off robots, a last line cut short (power lost while recording) and laser lines
+    without beams are left out with a warning (``LaserLog.warnings``) unless ``strict``.
     """
     path = str(path)
     types: Counter[str] = Counter()
@@ -167,11 +169,24 @@ def read_log(path: str | os.PathLike[str], progress: bool | None = None) -> Lase
             if head and not head[0].startswith("#"):
                 types[head[0]] += 1
     kind = next((k for k in FRONT_LASERS if types[k]), None)
-    reader = _Reader(path, kind, types)
+    reader = _Reader(path, kind, types, strict)
     show = sys.stderr.isatty() if progress is None else progress
+    cut: LogFormatError | None = None  # a line with too few fields: the last one, cut short?
     with closing(_lines(path, show)) as lines:
         for line_no, line in lines:
-            reader.feed(line_no, line)
+            if cut is not None and line.strip():
+                raise cut  # more came after it: malformed, not cut short
+            try:
+                reader.feed(line_no, line)
+            except LogFormatError as err:
+                if strict or not err.problem.startswith("too few fields"):
+                    raise
+                cut = err
+    if cut is not None:
+        reader.warnings.append(
+            f"{path}:{cut.line_no}: the last line is cut short ({cut.message_type} {cut.problem}); "
+            "the log is read without it"
+        )
     return reader.finish()
 
 
@@ -202,8 +217,9 @@ class _Reader:
     """Collects one log's lines of the chosen ``kind`` (and ODOM, PARAM) into lists;
     :meth:`finish` stacks them into a LaserLog."""
 
-    def __init__(self, path: str, kind: str | None, types: Counter[str]) -> None:
-        self.path, self.kind, self.line_no = path, kind, 0
+    def __init__(self, path: str, kind: str | None, types: Counter[str], strict: bool = False) -> None:
+        self.path, self.kind, self.line_no, self.strict = path, kind, 0, strict
+        self.blind: list[int] = []  # laser lines without beams (left out): their line numbers
         read = {"PARAM", "ODOM", "SYNC", kind}
         self.skipped = {name: n for name, n in types.items() if name not in read}
         self.warnings: list[str] = []
@@ -326,7 +342,13 @@ class _Reader:
         key: object,
         angles: Callable[[float, float, int], np.ndarray] | None,
     ) -> None:
-        """Append one scan; ``key`` names its geometry, ``angles(*key)`` computes it (None: later)."""
+        """Append one scan; ``key`` names its geometry, ``angles(*key)`` computes it (None: later).
+        A line without beams is left out (``strict``: refused)."""
+        if ranges.size == 0:
+            if self.strict:
+                raise self.error(self.kind, "num_readings", "a laser line with no beams")
+            self.blind.append(self.line_no)
+            return
         if self.first is None:
             if odom is not None:
                 with np.errstate(over="ignore", invalid="ignore"):  # huge values: checked just below
@@ -422,10 +444,21 @@ class _Reader:
         return table
 
     def finish(self) -> LaserLog:
+        if self.blind:
+            n = len(self.blind)
+            self.warnings.append(
+                f"{self.path}:{self.blind[0]}: {self.kind} laser lines with no beams left out "
+                f"({n} line{'s' if n > 1 else ''}, the first here)"
+            )
         if self.kind is None:
             rear = ", ".join(f"{k} ({n} lines)" for k, n in sorted(self.skipped.items()) if "LASER" in k)
             raise self.error("log", "|".join(FRONT_LASERS), "no front laser lines in the log"
                              + (f"; not read: {rear}" if rear else ""))  # fmt: skip
+        if not self.rows:
+            why = [f"{len(self.blind)} without beams"] if self.blind else []
+            why += ["the last cut short"] if any("cut short" in w for w in self.warnings) else []
+            left = f"no {self.kind} line left to read ({', '.join(why)})"
+            raise self.error(self.kind, "num_readings", left)
         counts = np.array([self.geometries[g][1] for g in self.scan_geometry])
         if np.all(counts == counts[0]):
             ranges = np.stack(self.rows)

@@ -191,7 +191,8 @@ MALFORMED = {
 def test_malformed_line_names_file_line_and_field(tmp_path, case):
     lines, field, detail = MALFORMED[case]
     path = tmp_path / f"{case}.clf"
-    path.write_text("# header\n" + "\n".join(lines) + "\n")
+    after = "" if case == "no_laser_lines" else _flaser() + "\n"  # not the last line: not cut short
+    path.write_text("# header\n" + "\n".join(lines) + "\n" + after)
     with pytest.raises(LogFormatError) as info:
         read_log(path)
     bad_line = 1 + (1 if case == "no_laser_lines" else len(lines))
@@ -341,3 +342,44 @@ def test_full_intel_log():
     # the last FLASER line's first and last readings (awk '/^FLASER/{l=$0} END{print l}' | cut)
     last = log.scan(-1)
     assert last.ranges_m.size == 180 and (last.ranges_m[0], last.ranges_m[-1]) == LAST_INTEL_RANGES
+
+
+# --- logs as they come off robots (issue 24 rows 6 and 7) ----------------------------------------
+
+
+def _good_lines(n: int) -> list[str]:
+    return [_flaser(poses=f"{0.1 * i} 0 0 {0.1 * i} 0 0", stamp=f"{100 + i}.5") for i in range(n)]
+
+
+def test_row6_a_cut_last_line_is_a_warning_and_the_rest_is_read(tmp_path):
+    """Power lost while recording: the last line ends mid-way. The complete scans are read, the
+    warning names the line; ``strict`` refuses as before; a cut line with more after it is still
+    an error (that is not a recording cut short)."""
+    lines = _good_lines(5)
+    path = tmp_path / "cut.clf"
+    path.write_text("\n".join(lines) + "\n" + lines[0][: len(lines[0]) // 2])  # no newline: cut
+    log = read_log(path)
+    assert len(log) == 5
+    assert any(f"{path}:6:" in w and "cut" in w for w in log.warnings), log.warnings
+    with pytest.raises(LogFormatError, match="too few fields"):
+        read_log(path, strict=True)
+    middle = tmp_path / "middle.clf"
+    middle.write_text("\n".join([*lines[:2], lines[2][:20], *lines[3:]]) + "\n")
+    with pytest.raises(LogFormatError) as info:
+        read_log(middle)
+    assert info.value.line_no == 3
+
+
+def test_row7_a_laser_line_without_beams_is_skipped_and_counted(tmp_path):
+    """A blind line (0 beams) among 3-beam ones: skipped with a warning naming its line and the
+    count, not a refusal of the log; ``strict`` refuses it."""
+    lines = _good_lines(6)
+    lines.insert(3, _flaser(ranges="", n=0, poses="0.25 0 0 0.25 0 0", stamp="102.7"))
+    lines.insert(5, _flaser(ranges="", n=0, poses="0.35 0 0 0.35 0 0", stamp="103.7"))
+    path = tmp_path / "zero.clf"
+    path.write_text("\n".join(lines) + "\n")
+    log = read_log(path)
+    assert len(log) == 6 and np.all(log.beam_counts == 3)
+    assert any(f"{path}:4:" in w and "no beams" in w and "2 lines" in w for w in log.warnings), log.warnings
+    with pytest.raises(LogFormatError, match="no beams"):
+        read_log(path, strict=True)

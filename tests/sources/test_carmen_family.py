@@ -299,7 +299,7 @@ RAW_MALFORMED = {
 @pytest.mark.parametrize("case", RAW_MALFORMED)
 def test_malformed_rawlaser_names_line_and_field(tmp_path, case):
     line, field, detail = RAW_MALFORMED[case]
-    e = refusal(tmp_path, [odom(0, 0, 0, 1.0), rawlaser(0.5), line])
+    e = refusal(tmp_path, [odom(0, 0, 0, 1.0), rawlaser(0.5), line, rawlaser(1.5)])  # not the last line
     assert (e.line_no, e.message_type, e.field) == (3, "RAWLASER1", field) and detail in e.problem, str(e)
 
 
