@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from robot_agent.backend.live import LiveCorrector
+from robot_agent.health import LaserHealth
 from robot_agent.publish import MapArrays, PublishConfig, top_particle_maps
 from robot_agent.slam.fastslam import Estimate, FastSLAM
 from robot_agent.sources.base import Scan
@@ -74,8 +75,10 @@ class AgentCore:
         self._next_map_s = -np.inf
         self._last_stamp_s = 0.0
         self._trimmer = Trimmer()  # freed memory back to the system now and then (runs for days)
+        self.health = LaserHealth()  # unusable readings counted, a blind laser noticed
 
     def step(self, scan: Scan) -> Estimate:
+        self.health.add(scan.ranges_m, scan.range_max_m)
         self.estimate = self.slam.step(
             scan.stamp_s, scan.odometry, scan.ranges_m, scan.angles_rad, scan.laser_offset, scan.range_max_m
         )

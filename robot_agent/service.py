@@ -193,6 +193,49 @@ class SnapshotWriter:
         (self.out / f"{self.robot}.snapshot.json").write_text(json.dumps(info))
 
 
+class LaserReport:
+    """What the laser gave that could not be used: one line at most every ``every_s`` of wall time
+    while scans hold unusable readings (counts by kind since the last line), and a warning as the
+    laser goes mostly blind (and a line when it sees again)."""
+
+    def __init__(self, robot: str, every_s: float = 10.0, clock=time.monotonic):
+        self.robot, self.every_s, self.clock = robot, every_s, clock
+        self._next = 0.0
+        self._said = {"scans": 0, "unusable": 0, "by_kind": {}}
+        self._blind = False
+
+    def __call__(self, core) -> None:
+        h = core.health
+        if h.blind != self._blind:
+            self._blind = h.blind
+            if h.blind:
+                print(
+                    f"agent {self.robot}: warning: the laser is mostly blind: "
+                    f"{100 * h.recent_share:.0f} % of its readings over the last scans are unusable "
+                    "(the map and pose rest on what is left, and on odometry)",
+                    flush=True,
+                )
+            else:
+                print(f"agent {self.robot}: the laser sees again", flush=True)
+        now = self.clock()
+        if h.unusable == self._said["unusable"] or now < self._next:
+            return
+        self._next = now + self.every_s
+        kinds = ", ".join(
+            f"{k} {v - self._said['by_kind'].get(k, 0)}"
+            for k, v in h.by_kind.items()
+            if v - self._said["by_kind"].get(k, 0)
+        )
+        scans = h.scans_with_unusable - self._said["scans"]
+        bad = h.unusable - self._said["unusable"]
+        print(
+            f"agent {self.robot}: {bad} unusable laser readings in {scans} scans since the last report "
+            f"({kinds}); the last scan {h.last_unusable} of {h.last_readings}; dropped",
+            flush=True,
+        )
+        self._said = {"scans": h.scans_with_unusable, "unusable": h.unusable, "by_kind": dict(h.by_kind)}
+
+
 class BackendReport:
     """One line when the online back end's loops change, at most every ``every_s`` of wall time."""
 
@@ -277,7 +320,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         with Bus(bus_cfg, cancel=stop) as bus:
             print(f"agent {args.robot}: session {core.session}, connected", flush=True)
-            hooks = [BackendReport(args.robot, corrector)]
+            hooks = [BackendReport(args.robot, corrector), LaserReport(args.robot)]
             if args.snapshot_at is not None and args.out and args.log is not None:
                 n = (args.last if args.last is not None else len(laser_log)) - args.first
                 hooks.append(
@@ -348,6 +391,9 @@ def run(args: argparse.Namespace) -> int:
             "prior": None if prior is None else prior.tolist(),
             "filter": dict(slam.stats),
             "backend": backend,
+            "laser": dict(
+                core.health.status(), **{f"unusable_{k}": v for k, v in core.health.by_kind.items()}
+            ),
         }
         (out / f"{args.robot}.agent.json").write_text(json.dumps(summary, indent=2))
     print(f"agent {args.robot}: {core.scans} scans, {pub.bytes_sent['map']} map bytes, done", flush=True)
