@@ -117,7 +117,14 @@ class AgentCore:
         if self.estimate is None or self._last_stamp_s < self._next_pose_s:
             return None
         self._next_pose_s = self._last_stamp_s + self.cfg.pose_period_s
-        msg = PoseUpdate(self.robot, self.session, self.pose_seq, self._last_stamp_s, self.published_pose())
+        msg = PoseUpdate(
+            self.robot,
+            self.session,
+            self.pose_seq,
+            self._last_stamp_s,
+            self.published_pose(),
+            self.health.status(),
+        )
         self.pose_seq += 1
         return msg
 

@@ -73,7 +73,7 @@ KEYS = {
         "particle_weights", "particle_poses", "seg", "element", "members", "trust", "hits", "age",
         "prior", "prior_sigma",
     ),
-    "pose": ("robot", "session", "seq", "stamp_s", "pose"),
+    "pose": ("robot", "session", "seq", "stamp_s", "pose", "status"),
     "fused_map": (
         "server", "version", "stamp_s", "chunk", "n_chunks", "robots", "n_segments", "n_prov",
         "seg", "support", "prov_offsets", "prov_robot", "extra", "session",
@@ -83,6 +83,11 @@ KEYS = {
         "pose_stamp_s", "aligned_at_s",
     ),
 }  # fmt: skip
+
+
+# What schema 2 (the one before) carried: its messages are still decoded.
+KEYS_SCHEMA_2 = dict(KEYS, pose=tuple(k for k in KEYS["pose"] if k != "status"))
+_KEYS_BY_SCHEMA = {2: KEYS_SCHEMA_2, SCHEMA_VERSION: KEYS}
 
 
 @dataclass(frozen=True)
@@ -157,7 +162,7 @@ def _encode_robot_map(m: RobotMap) -> dict:
 
 def _encode_pose(m: PoseUpdate) -> dict:
     return {"robot": m.robot, "session": m.session, "seq": int(m.seq), "stamp_s": float(m.stamp_s),
-            **_arrays(m, "pose")}  # fmt: skip
+            **_arrays(m, "pose"), "status": {k: float(v) for k, v in m.status.items()}}  # fmt: skip
 
 
 def _encode_status(r: RobotStatus) -> dict:
@@ -231,9 +236,10 @@ def _decode(data: bytes, expect: type | None, limits: _Limits) -> Message:
     if "schema" not in fields:
         raise WireFormatError("schema: missing")
     schema = fields.pop("schema")
-    if isinstance(schema, bool) or not isinstance(schema, int) or schema != SCHEMA_VERSION:
+    if isinstance(schema, bool) or not isinstance(schema, int) or schema not in _KEYS_BY_SCHEMA:
         raise WireFormatError(
-            f"schema: unknown schema version {schema!r:.40}, this build speaks {SCHEMA_VERSION}"
+            f"schema: unknown schema version {schema!r:.40}, this build speaks {SCHEMA_VERSION} "
+            f"(and reads {', '.join(map(str, sorted(_KEYS_BY_SCHEMA)))})"
         )
     if "kind" not in fields:
         raise WireFormatError("kind: missing")
@@ -242,16 +248,24 @@ def _decode(data: bytes, expect: type | None, limits: _Limits) -> Message:
         raise WireFormatError(f"kind: unknown kind {kind!r:.40}, expected one of {tuple(_DECODERS)}")
     if expect is not None and kind != KINDS[expect]:
         raise WireFormatError(f"kind: expected {KINDS[expect]}, got {kind}")
-    return _DECODERS[kind](_Reader(kind, fields, limits=limits))
+    return _DECODERS[kind](_Reader(kind, fields, limits=limits, keys=_KEYS_BY_SCHEMA[schema][kind]))
 
 
 class _Reader:
     """Typed access to one msgpack map whose key set must be exactly ``KEYS[kind]``."""
 
-    def __init__(self, kind: str, fields: dict, where: str = "", limits: _Limits | None = None):
+    def __init__(
+        self,
+        kind: str,
+        fields: dict,
+        where: str = "",
+        limits: _Limits | None = None,
+        keys: tuple | None = None,
+    ):
         self.fields, self.where, self.limits = fields, where, limits
-        missing = [k for k in KEYS[kind] if k not in fields]
-        unknown = [k for k in fields if k not in KEYS[kind]]
+        keys = KEYS[kind] if keys is None else keys
+        missing = [k for k in keys if k not in fields]
+        unknown = [k for k in fields if k not in keys]
         if missing:
             raise WireFormatError(f"{where}{missing[0]}: missing field of {kind}")
         if unknown:
@@ -316,8 +330,9 @@ def _decode_robot_map(r: _Reader) -> RobotMap:
 
 
 def _decode_pose(r: _Reader) -> PoseUpdate:
+    status = r.mapping("status") if "status" in r.fields else {}  # schema 2: none
     return PoseUpdate(robot=r.text("robot"), session=r.text("session"), seq=r.integer("seq"),
-                      stamp_s=r.number("stamp_s"), pose=r.array("pose", (3,)))  # fmt: skip
+                      stamp_s=r.number("stamp_s"), pose=r.array("pose", (3,)), status=status)  # fmt: skip
 
 
 def _decode_status(i: int, item: object) -> RobotStatus:

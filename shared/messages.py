@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-SCHEMA_VERSION = 2  # 2: FusedMap.session
+SCHEMA_VERSION = 3  # 2: FusedMap.session; 3: PoseUpdate.status
+READABLE_SCHEMAS = (2, 3)  # what a receiver decodes: a schema-2 pose has an empty status
 
 MAX_CHUNK_ELEMENTS = 2048  # elements (segments) per chunk: ~64 KB per message
 MAX_CHUNKS = 64  # chunks per map
@@ -196,21 +197,36 @@ class RobotMap:
         return len(self.particle_weights)
 
 
+def check_named_numbers(name: str, value: object) -> dict:
+    """Up to 32 named finite numbers (names of at most 64 characters)."""
+    if not isinstance(value, dict) or len(value) > 32:
+        raise WireFormatError(f"{name}: expected a dict of at most 32 entries")
+    for k, v in value.items():
+        if not isinstance(k, str) or len(k) > MAX_ID_LENGTH:
+            raise WireFormatError(f"{name}: bad key {k!r:.40}")
+        check_float(f"{name}[{k}]", v)
+    return value
+
+
 @dataclass(frozen=True, eq=False)
 class PoseUpdate:
-    """A robot's current pose ``(3,)`` in its own map frame (sent often, small)."""
+    """A robot's current pose ``(3,)`` in its own map frame (sent often, small), and its
+    ``status``: up to 32 named numbers on the robot's health (the laser's unusable readings,
+    ``robot_agent/health.py``; empty from a schema-2 sender)."""
 
     robot: str
     session: str
     seq: int
     stamp_s: float
     pose: np.ndarray
+    status: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         check_id("robot", self.robot)
         check_id("session", self.session)
         check_int("seq", self.seq)
         check_float("stamp_s", self.stamp_s, lo=0.0)
+        check_named_numbers("status", self.status)
         _freeze(self, pose=_pose("pose", self.pose))
 
 
@@ -315,12 +331,7 @@ class FusedMap:
             raise WireFormatError("prov_robot: segments but the robot table is empty")
         n_prov = (int(offsets[-1]),)
         prov = check_array("prov_robot", self.prov_robot, n_prov, "i", 0, max(len(self.robots) - 1, 0))
-        if not isinstance(self.extra, dict) or len(self.extra) > 32:
-            raise WireFormatError("extra: expected a dict of at most 32 entries")
-        for k, v in self.extra.items():
-            if not isinstance(k, str) or len(k) > MAX_ID_LENGTH:
-                raise WireFormatError(f"extra: bad key {k!r:.40}")
-            check_float(f"extra[{k}]", v)
+        check_named_numbers("extra", self.extra)
         _freeze(self, seg=seg, support=support, prov_offsets=offsets, prov_robot=prov)
 
     def provenance(self, i: int) -> list[str]:

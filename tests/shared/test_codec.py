@@ -496,8 +496,8 @@ def test_refuses_a_top_level_that_is_not_a_map(obj, what):
 @pytest.mark.parametrize(
     "schema, match",
     [
-        (3, "schema: unknown schema version 3, this build speaks 2"),
-        (1, "schema: unknown schema version 1, this build speaks 2"),
+        (4, "schema: unknown schema version 4, this build speaks 3 \\(and reads 2, 3\\)"),
+        (1, "schema: unknown schema version 1, this build speaks 3"),
         (0, "schema: unknown schema version 0"),
         ("1", "schema: unknown schema version '1'"),
         (True, "schema: unknown schema version True"),
@@ -506,6 +506,23 @@ def test_refuses_a_top_level_that_is_not_a_map(obj, what):
 )
 def test_refuses_other_schema_versions(schema, match):
     rejects(repack(samples()[0], schema=schema), match)
+
+
+def test_a_schema_2_pose_is_read_with_an_empty_status_and_a_status_travels_in_schema_3():
+    """Agents of the build before send schema 2: their poses still decode (no status); the
+    status of a schema-3 pose comes through; a schema-2 pose with a status field is refused
+    (each schema has its exact key set), as is a status that is not named finite numbers."""
+    pose = PoseUpdate("r1", "s1", 3, 10.0, np.array([1.0, 2.0, 0.5]), {"laser_unusable_last": 12.0})
+    data = codec.encode(pose)
+    back = codec.decode(data)
+    assert back.status == {"laser_unusable_last": 12.0}
+    fields = unpacked(data)
+    del fields["status"]
+    old = codec.decode(msgpack.packb(dict(fields, schema=2), use_bin_type=True))
+    assert old.status == {} and np.array_equal(old.pose, pose.pose)
+    rejects(repack(data, schema=2), "'status': unknown field of pose")
+    rejects(repack(data, status={"x": float("nan")}), "status\\[x\\]")
+    rejects(repack(data, status={str(i): 1.0 for i in range(33)}), "status: expected a dict of at most 32")
 
 
 def test_refuses_unknown_kind_and_unexpected_kind():
