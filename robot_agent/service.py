@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import threading
 import time
 from collections.abc import Iterator
@@ -193,6 +194,29 @@ class SnapshotWriter:
         (self.out / f"{self.robot}.snapshot.json").write_text(json.dumps(info))
 
 
+class OdometryReport:
+    """One line per odometry jump the scans contradicted (:attr:`FastSLAM.odometry_jumps`)."""
+
+    def __init__(self, robot: str):
+        self.robot = robot
+        self._said = 0
+
+    def __call__(self, core) -> None:
+        slam = core.slam
+        n = slam.stats.get("odometry_jumps", 0)
+        if n == self._said:
+            return
+        for scan, u, there, stay in list(slam.odometry_jumps)[-(n - self._said) :]:
+            print(
+                f"agent {self.robot}: warning: odometry jumped {math.hypot(u[0], u[1]):.1f} m and "
+                f"{math.degrees(u[2]):.0f}° at scan {scan}; the scan fits the map where the robot was "
+                f"({stay:.2f} of its points) and not where odometry put it ({there:.2f}): that "
+                "increment is not used",
+                flush=True,
+            )
+        self._said = n
+
+
 class LaserReport:
     """What the laser gave that could not be used: one line at most every ``every_s`` of wall time
     while scans hold unusable readings (counts by kind since the last line), and a warning as the
@@ -320,7 +344,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         with Bus(bus_cfg, cancel=stop) as bus:
             print(f"agent {args.robot}: session {core.session}, connected", flush=True)
-            hooks = [BackendReport(args.robot, corrector), LaserReport(args.robot)]
+            hooks = [
+                BackendReport(args.robot, corrector),
+                LaserReport(args.robot),
+                OdometryReport(args.robot),
+            ]
             if args.snapshot_at is not None and args.out and args.log is not None:
                 n = (args.last if args.last is not None else len(laser_log)) - args.first
                 hooks.append(

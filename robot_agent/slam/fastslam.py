@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,7 +51,7 @@ from robot_agent.slam.update import (
     trusted_mask,
     visibility,
 )
-from shared.geometry import apply_points, compose, relative, wrap_angle
+from shared.geometry import apply_points, compose, point_segment_distance, relative, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,11 @@ class FilterConfig:
     # (beyond, when the particles have not coalesced there, the best one's: trajectory.py)
     history_scans: int = 0  # the path kept for the newest this many scans (0: the whole run's);
     # a source without end sets it (robot_agent/service.py)
+    # an odometry increment beyond this (between two scans) is checked against the scan: when the
+    # scan fits the map where the robot was and not where odometry puts it, odometry jumped (a
+    # glitch, an edited or broken log) and that increment is not used (0: never checked)
+    odometry_jump_m: float = 2.0
+    odometry_jump_rad: float = np.radians(120.0)
 
 
 @dataclass(frozen=True)
@@ -126,7 +132,12 @@ class FastSLAM:
             "relocalizations": 0,
             "relocalization_candidates": 0,
             "history_closed": 0,  # steps closed along the best particle's history (max_open_steps)
+            "odometry_jumps": 0,  # odometry increments the scans contradicted (not used)
+            "odometry_jumps_unverified": 0,  # large ones the scans could not judge (used)
         }
+        # (scan index, increment (3,), fit where odometry put it, fit where the robot was): the
+        # newest odometry jumps the scans contradicted
+        self.odometry_jumps: deque[tuple[int, np.ndarray, float, float]] = deque(maxlen=100)
         self._reloc_pending: reloc_mod.Pending | None = None
         self._odometer_m = 0.0  # distance driven (odometry), and at the last relocalization
         self._anchor_m = 0.0
@@ -155,6 +166,13 @@ class FastSLAM:
         odometry = np.asarray(odometry, dtype=float)
         if self._last_odo is not None:
             u = odometry_increment(self._last_odo, odometry)
+            if (
+                pose is None
+                and self._implausible(u)
+                and self._jumped(u, ranges_m, angles_rad, laser_offset, range_max_m)
+            ):
+                self._last_odo = odometry  # the jump absorbed: increments count from here on
+                u = np.zeros(3)
             moved = np.hypot(u[0], u[1]) >= cfg.filter.min_travel_m or abs(u[2]) >= cfg.filter.min_turn_rad
             if not moved:  # bridge: no map update, the pose from the scan (or odometry) only
                 best = ps.best()
@@ -363,6 +381,43 @@ class FastSLAM:
         targets, sources = reloc_mod.inject(ps, result, young_since)
         self.stats["injections"] += len(targets)
         self.trajectory.inherit(targets, sources)
+
+    def _implausible(self, u: np.ndarray) -> bool:
+        f = self.cfg.filter
+        return f.odometry_jump_m > 0 and (
+            np.hypot(u[0], u[1]) > f.odometry_jump_m or abs(u[2]) > f.odometry_jump_rad
+        )
+
+    def _jumped(self, u, ranges_m, angles_rad, laser_offset, range_max_m) -> bool:
+        """Odometry moved the robot implausibly far since the last step: the scan decides. Its
+        points' fit to the best particle's map (share within 0.15 m of an element) where odometry
+        puts the robot and where it was: fitting where it was (0.3 at least, and by 0.2 more),
+        odometry jumped (True), and the increment is not used — the scan is aligned from the last
+        pose. Otherwise (a gap in the log while the robot drove, an unmapped place) it is used."""
+        ps = self.particles
+        best = ps.best()
+        pts = apply_points(laser_offset, scan_points(ranges_m, angles_rad, self.cfg.extraction, range_max_m))
+        if len(pts) > 100:
+            pts = pts[np.linspace(0, len(pts) - 1, 100).astype(int)]
+        maps = ps.maps
+        segs = maps.seg[best][maps.valid[best]]
+        if len(pts) == 0 or len(segs) == 0:
+            self.stats["odometry_jumps_unverified"] += 1
+            return False
+
+        def fit(pose: np.ndarray) -> float:
+            world = apply_points(pose, pts)
+            d = point_segment_distance(world[:, None, :], segs[None, :, :, :]).min(axis=1)
+            return float(np.mean(d < 0.15))
+
+        here = ps.poses[best]
+        there, stay = fit(compose(here, u)), fit(here)
+        if stay >= 0.3 and stay >= there + 0.2:
+            self.stats["odometry_jumps"] += 1
+            self.odometry_jumps.append((len(self.trajectory), u.copy(), there, stay))
+            return True
+        self.stats["odometry_jumps_unverified"] += 1
+        return False
 
     def referenced_steps(self) -> np.ndarray:
         """The steps (sorted, unique) at which the elements of the particles' maps and of the
