@@ -54,9 +54,8 @@ def _run(path: Path, capsys) -> tuple[AgentCore, str]:
     return core, "".join(out)
 
 
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory):
-    """The map of the unedited log: where the building is."""
+def reference_map() -> np.ndarray:
+    """The map of the unedited scans: where the building is."""
     core = AgentCore("robot1", FastSLAM(SlamConfig(particles=10), np.random.default_rng(0)), AgentConfig())
     for i, scan in enumerate(read_log(LOG).scans()):
         if i == SCANS:
@@ -64,6 +63,11 @@ def reference(tmp_path_factory):
         core.step(scan)
     gm, trusted = core.slam.published_map()
     return gm.seg[trusted]
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return reference_map()
 
 
 @pytest.mark.parametrize("persistent", [False, True], ids=["one line", "from a line on"])
