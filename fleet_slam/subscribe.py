@@ -59,7 +59,11 @@ def run(args: argparse.Namespace) -> int:
     bus_cfg = client_config(args.connect, args.bus_config)
     with Bus(bus_cfg, cancel=stop) as bus:
         watcher = FusedWatcher(
-            bus, Keys(args.fleet), on_update=None if args.once else on_update, history=HISTORY
+            bus,
+            Keys(args.fleet),
+            on_update=None if args.once else on_update,
+            history=HISTORY,
+            on_refused=lambda text: print(f"warning: {text}", flush=True),
         )
         if args.once:
             f = watcher.fetch(timeout_s=5.0)

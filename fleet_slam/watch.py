@@ -34,9 +34,11 @@ class FusedWatcher:
         keys: Keys,
         on_update: Callable[[Update], None] | None = None,
         history: int | None = None,
+        on_refused: Callable[[str], None] | None = None,
     ):
-        """``history``: the updates kept (the newest; ``None``: all — a run with an end)."""
-        self.bus, self.keys, self.on_update = bus, keys, on_update
+        """``history``: the updates kept (the newest; ``None``: all — a run with an end);
+        ``on_refused(text)``: a fused map refused as implausible, said why."""
+        self.bus, self.keys, self.on_update, self.on_refused = bus, keys, on_update, on_refused
         self._lock = threading.Lock()
         self._assembler = codec.Assembler()
         self.latest: FusedMap | None = None
@@ -72,6 +74,14 @@ class FusedWatcher:
                 allowed = last[2] + VERSION_SLACK + MAX_VERSIONS_PER_S * (now - last[3])
                 if msg.version > allowed:  # forged (the plain profile lets anyone put it)
                     self.implausible += 1
+                    said = (
+                        f"refused a fused map of {msg.server} with version {msg.version}: at most "
+                        f"{int(allowed)} could follow version {last[2]} by now (forged?); "
+                        f"{self.implausible} refused so far"
+                    )
+                    n = self.implausible
+                    if self.on_refused is not None and (n in (1, 10, 100, 1000) or n % 10000 == 0):
+                        self.on_refused(said)  # the first, then ever more rarely
                     return
             try:  # refuses stale versions too: e.g. the query answer after a newer put
                 done = self._assembler.add(msg)

@@ -102,7 +102,9 @@ def test_row5_a_forged_version_is_refused_and_the_real_ones_still_taken(monkeypa
     w = _run(monkeypatch, payloads, count=6)  # (all are delivered before it counts)
     assert [u.fused.version for u in w.updates] == list(range(1, 11))[-len(w.updates) :]
     assert w.latest.version == 10 and w.implausible == 1
-    assert "v4611686018427387904" not in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "v4611686018427387904" not in out
+    assert "warning: refused a fused map of srv with version 4611686018427387904" in out  # said so
 
 
 @pytest.mark.parametrize("gap_s, jump, taken", [(0.0, 50, True), (0.0, 5000, False), (10.0, 5000, True)])
