@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
                 }
                 row["rss_total_mb"] = row["rss_agent_mb"] + row["rss_backend_mb"]
                 row["rss_total_peak_mb"] = peak_agent + peak_backend
-                release_free_memory()  # what the agent holds (its own trims come every 30 s)
+                release_free_memory()  # what the agent holds (its own trims come every 10 s)
                 row["rss_agent_held_mb"] = rss_mb()
                 peak_agent = peak_backend = 0.0
                 corrector.update_s_recent = 0.0
