@@ -53,7 +53,9 @@ class LaserHealth:
     last_readings: int = 0
     blind: bool = False
     blind_spells: int = 0  # times the laser went mostly blind
-    _window: deque = field(default_factory=lambda: deque(maxlen=BLIND_WINDOW))
+    _window: deque = field(default_factory=lambda: deque(maxlen=BLIND_WINDOW))  # (bad, readings)
+    _window_bad: int = 0  # the window's sums, kept as it slides
+    _window_seen: int = 0
 
     def add(self, ranges_m: np.ndarray, range_max_m: float) -> None:
         kinds = unusable_readings(ranges_m, range_max_m)
@@ -65,10 +67,15 @@ class LaserHealth:
         for k, v in kinds.items():
             self.by_kind[k] += v
         self.last_unusable, self.last_readings = bad, n
+        if len(self._window) == BLIND_WINDOW:
+            out_bad, out_seen = self._window[0]
+            self._window_bad -= out_bad
+            self._window_seen -= out_seen
         self._window.append((bad, n))
-        total = sum(b for b, _ in self._window)
-        seen = sum(m for _, m in self._window)
-        blind = len(self._window) == BLIND_WINDOW and total > BLIND_SHARE * max(seen, 1)
+        self._window_bad += bad
+        self._window_seen += n
+        full = len(self._window) == BLIND_WINDOW
+        blind = full and self._window_bad > BLIND_SHARE * max(self._window_seen, 1)
         if blind and not self.blind:
             self.blind_spells += 1
         self.blind = blind
@@ -76,8 +83,7 @@ class LaserHealth:
     @property
     def recent_share(self) -> float:
         """The share of unusable readings over the last BLIND_WINDOW scans."""
-        seen = sum(m for _, m in self._window)
-        return sum(b for b, _ in self._window) / seen if seen else 0.0
+        return self._window_bad / self._window_seen if self._window_seen else 0.0
 
     def status(self) -> dict[str, float]:
         """Named numbers for a status report: the last scan's and the run's."""

@@ -245,11 +245,8 @@ class LaserReport:
         if h.unusable == self._said["unusable"] or now < self._next:
             return
         self._next = now + self.every_s
-        kinds = ", ".join(
-            f"{k} {v - self._said['by_kind'].get(k, 0)}"
-            for k, v in h.by_kind.items()
-            if v - self._said["by_kind"].get(k, 0)
-        )
+        new = {k: v - self._said["by_kind"].get(k, 0) for k, v in h.by_kind.items()}
+        kinds = ", ".join(f"{k} {v}" for k, v in new.items() if v)
         scans = h.scans_with_unusable - self._said["scans"]
         bad = h.unusable - self._said["unusable"]
         print(

@@ -252,7 +252,8 @@ def _decode(data: bytes, expect: type | None, limits: _Limits) -> Message:
 
 
 class _Reader:
-    """Typed access to one msgpack map whose key set must be exactly ``KEYS[kind]``."""
+    """Typed access to one msgpack map whose key set must be exactly ``keys`` (default
+    ``KEYS[kind]``, this schema's)."""
 
     def __init__(
         self,

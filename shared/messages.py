@@ -26,8 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-SCHEMA_VERSION = 3  # 2: FusedMap.session; 3: PoseUpdate.status
-READABLE_SCHEMAS = (2, 3)  # what a receiver decodes: a schema-2 pose has an empty status
+SCHEMA_VERSION = 3  # 2: FusedMap.session; 3: PoseUpdate.status (schema 2 is still read: codec)
 
 MAX_CHUNK_ELEMENTS = 2048  # elements (segments) per chunk: ~64 KB per message
 MAX_CHUNKS = 64  # chunks per map

@@ -250,9 +250,7 @@ class LiveCorrector:
         best = slam.particles.best()
         recs = list(self._tail)
         idx = np.array([r.index for r in recs], dtype=int)
-        poses, jumps = slam.trajectory.lineage_at(best, np.maximum(idx, slam.trajectory.first_scan))
-        if idx[0] < slam.trajectory.first_scan:  # the last keyframe's scan, forgotten by the filter
-            poses[0] = self._filter_poses(best, idx[:1])[0]
+        poses, jumps = self._filter_poses(best, idx)  # (the last keyframe's may be forgotten)
         track = Track(
             idx,
             np.array([r.stamp_s for r in recs]),
@@ -260,7 +258,7 @@ class LiveCorrector:
             np.array([r.odometry for r in recs]).reshape(-1, 3),
             jumps,
         )
-        kf_poses = self._filter_poses(best, self._kf_scan)
+        kf_poses, _ = self._filter_poses(best, self._kf_scan)
         hints, self._hints = slam.hints_since(self._hints)
         keep = None
         traj = slam.trajectory
@@ -268,16 +266,16 @@ class LiveCorrector:
             keep = (traj.scan_of_step(np.maximum(slam.referenced_steps(), 1)), traj.first_scan)
         return Job(track, {r.index: r.points for r in recs}, kf_poses, list(hints), final, keep)
 
-    def _filter_poses(self, particle: int, scans: np.ndarray) -> np.ndarray:
-        """The filter's poses ``(N,3)`` of scans ``scans (N,)`` along ``particle``'s history; of
-        scans the filter no longer keeps (its path's oldest part is closed, and forgotten in a run
-        without end), those the back end reported last."""
-        first = self.slam.trajectory.first_scan
-        old = scans < first
+    def _filter_poses(self, particle: int, scans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The filter's poses ``(N,3)`` and jump flags ``(N,)`` of scans ``scans (N,)`` along
+        ``particle``'s history (:meth:`Trajectory.lineage_at`); of scans the filter no longer
+        keeps (its path's oldest part is closed, and forgotten in a run without end), the poses
+        the back end reported last (no jump)."""
+        old = scans < self.slam.trajectory.first_scan
         if not old.any():
-            return self.slam.trajectory.lineage_at(particle, scans)[0]
-        out = np.empty((len(scans), 3))
-        out[~old] = self.slam.trajectory.lineage_at(particle, scans[~old])[0]
+            return self.slam.trajectory.lineage_at(particle, scans)
+        out, jumps = np.empty((len(scans), 3)), np.zeros(len(scans), bool)
+        out[~old], jumps[~old] = self.slam.trajectory.lineage_at(particle, scans[~old])
         c = self.correction
         at = np.searchsorted(c.kf_scan, scans[old])
         if np.any(at >= len(c.kf_scan)) or np.any(
@@ -285,7 +283,7 @@ class LiveCorrector:
         ):
             raise ValueError("a keyframe's scan is neither kept by the filter nor in the last correction")
         out[old] = c.filter[at]
-        return out
+        return out, jumps
 
     def _collect(self, done) -> bool:
         if done is None:

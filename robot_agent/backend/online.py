@@ -329,9 +329,7 @@ class OnlineBackend:
         _, near = cKDTree(x[:, :2]).query(x[cand, :2], k=k_near)
         near = np.asarray(near).reshape(len(cand), -1)
         older = near < cand[:, None]
-        rel = relative(
-            x[np.minimum(near, limit - 1)].reshape(-1, 3), np.repeat(x[cand], near.shape[1], axis=0)
-        )
+        rel = relative(x[near].reshape(-1, 3), np.repeat(x[cand], near.shape[1], axis=0))
         d = (np.hypot(rel[:, 0], rel[:, 1]) + per_rad * np.abs(rel[:, 2])).reshape(near.shape)
         d[~older] = np.inf
         best = np.argmin(d, axis=1)

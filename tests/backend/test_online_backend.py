@@ -119,26 +119,27 @@ def three_rounds():
     return rooms.drifted_office(600.0)
 
 
+def _grow(run, cfg: be.BackendConfig):
+    """The online back end over ``run`` (a drifted office), an update every 50 scans, then the
+    last one: the back end, its graph's size after each update, the final path's ATE (m)."""
+    from shared.metrics import ate
+
+    sim, log, drifted, points = run
+    online, sizes = OnlineBackend(cfg), []
+    for end in range(50, len(drifted), 50):
+        online.update(Track.whole(log.stamps_s[:end], drifted[:end], log.odometry[:end]), points)
+        sizes.append(online.keyframes)
+    final = online.finish(Track.whole(log.stamps_s, drifted, log.odometry), points)
+    return online, sizes, ate(log.stamps_s, final.apply(drifted), sim.stamps_s, sim.truth).rmse_m
+
+
 def test_passing_known_places_again_adds_nothing_to_the_graph_for_good(three_rounds):
     """Three rounds of the office along a path drifted 0.2°/m and 2 % long: after the first
     round the keyframes the robot adds where it has been retire onto the older ones (their
     edges carried over), so the graph stops growing; the path comes out as accurate as with every
     keyframe kept."""
-    from shared.metrics import ate
-
-    sim, log, drifted, points = three_rounds
-    truth = sim.truth
-
-    def run(cfg):
-        online, sizes = OnlineBackend(cfg), []
-        for end in range(50, len(drifted), 50):
-            online.update(Track.whole(log.stamps_s[:end], drifted[:end], log.odometry[:end]), points)
-            sizes.append(online.keyframes)
-        final = online.finish(Track.whole(log.stamps_s, drifted, log.odometry), points)
-        return online, sizes, ate(log.stamps_s, final.apply(drifted), sim.stamps_s, truth).rmse_m
-
-    kept, kept_sizes, kept_err = run(be.BackendConfig(online_retire_m=0.0))
-    lean, lean_sizes, lean_err = run(be.BackendConfig())
+    kept, kept_sizes, kept_err = _grow(three_rounds, be.BackendConfig(online_retire_m=0.0))
+    lean, lean_sizes, lean_err = _grow(three_rounds, be.BackendConfig())
     assert kept_sizes[-1] > 550 and kept.stats.get("retired", 0) == 0  # measured 621
     assert lean_sizes[-1] < 320 and lean.stats["retired"] > 300  # measured 286 and 391
     assert max(lean_sizes[-20:]) - min(lean_sizes[-20:]) < 40  # the last 100 s: flat
@@ -154,20 +155,10 @@ def test_a_graph_over_its_bound_is_thinned_where_it_is_densest(three_rounds):
     """Without retirement by loops, the graph of three rounds grows to ~620 keyframes; bounded
     to 200, the keyframes nearest an older one retire first, the graph never holds more than the
     bound past an update, and the path stays about as accurate."""
-    from shared.metrics import ate
-
-    sim, log, drifted, points = three_rounds
-
-    def run(cfg):
-        online, sizes = OnlineBackend(cfg), []
-        for end in range(50, len(drifted), 50):
-            online.update(Track.whole(log.stamps_s[:end], drifted[:end], log.odometry[:end]), points)
-            sizes.append(online.keyframes)
-        final = online.finish(Track.whole(log.stamps_s, drifted, log.odometry), points)
-        return online, sizes, ate(log.stamps_s, final.apply(drifted), sim.stamps_s, sim.truth).rmse_m
-
-    _, _, free_err = run(be.BackendConfig(online_retire_m=0.0))
-    capped, sizes, capped_err = run(be.BackendConfig(online_retire_m=0.0, online_max_keyframes=200))
+    _, _, free_err = _grow(three_rounds, be.BackendConfig(online_retire_m=0.0))
+    capped, sizes, capped_err = _grow(
+        three_rounds, be.BackendConfig(online_retire_m=0.0, online_max_keyframes=200)
+    )
     assert max(sizes) <= 200 and sizes[-1] >= 180  # thinned to 90 % of the bound when over it
     assert capped.stats["retired_thinned"] > 400 and len(capped.kf_points) == capped.keyframes  # 487
     assert capped_err < 0.2 and capped_err < 1.1 * free_err, (capped_err, free_err)  # 0.165, 0.192
