@@ -17,7 +17,7 @@ import numpy as np
 
 from shared.geometry import apply_segments, transform_points, wrap_angle
 
-# Hypotheses × observed × map pairs scored at once; bounds the temporaries (~100 MB).
+# Hypotheses × observed × map triples facing-tested at once; bounds the temporaries (~10 MB).
 SCORE_CHUNK_ELEMENTS = 1_000_000
 
 
@@ -113,33 +113,43 @@ def overlap_scores(
     An observed segment counts with the part of its length that overlaps a map segment it lies
     on (offset ≤ ``score_perp_m``, facing within ``score_angle_rad``); the best map segment per
     observed segment counts once.
+
+    The facing test comes first, over every (pose, observed, map) triple as one product of unit
+    vectors; the offsets and overlaps are computed only for the triples it admits (a few percent:
+    a wall faces one of many directions). Chunked over poses to bound the temporaries.
     """
-    if len(poses) == 0 or len(obs_ends) == 0 or len(map_ends) == 0:
-        return np.zeros(len(poses))
-    chunk = max(1, SCORE_CHUNK_ELEMENTS // (len(obs_ends) * len(map_ends)))
-    if len(poses) > chunk:
+    n_h, n_o, n_m = len(poses), len(obs_ends), len(map_ends)
+    if n_h == 0 or n_o == 0 or n_m == 0:
+        return np.zeros(n_h)
+    chunk = max(1, SCORE_CHUNK_ELEMENTS // (n_o * n_m))
+    if n_h > chunk:
         return np.concatenate(
             [
                 overlap_scores(poses[s : s + chunk], obs_ends, obs_facing, map_ends, map_facing, cfg)
-                for s in range(0, len(poses), chunk)
+                for s in range(0, n_h, chunk)
             ]
         )
-    moved = apply_segments(poses, obs_ends)  # (H,O,2,2)
-    facing = wrap_angle(obs_facing[None, :] + poses[:, 2:3])  # (H,O)
     fm = _facing_vectors(map_facing)  # (M,2)
-    dm = np.stack([-fm[:, 1], fm[:, 0]], axis=-1)  # direction along each map segment
-    a = map_ends[:, 0]  # (M,2)
-    rel = moved[:, :, None, :, :] - a[None, None, :, None, :]  # (H,O,M,2,2)
-    perp = np.sum(rel * fm[None, None, :, None, :], axis=-1)  # (H,O,M,2)
-    t = np.sum(rel * dm[None, None, :, None, :], axis=-1)
-    tm = np.sum((map_ends[:, 1] - a) * dm, axis=-1)  # (M,)
-    t_lo = np.maximum(np.minimum(t[..., 0], t[..., 1]), np.minimum(0.0, tm))
-    t_hi = np.minimum(np.maximum(t[..., 0], t[..., 1]), np.maximum(0.0, tm))
-    overlap = t_hi - t_lo
-    dang = np.abs(wrap_angle(facing[:, :, None] - map_facing[None, None, :]))
-    ok = (np.max(np.abs(perp), axis=-1) <= cfg.score_perp_m) & (dang <= cfg.score_angle_rad)
-    ok &= overlap > cfg.score_overlap_m
-    return np.sum(np.max(np.where(ok, overlap, 0.0), axis=2), axis=1)
+    fo = _facing_vectors(obs_facing[None, :] + poses[:, 2:3]).reshape(-1, 2)  # (H·O,2)
+    # facing within the angle: cos of the difference, the dot product of the unit vectors
+    ho, m = np.nonzero(fo @ fm.T >= np.cos(cfg.score_angle_rad))  # (K,) each
+    best = np.zeros(n_h * n_o)  # the best overlap per (pose, observed segment)
+    if len(ho):
+        moved = apply_segments(poses, obs_ends).reshape(-1, 2, 2)[ho]  # (K,2,2)
+        a = map_ends[m, 0]  # (K,2)
+        f = fm[m]
+        d = np.stack([-f[:, 1], f[:, 0]], axis=-1)  # along each map segment
+        rel = moved - a[:, None, :]  # (K,2,2)
+        perp = rel[..., 0] * f[:, None, 0] + rel[..., 1] * f[:, None, 1]  # (K,2)
+        t = rel[..., 0] * d[:, None, 0] + rel[..., 1] * d[:, None, 1]
+        e = map_ends[m, 1] - a
+        tm = e[:, 0] * d[:, 0] + e[:, 1] * d[:, 1]  # (K,)
+        t_lo = np.maximum(np.minimum(t[:, 0], t[:, 1]), np.minimum(0.0, tm))
+        t_hi = np.minimum(np.maximum(t[:, 0], t[:, 1]), np.maximum(0.0, tm))
+        overlap = t_hi - t_lo
+        ok = (np.max(np.abs(perp), axis=-1) <= cfg.score_perp_m) & (overlap > cfg.score_overlap_m)
+        np.maximum.at(best, ho[ok], overlap[ok])
+    return best.reshape(n_h, n_o).sum(axis=1)
 
 
 def cluster_poses(

@@ -128,6 +128,49 @@ def test_overlap_scores_chunked_equals_unchunked(monkeypatch):
     assert np.ptp(whole) > 1.0  # the poses do score differently
 
 
+def _dense_overlap_scores(poses, obs_ends, obs_facing, map_ends, map_facing, cfg):
+    """Every (pose, observed, map) triple tested in full: the reference for the sparse kernel."""
+    moved = apply_segments(poses, obs_ends)  # (H,O,2,2)
+    facing = wrap_angle(obs_facing[None, :] + poses[:, 2:3])
+    fm = np.stack([np.cos(map_facing), np.sin(map_facing)], axis=-1)
+    dm = np.stack([-fm[:, 1], fm[:, 0]], axis=-1)
+    a = map_ends[:, 0]
+    rel = moved[:, :, None, :, :] - a[None, None, :, None, :]  # (H,O,M,2,2)
+    perp = np.sum(rel * fm[None, None, :, None, :], axis=-1)
+    t = np.sum(rel * dm[None, None, :, None, :], axis=-1)
+    tm = np.sum((map_ends[:, 1] - a) * dm, axis=-1)
+    t_lo = np.maximum(np.minimum(t[..., 0], t[..., 1]), np.minimum(0.0, tm))
+    t_hi = np.minimum(np.maximum(t[..., 0], t[..., 1]), np.maximum(0.0, tm))
+    overlap = t_hi - t_lo
+    dang = np.abs(wrap_angle(facing[:, :, None] - map_facing[None, None, :]))
+    ok = (np.max(np.abs(perp), axis=-1) <= cfg.score_perp_m) & (dang <= cfg.score_angle_rad)
+    ok &= overlap > cfg.score_overlap_m
+    return np.sum(np.max(np.where(ok, overlap, 0.0), axis=2), axis=1)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_overlap_scores_equal_the_dense_reference(seed):
+    """The facing test first and the geometry only where it passes: the same scores as testing
+    every triple, on a room's scan against the room and many unrelated walls, from poses near and
+    far from the true one."""
+    rng = np.random.default_rng(seed)
+    ends, facing = scan_segments(L_ROOM, TRUE_POSE)
+    centre = rng.uniform(-10.0, 10.0, (300, 2))
+    turn = rng.uniform(-np.pi, np.pi, 300)
+    half = rng.uniform(0.2, 3.0, 300)[:, None] * np.column_stack([np.cos(turn), np.sin(turn)])
+    clutter = np.stack([centre - half, centre + half], axis=1)
+    map_ends = np.concatenate([L_ROOM, clutter])
+    map_facing = np.concatenate([L_FACING, wrap_angle(turn + np.pi / 2 * rng.choice([-1, 1], 300))])
+    poses = np.vstack(
+        [TRUE_POSE + rng.normal(0.0, [0.05, 0.05, 0.03], (40, 3)), rng.uniform(-8, 8, (40, 3))]
+    )
+    for cfg in (MatchingConfig(), MatchingConfig(score_overlap_m=0.3, score_angle_rad=np.radians(15))):
+        got = overlap_scores(poses, ends, facing, map_ends, map_facing, cfg)
+        want = _dense_overlap_scores(poses, ends, facing, map_ends, map_facing, cfg)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+        assert np.count_nonzero(want) > 40  # near the true pose and by chance elsewhere
+
+
 def test_empty_inputs():
     cfg = MatchingConfig()
     assert overlap_scores(np.zeros((0, 3)), L_ROOM, L_FACING, L_ROOM, L_FACING, cfg).shape == (0,)
