@@ -84,7 +84,9 @@ def run_mode(mode: str, log, rel, overrides: list[str], particles: int, seed: in
         done = corrector.finish(600.0)
         out["final_update_s"] = time.perf_counter() - t
         out["final_in_time"] = done
-        poses = corrector.correction.apply(filter_poses)
+        stamps, now = slam.best_trajectory()  # the filter continued from the corrections
+        filter_poses = corrector.raw_path(now)
+        poses = corrector.corrected_path(now)
         out["updates"] = corrector.updates
         out["loops"] = corrector.stats.get("loops")
         out["keyframes"] = corrector.stats.get("keyframes")

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from robot_agent.backend import Correction, OnlineBackend, Track, correct_trajectory, feed, scan_points_robot
+from robot_agent.backend.live import NO_CORRECTION, Frame
 from robot_agent.slam.fastslam import FastSLAM, SlamConfig
 from robot_agent.sources import LaserLog
 
@@ -75,8 +76,10 @@ def replay(
             online.after(slam, i)
         if i + 1 in marks:
             stamps, poses = slam.best_trajectory()
-            shown = poses if online is None else online.published.apply(poses)
-            live.append(Snapshot(i + 1, stamps, shown, poses))
+            if online is None:
+                live.append(Snapshot(i + 1, stamps, poses, poses))
+            else:
+                live.append(Snapshot(i + 1, stamps, online.shown(slam, poses), online.raw(slam, poses)))
 
     show = sys.stderr.isatty() if progress is None else progress
     t0 = time.perf_counter()
@@ -98,13 +101,19 @@ def replay(
     else:
         for i in range(n):
             step(i)
-    stamps, poses = slam.best_trajectory()
     online_poses = online_stats = None
+    hints = slam.loop_hints
     if online is not None:
-        online_poses = online.finish(slam, n).apply(poses)
-        online_stats = dict(online.backend.stats, online_s=online.seconds)
+        online.finish(slam, n)
+        online_stats = dict(online.backend.stats, online_s=online.seconds, adoptions=online.frame.adoptions)
+        stamps, poses = slam.best_trajectory()  # the filter continued from the corrections
+        online_poses = online.shown(slam, poses)
+        poses = online.raw(slam, poses)  # the filter's own path: what the offline back end takes
+        hints = online.raw_hints(slam, hints)
+    else:
+        stamps, poses = slam.best_trajectory()
     t1 = time.perf_counter()
-    corrected, stats = correct_trajectory(log, 0, stamps, poses, cfg, slam.loop_hints, slam.best_jumps())
+    corrected, stats = correct_trajectory(log, 0, stamps, poses, cfg, hints, slam.best_jumps())
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
     return ReplayResult(
@@ -132,8 +141,9 @@ class LiveBackend:
     def __init__(self, log: LaserLog, cfg: SlamConfig):
         self.log, self.cfg = log, cfg
         self.backend = OnlineBackend(dataclasses.replace(cfg.backend, online_budget_s=0.0))
-        self.published = Correction(np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)))
+        self.published = NO_CORRECTION
         self._pending = self.published
+        self.frame = Frame()  # the correction the filter continues from (backend.online_adopt)
         self._next_s = -np.inf
         self._clock = -np.inf
         self.seconds = 0.0  # spent in updates
@@ -145,19 +155,41 @@ class LiveBackend:
         if self._clock < self._next_s:
             return
         self._next_s = self._clock + self.cfg.backend.online_every_s
-        self.published = self._pending
+        self._publish(slam, self._pending)
         self._pending = self._update(slam, i + 1, self.backend.update)
 
     def finish(self, slam: FastSLAM, n: int) -> Correction:
         """The last update, at the end of the source (every moved keyframe searched again)."""
-        self.published = self._pending = self._update(slam, n, self.backend.finish)
+        self._pending = self._update(slam, n, self.backend.finish)
+        self._publish(slam, self._pending)
         return self.published
+
+    def raw(self, slam: FastSLAM, poses: np.ndarray) -> np.ndarray:
+        """The filter's whole path ``poses (S,3)`` without the correction it continues from."""
+        return self.frame.raw(slam, np.arange(len(poses)), poses)
+
+    def raw_hints(self, slam: FastSLAM, hints: list) -> list:
+        if not hints:
+            return []
+        raw = self.frame.raw(slam, np.array([i for i, _ in hints]), np.array([p for _, p in hints]))
+        return [(i, r) for (i, _), r in zip(hints, raw, strict=True)]
+
+    def shown(self, slam: FastSLAM, poses: np.ndarray) -> np.ndarray:
+        """The filter's whole path as the robot publishes it: the published correction's."""
+        return self.published.apply(self.raw(slam, poses))
+
+    def _publish(self, slam: FastSLAM, c: Correction) -> None:
+        self.published = c
+        if self.cfg.backend.online_adopt:
+            self.frame.adopt(slam, c)
 
     def _update(self, slam: FastSLAM, n: int, how) -> Correction:
         t0 = time.perf_counter()
         stamps, poses = slam.best_trajectory()
-        track = Track.whole(stamps, poses, self.log.odometry[:n], slam.best_jumps())
+        track = Track.whole(stamps, self.raw(slam, poses), self.log.odometry[:n], slam.best_jumps())
         hints, self._hints = slam.hints_since(self._hints)
-        out = how(track, lambda k: scan_points_robot(self.log, k, self.cfg), hints=hints)
+        out = how(
+            track, lambda k: scan_points_robot(self.log, k, self.cfg), hints=self.raw_hints(slam, hints)
+        )
         self.seconds += time.perf_counter() - t0
         return out

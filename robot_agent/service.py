@@ -187,7 +187,7 @@ class SnapshotWriter:
 
         stamps, poses = core.slam.best_trajectory()
         if self.corrector is not None:
-            poses = self.corrector.correction.apply(poses, core.slam.trajectory.first_scan)
+            poses = self.corrector.corrected_path(poses, core.slam.trajectory.first_scan)
         self.out.mkdir(parents=True, exist_ok=True)
         write_poses(self.out / f"{self.robot}.snapshot.poses.txt", stamps, poses)
         info = {"monotonic_s": time.monotonic(), "scans": core.scans}
@@ -364,7 +364,10 @@ def run(args: argparse.Namespace) -> int:
                 # the whole exit within 10 s), complete when the source ended
                 done = corrector.finish(FINAL_UPDATE_STOPPED_S if stop.is_set() else FINAL_UPDATE_S)
                 backend = dict(corrector.stats, final_update_in_time=done, updates=corrector.updates)
-                poses = corrector.correction.apply(filter_poses, slam.trajectory.first_scan)
+                stamps, now = slam.best_trajectory()  # the filter continued from the corrections
+                first_scan = slam.trajectory.first_scan
+                filter_poses = corrector.raw_path(now, first_scan)  # the filter's own path
+                poses = corrector.corrected_path(now, first_scan)
                 pub.publish(force_map=True)  # the map and pose as the last correction moves them
                 print(
                     f"agent {args.robot}: published the corrected map ({backend.get('loops', 0)} loops, "

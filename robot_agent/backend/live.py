@@ -144,6 +144,52 @@ class ProcessRunner:
         self._conn.close()
 
 
+NO_CORRECTION = Correction(np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)))
+
+
+def correction_moves(c: Correction, scans: np.ndarray) -> np.ndarray:
+    """The transform ``(N,3)`` (on the left) that correction ``c`` moves scans ``scans (N,)``
+    by: its last keyframe's at or before each (before the first, the first's; none: identity)."""
+    scans = np.asarray(scans)
+    if len(c.kf_scan) == 0:
+        return np.zeros((*scans.shape, 3))
+    k = np.maximum(np.searchsorted(c.kf_scan, scans, side="right") - 1, 0)
+    return compose(c.corrected[k], inverse(c.filter[k]))
+
+
+class Frame:
+    """Which correction the filter's own frame already carries (:meth:`adopt`): the back end
+    works on the filter's path as it would be without any (:meth:`raw`), so that its chain
+    edges stay the filter's own motions and its answers stay whole corrections of that path.
+    Every kept scan moves with its processed step's scan (:meth:`Trajectory.anchor_scans`), as
+    :meth:`FastSLAM.move_frame` moves it."""
+
+    def __init__(self) -> None:
+        self.adopted = NO_CORRECTION
+        self.adoptions = 0
+
+    def raw(self, slam: FastSLAM, scans: np.ndarray, poses: np.ndarray) -> np.ndarray:
+        """Poses ``(N,3)`` of kept scans ``scans (N,)`` in the filter's frame, as they would be
+        without the adopted correction."""
+        if len(self.adopted.kf_scan) == 0 or len(scans) == 0:
+            return np.asarray(poses, float)
+        at = correction_moves(self.adopted, slam.trajectory.anchor_scans(scans))
+        return compose(inverse(at), poses)
+
+    def relative_moves(self, c: Correction, scans: np.ndarray) -> np.ndarray:
+        """What correction ``c`` still moves the filter's current frame by at scans ``scans``."""
+        return compose(correction_moves(c, scans), inverse(correction_moves(self.adopted, scans)))
+
+    def adopt(self, slam: FastSLAM, c: Correction) -> None:
+        """The filter continues from correction ``c``: its frame moves by what ``c`` adds to
+        the adopted one, piecewise between the keyframes of both."""
+        breaks = np.union1d(c.kf_scan, self.adopted.kf_scan).astype(int)
+        if len(breaks):
+            slam.move_frame(breaks, self.relative_moves(c, breaks))
+        self.adopted = c
+        self.adoptions += 1
+
+
 class LiveCorrector:
     """Feeds the online back end from a running filter and holds its latest correction.
 
@@ -155,7 +201,8 @@ class LiveCorrector:
         self.slam = slam
         self.cfg = slam.cfg
         self.runner = InlineRunner(slam.cfg) if runner is None else runner
-        self.correction = Correction(np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)))
+        self.correction = NO_CORRECTION  # the latest, of the filter's path without any (Frame.raw)
+        self.frame = Frame()  # the correction the filter continues from (backend.online_adopt)
         self.stats: dict = {}
         self.max_tail = max_tail
         self.dropped_tail = 0  # scans dropped from an overlong tail (the robot stood still)
@@ -225,7 +272,21 @@ class LiveCorrector:
 
     def pose(self, pose: np.ndarray) -> np.ndarray:
         """The corrected pose of the newest scan, at ``pose`` in the filter's map."""
-        return self.correction.pose(len(self.slam.trajectory) - 1, pose)
+        traj = self.slam.trajectory
+        if len(self.correction.kf_scan) == 0 or len(traj) == 0:
+            return np.array(pose, dtype=float, copy=True)
+        newest = len(traj) - 1
+        return self.correction.pose(newest, self.frame.raw(self.slam, np.array([newest]), pose[None])[0])
+
+    def raw_path(self, poses: np.ndarray, first: int = 0) -> np.ndarray:
+        """The filter's path ``poses (S,3)`` (scan ``first + i`` is ``poses[i]``) without the
+        correction it continues from: the filter's own."""
+        return self.frame.raw(self.slam, np.arange(first, first + len(poses)), poses)
+
+    def corrected_path(self, poses: np.ndarray, first: int = 0) -> np.ndarray:
+        """The filter's path ``poses (S,3)`` (from scan ``first``) as the latest correction
+        puts it."""
+        return self.correction.apply(self.raw_path(poses, first), first)
 
     def segments(self, seg: np.ndarray, born_step: np.ndarray) -> np.ndarray:
         """Segments ``(N,2,2)`` of the filter's map, each moved with the keyframe of the scan
@@ -234,8 +295,7 @@ class LiveCorrector:
         if len(c.kf_scan) == 0 or len(seg) == 0:
             return seg
         scan = self.slam.trajectory.scan_of_step(np.maximum(born_step, 1))
-        k = np.maximum(np.searchsorted(c.kf_scan, scan, side="right") - 1, 0)
-        move = compose(c.corrected[k], inverse(c.filter[k]))  # (N,3): filter map -> corrected
+        move = self.frame.relative_moves(c, scan)  # (N,3): filter map -> corrected
         cos, sin = np.cos(move[:, 2]), np.sin(move[:, 2])
         x, y = seg[..., 0], seg[..., 1]
         out = np.empty_like(seg)
@@ -260,6 +320,13 @@ class LiveCorrector:
         )
         kf_poses, _ = self._filter_poses(best, self._kf_scan)
         hints, self._hints = slam.hints_since(self._hints)
+        kept = [(i, p) for i, p in hints if i >= slam.trajectory.first_scan]
+        if kept:  # in the filter's own frame, as the path
+            scans = np.array([i for i, _ in kept])
+            raw = self.frame.raw(slam, scans, np.array([p for _, p in kept]))
+            hints = [(int(i), r) for i, r in zip(scans, raw, strict=True)]
+        else:
+            hints = []
         keep = None
         traj = slam.trajectory
         if traj.first_scan > 0:  # a run without end: what the map and the kept path refer to
@@ -268,14 +335,17 @@ class LiveCorrector:
 
     def _filter_poses(self, particle: int, scans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The filter's poses ``(N,3)`` and jump flags ``(N,)`` of scans ``scans (N,)`` along
-        ``particle``'s history (:meth:`Trajectory.lineage_at`); of scans the filter no longer
+        ``particle``'s history (:meth:`Trajectory.lineage_at`), without the adopted correction
+        (:meth:`Frame.raw`); of scans the filter no longer
         keeps (its path's oldest part is closed, and forgotten in a run without end), the poses
         the back end reported last (no jump)."""
         old = scans < self.slam.trajectory.first_scan
         if not old.any():
-            return self.slam.trajectory.lineage_at(particle, scans)
+            poses, jumps = self.slam.trajectory.lineage_at(particle, scans)
+            return self.frame.raw(self.slam, scans, poses), jumps
         out, jumps = np.empty((len(scans), 3)), np.zeros(len(scans), bool)
         out[~old], jumps[~old] = self.slam.trajectory.lineage_at(particle, scans[~old])
+        out[~old] = self.frame.raw(self.slam, scans[~old], out[~old])
         c = self.correction
         at = np.searchsorted(c.kf_scan, scans[old])
         if np.any(at >= len(c.kf_scan)) or np.any(
@@ -290,6 +360,8 @@ class LiveCorrector:
             return False
         self.correction, self.stats = done
         self.updates += 1
+        if self.cfg.backend.online_adopt:
+            self.frame.adopt(self.slam, self.correction)
         self.update_s_recent = max(self.update_s_recent, self.stats.get("update_s_last", 0.0))
         graph = self.correction.graph_scan
         self._kf_scan = self.correction.kf_scan if graph is None else graph

@@ -105,6 +105,9 @@ class BackendConfig:
     online_window: int = 100
     online_max_keyframes: int = 3000  # the graph's bound: beyond it, keyframes older than the
     # window retire onto their nearest older one, nearest first, down to 90 % of it (0: no bound)
+    online_adopt: bool = True  # the filter continues from each correction as it comes: its
+    # particles, their maps and history move with it (False: the correction is applied only to
+    # what is published, the filter keeps drifting in its own frame)
 
 
 def select_keyframes(poses: np.ndarray, cfg: BackendConfig, jumps: np.ndarray | None = None) -> np.ndarray:

@@ -27,6 +27,7 @@ from robot_agent.slam.association import AssociationConfig, associate, match_log
 from robot_agent.slam.backend import BackendConfig
 from robot_agent.slam.coarse import CoarseConfig, heading_offset
 from robot_agent.slam.extraction import ExtractionConfig, ScanSegments, extract_segments, scan_points
+from robot_agent.slam.lines import transform_lines, transform_moments
 from robot_agent.slam.motion import (
     MotionConfig,
     odometry_increment,
@@ -419,11 +420,42 @@ class FastSLAM:
         self.stats["odometry_jumps_unverified"] += 1
         return False
 
+    def move_frame(self, kf_scan: np.ndarray, moves: np.ndarray) -> None:
+        """The map frame bent by a back end's correction, so that the filter continues from the
+        corrected estimate: every step of the kept history, every particle's map element (with
+        the step that saw it last: what the robot sees now moves with it; measured against the
+        step that made it, on the three development logs online at the end: Intel 0.0237 m
+        against 0.0259, ACES 0.0397 against 0.0397, MIT-CSAIL 0.0319 against 0.0310), the
+        particles' poses (with the last step) and the
+        relocalizations move by the transform ``moves (K,3)`` of the last keyframe of
+        ``kf_scan (K,)`` at or before their scan (before the first, the first's); a scan not
+        processed moves with the step it hangs from (:meth:`Trajectory.anchor_scans`)."""
+        if len(kf_scan) == 0 or len(self.trajectory) == 0:
+            return
+        kf_scan, moves = np.asarray(kf_scan), np.asarray(moves, dtype=float)
+
+        def at(scans) -> np.ndarray:
+            return moves[np.maximum(np.searchsorted(kf_scan, scans, side="right") - 1, 0)]
+
+        self.trajectory.move(kf_scan, moves)
+        ps = self.particles
+        ps.poses[:] = compose(at(self.trajectory.scan_of_step(self.step_index)), ps.poses)  # the last step's
+        maps = ps.maps
+        if maps.capacity:
+            c = at(self.trajectory.scan_of_step(np.maximum(maps.last_seen, 1)))  # (P,M,3)
+            maps.seg[:] = apply_points(c, maps.seg)  # each element's two endpoints by its own move
+            maps.moments[:] = transform_moments(c, maps.moments)
+            maps.alpha[:], maps.rho[:], _ = transform_lines(c, maps.alpha, maps.rho)
+            maps.facing[:] = wrap_angle(maps.facing + c[..., 2])
+        self.loop_hints = [(i, compose(at(i), pose)) for i, pose in self.loop_hints]
+        self.global_map = None  # rebuilt from the moved maps at the next step
+        self._reloc_pending = None  # found in the old frame
+
     def referenced_steps(self) -> np.ndarray:
         """The steps (sorted, unique) at which the elements of the particles' maps and of the
-        global map were made (:attr:`SegmentMaps.born`)."""
+        global map were made (:attr:`SegmentMaps.born`), and last seen (:meth:`move_frame`)."""
         maps = self.particles.maps
-        parts = [maps.born[maps.valid]]
+        parts = [maps.born[maps.valid], maps.last_seen[maps.valid]]
         if self.global_map is not None:
             parts.append(self.global_map.born)
         return np.unique(np.concatenate(parts).astype(np.int64))

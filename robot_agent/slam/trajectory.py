@@ -210,6 +210,28 @@ class Trajectory:
         first = (scans == 0) | (before != anchors)
         return compose(at, self._scan_rel.view()[scans]), first & jumped
 
+    def anchor_scans(self, scans: np.ndarray) -> np.ndarray:
+        """The scan of the processed step each kept scan of ``scans (N,)`` hangs from (itself if
+        processed): a scan's pose moves with that step's (:meth:`move`)."""
+        local = np.asarray(scans, dtype=np.int64) - self.first_scan
+        return self._step_scan.view()[self._scan_anchor.view()[local] - self._step0]
+
+    def move(self, kf_scan: np.ndarray, moves: np.ndarray) -> None:
+        """Every kept step's poses (of every particle's history) moved by the transform
+        ``moves (K,3)`` (applied on the left: the map frame bent) of the last of ``kf_scan (K,)``
+        (increasing) at or before the step's scan — before the first, the first's. The scans
+        between steps keep their offsets from their step, so they move with it."""
+        if len(kf_scan) == 0:
+            return
+        kf_scan, moves = np.asarray(kf_scan), np.asarray(moves, dtype=float)
+        scans = self._step_scan.view()
+        at = moves[np.maximum(np.searchsorted(kf_scan, scans, side="right") - 1, 0)]  # (steps,3)
+        f = len(self._frozen)
+        if f:
+            self._frozen.view()[:] = compose(at[:f], self._frozen.view())
+        for k in range(len(self._poses)):
+            self._poses[k] = compose(at[f + k], self._poses[k])
+
     def scan_of_step(self, steps: np.ndarray) -> np.ndarray:
         """The scan each processed step (``FastSLAM.step_index``, from 1) processed (of a
         forgotten step not remembered: of the newest remembered before it)."""

@@ -161,9 +161,7 @@ def test_overlap_scores_equal_the_dense_reference(seed):
     clutter = np.stack([centre - half, centre + half], axis=1)
     map_ends = np.concatenate([L_ROOM, clutter])
     map_facing = np.concatenate([L_FACING, wrap_angle(turn + np.pi / 2 * rng.choice([-1, 1], 300))])
-    poses = np.vstack(
-        [TRUE_POSE + rng.normal(0.0, [0.05, 0.05, 0.03], (40, 3)), rng.uniform(-8, 8, (40, 3))]
-    )
+    poses = np.vstack([TRUE_POSE + rng.normal(0.0, [0.05, 0.05, 0.03], (40, 3)), rng.uniform(-8, 8, (40, 3))])
     for cfg in (MatchingConfig(), MatchingConfig(score_overlap_m=0.3, score_angle_rad=np.radians(15))):
         got = overlap_scores(poses, ends, facing, map_ends, map_facing, cfg)
         want = _dense_overlap_scores(poses, ends, facing, map_ends, map_facing, cfg)

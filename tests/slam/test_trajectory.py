@@ -220,3 +220,24 @@ def test_forgetting_keeps_the_open_steps():
         traj.record(float(k), poses_at(k))
     assert traj.over and traj.forget(np.zeros(0, int)) == 0
     assert traj.first_scan == 0 and traj.kept_scans == 30
+
+
+def test_moving_the_frame_moves_every_history_piecewise_by_step():
+    """``move``: every kept step's poses (closed and open, every particle's) by the transform of
+    the last keyframe at or before its scan; bridged scans keep their offsets from their step."""
+    traj = Trajectory(compact_every=2)
+    rng = np.random.default_rng(0)
+    for k in range(12):
+        traj.record(float(k), poses_at(k))
+        traj.bridge(k + 0.5, np.array([0.1, 0.0, 0.02]))
+        traj.reparent(rng.integers(0, 3, 3) if k % 3 else np.array([1, 1, 1]))
+    assert len(traj._frozen) > 0 and traj.open_steps > 0  # both kinds are moved
+    before = [traj.backtrack(j)[1] for j in range(3)]
+    kf = np.array([4, 10, 17])  # scans: 4 and 10 processed, 17 bridged (hangs from 16)
+    moves = np.array([[1.0, 2.0, 0.1], [-0.5, 0.3, -0.2], [0.2, 0.2, 0.3]])
+    traj.move(kf, moves)
+    anchor = traj.anchor_scans(np.arange(len(traj)))
+    np.testing.assert_array_equal(anchor, np.repeat(np.arange(0, 24, 2), 2))
+    which = np.maximum(np.searchsorted(kf, anchor, side="right") - 1, 0)
+    for j in range(3):
+        np.testing.assert_allclose(traj.backtrack(j)[1], compose(moves[which], before[j]), atol=1e-12)
