@@ -1,12 +1,14 @@
 """Every development log, every seed: relations error, speed and memory beside the published figures.
 
     .venv/bin/python benchmarks/bench_logs.py DIR... [--seeds 0 1 2] [--particles 30] [--jobs 1]
-        [--set SECTION.KEY=VALUE ...] [--keep OUTDIR] [--json PATH] [--limit N]
+        [--set SECTION.KEY=VALUE ...] [--keep OUTDIR] [--json PATH] [--limit N] [--no-live]
 
 Each DIR holds a CARMEN log (``*.clf`` or ``*.clf.gz``) with its Kümmerle relations beside it
 (``<stem>.relations``); a DIR may also be the log file itself. A log without relations is reported
 and skipped. Every log × seed runs ``fleet-slam replay`` as its own process on one core
-(``*_NUM_THREADS=1``), at most ``--jobs`` at once, so wall time and peak memory are per run.
+(``*_NUM_THREADS=1``), at most ``--jobs`` at once, so wall time and peak memory are per run; then
+(unless ``--no-live``) ``fleet-slam replay --live 10`` as an agent runs, for what the robot would
+publish while it runs: the worst snapshot, the online back end at the end, its CPU share.
 
 One row per log, in the shape of Table II of Hess et al. (ICRA 2016): translational and rotational
 error, mean over seeds of each run's mean ± mean over seeds of each run's std, and the worst seed's
@@ -133,11 +135,20 @@ def discover(paths: list[str | Path]) -> tuple[list[LogEntry], list[str]]:
 # --- one run ----------------------------------------------------------------------------------
 
 
-def replay_command(entry: LogEntry, seed: int, out_dir: Path, args: argparse.Namespace) -> list[str]:
-    """``fleet-slam replay`` for one log and seed, with this interpreter."""
+# what a --live run adds to the plain run's metrics: what the robot publishes while it runs
+LIVE_KEYS = ("live", "live_worst_trans_m", "relations_online", "online_backend", "online_backend_s",
+             "online_backend_share")  # fmt: skip
+
+
+def replay_command(
+    entry: LogEntry, seed: int, out_dir: Path, args: argparse.Namespace, live: bool = False
+) -> list[str]:
+    """``fleet-slam replay`` for one log and seed, with this interpreter; ``live``: with the
+    online back end beside the filter as an agent runs it (``--live 10``: the trajectory it
+    would publish at every tenth), which the filter continues from."""
     cmd = [sys.executable, "-m", "fleet_slam.cli", "replay", str(entry.log)]
     cmd += ["--relations", str(entry.relations), "--seed", str(seed), "--particles", str(args.particles)]
-    cmd += ["--out", str(out_dir), "--live", "10"]  # the trajectory it would publish at every tenth
+    cmd += ["--out", str(out_dir)] + (["--live", "10"] if live else [])
     for override in args.set:
         cmd += ["--set", override]
     if args.limit is not None:
@@ -153,14 +164,33 @@ def child_env() -> dict[str, str]:
 
 
 def run_one(entry: LogEntry, seed: int, args: argparse.Namespace) -> dict:
-    """Replay one log with one seed in a subprocess; its metrics.json, or the failure."""
-    kept = Path(args.keep) / entry.name / f"seed{seed}" if args.keep else None
+    """Replay one log with one seed as ``fleet-slam replay`` does (its metrics.json, or the
+    failure), then, unless ``--no-live``, again as an agent runs (``--live``): what the robot
+    would publish while it runs joins the metrics (:data:`LIVE_KEYS`; that run's offline figure
+    as ``relations_live_run``). Two runs: a filter that continues from the online corrections
+    is not the filter that ``replay`` runs."""
+    run = _run_once(entry, seed, args, live=False)
+    if "metrics" not in run or not getattr(args, "live", True):
+        return run
+    live = _run_once(entry, seed, args, live=True)
+    if "metrics" not in live:
+        return dict(live, seed=seed)  # a failed live run fails the pair
+    m = live["metrics"]
+    run["metrics"].update({k: m[k] for k in LIVE_KEYS if k in m})
+    if "relations" in m:
+        run["metrics"]["relations_live_run"] = m["relations"]
+    run["process_wall_s"] += live["process_wall_s"]
+    return run
+
+
+def _run_once(entry: LogEntry, seed: int, args: argparse.Namespace, live: bool) -> dict:
+    kept = Path(args.keep) / entry.name / f"seed{seed}{'-live' if live else ''}" if args.keep else None
     with nullcontext(kept) if kept else tempfile.TemporaryDirectory(prefix="bench_logs_") as out:
         out_dir = Path(out)
         (out_dir / "metrics.json").unlink(missing_ok=True)  # a kept directory's earlier run
         t0 = time.perf_counter()
         proc = subprocess.run(
-            replay_command(entry, seed, out_dir, args), env=child_env(), capture_output=True, text=True
+            replay_command(entry, seed, out_dir, args, live), env=child_env(), capture_output=True, text=True
         )
         run = {"log": entry.name, "seed": seed, "returncode": proc.returncode}
         run["process_wall_s"] = time.perf_counter() - t0  # with loading the log and the pictures
@@ -356,6 +386,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--keep", default=None, metavar="OUTDIR", help="keep each run as OUTDIR/<log>/seed<K>/")
     ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "bench_logs.json"))
     ap.add_argument("--limit", type=int, default=None, help="only the first N scans of every log")
+    ap.add_argument(
+        "--no-live", dest="live", action="store_false", help="without the second, agent-like run (--live)"
+    )
     args = ap.parse_args(argv)
     bad = [s for s in args.set if "=" not in s]
     if bad:  # --set takes several values, so a DIR after it lands here

@@ -137,9 +137,11 @@ def test_replay_command_and_one_core_env(bench):
     assert cmd[1:5] == ["-m", "fleet_slam.cli", "replay", "/d/a.clf.gz"]
     tail = " ".join(cmd[5:])
     assert tail == (
-        "--relations /d/a.relations --seed 3 --particles 7 --out /o --live 10 --set backend.enabled=false "
+        "--relations /d/a.relations --seed 3 --particles 7 --out /o --set backend.enabled=false "
         "--set proposal.enabled=false --limit 300"
     )
+    live = " ".join(bench.replay_command(entry, 3, Path("/o"), args, live=True)[5:])
+    assert live == tail.replace("--out /o", "--out /o --live 10")
     env = bench.child_env()
     assert env["OMP_NUM_THREADS"] == env["OPENBLAS_NUM_THREADS"] == env["MKL_NUM_THREADS"] == "1"
     assert env["PYTHONPATH"].split(":")[0] == str(SCRIPT.parents[1])
