@@ -73,8 +73,10 @@ def test_live_snapshots_score_what_the_robot_would_publish_then(tmp_path):
     assert m["live_worst_trans_m"] == max(row["trans_mean_m"] for row in m["live"])
     log = read_log(LOG)
     full = replay(log, SlamConfig(), seed=0, progress=False, limit=900, snapshots=3)
-    stopped = replay(log, SlamConfig(), seed=0, progress=False, limit=600)
-    np.testing.assert_array_equal(full.live[1].filter_poses, stopped.filter_poses)
+    # a run stopped there with the same online back end (the filter continues from its
+    # corrections): the filter's own path (the adopted correction taken out again: to rounding)
+    stopped = replay(log, SlamConfig(), seed=0, progress=False, limit=600, snapshots=3)
+    np.testing.assert_allclose(full.live[1].filter_poses, stopped.filter_poses, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(full.live[1].stamps_s, stopped.stamps_s)
     assert full.live[1].poses.shape == stopped.filter_poses.shape
     assert "relations_online" in m and m["online_backend"]["updates"] > 1
