@@ -109,7 +109,7 @@ def replay(
         stamps, poses = slam.best_trajectory()  # the filter continued from the corrections
         online_poses = online.shown(slam, poses)
         poses = online.raw(slam, poses)  # the filter's own path: what the offline back end takes
-        hints = online.raw_hints(slam, hints)
+        hints = online.frame.raw_hints(slam, hints)
     else:
         stamps, poses = slam.best_trajectory()
     t1 = time.perf_counter()
@@ -168,12 +168,6 @@ class LiveBackend:
         """The filter's whole path ``poses (S,3)`` without the correction it continues from."""
         return self.frame.raw(slam, np.arange(len(poses)), poses)
 
-    def raw_hints(self, slam: FastSLAM, hints: list) -> list:
-        if not hints:
-            return []
-        raw = self.frame.raw(slam, np.array([i for i, _ in hints]), np.array([p for _, p in hints]))
-        return [(i, r) for (i, _), r in zip(hints, raw, strict=True)]
-
     def shown(self, slam: FastSLAM, poses: np.ndarray) -> np.ndarray:
         """The filter's whole path as the robot publishes it: the published correction's."""
         return self.published.apply(self.raw(slam, poses))
@@ -189,7 +183,7 @@ class LiveBackend:
         track = Track.whole(stamps, self.raw(slam, poses), self.log.odometry[:n], slam.best_jumps())
         hints, self._hints = slam.hints_since(self._hints)
         out = how(
-            track, lambda k: scan_points_robot(self.log, k, self.cfg), hints=self.raw_hints(slam, hints)
+            track, lambda k: scan_points_robot(self.log, k, self.cfg), hints=self.frame.raw_hints(slam, hints)
         )
         self.seconds += time.perf_counter() - t0
         return out

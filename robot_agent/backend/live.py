@@ -176,6 +176,14 @@ class Frame:
         at = correction_moves(self.adopted, slam.trajectory.anchor_scans(scans))
         return compose(inverse(at), poses)
 
+    def raw_hints(self, slam: FastSLAM, hints: list) -> list:
+        """The relocalizations ``[(scan, pose (3,)), ...]`` of scans still kept, as :meth:`raw`."""
+        kept = [(int(i), p) for i, p in hints if i >= slam.trajectory.first_scan]
+        if not kept:
+            return []
+        raw = self.raw(slam, np.array([i for i, _ in kept]), np.array([p for _, p in kept]))
+        return [(i, r) for (i, _), r in zip(kept, raw, strict=True)]
+
     def relative_moves(self, c: Correction, scans: np.ndarray) -> np.ndarray:
         """What correction ``c`` still moves the filter's current frame by at scans ``scans``."""
         return compose(correction_moves(c, scans), inverse(correction_moves(self.adopted, scans)))
@@ -292,7 +300,7 @@ class LiveCorrector:
         """Segments ``(N,2,2)`` of the filter's map, each moved with the keyframe of the scan
         that created it (``born_step (N,)``: :attr:`SegmentMaps.born`)."""
         c = self.correction
-        if len(c.kf_scan) == 0 or len(seg) == 0:
+        if len(c.kf_scan) == 0 or len(seg) == 0 or c is self.frame.adopted:  # (the filter's map is it)
             return seg
         scan = self.slam.trajectory.scan_of_step(np.maximum(born_step, 1))
         move = self.frame.relative_moves(c, scan)  # (N,3): filter map -> corrected
@@ -320,13 +328,7 @@ class LiveCorrector:
         )
         kf_poses, _ = self._filter_poses(best, self._kf_scan)
         hints, self._hints = slam.hints_since(self._hints)
-        kept = [(i, p) for i, p in hints if i >= slam.trajectory.first_scan]
-        if kept:  # in the filter's own frame, as the path
-            scans = np.array([i for i, _ in kept])
-            raw = self.frame.raw(slam, scans, np.array([p for _, p in kept]))
-            hints = [(int(i), r) for i, r in zip(scans, raw, strict=True)]
-        else:
-            hints = []
+        hints = self.frame.raw_hints(slam, hints)  # in the filter's own frame, as the path
         keep = None
         traj = slam.trajectory
         if traj.first_scan > 0:  # a run without end: what the map and the kept path refer to
