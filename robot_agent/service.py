@@ -264,10 +264,19 @@ class BackendReport:
         self.robot, self.corrector, self.every_s = robot, corrector, every_s
         self._loops = 0
         self._next = 0.0
+        self._failures = 0
 
     def __call__(self, core) -> None:
         if self.corrector is None:
             return
+        if self.corrector.failures != self._failures:  # every one: they should never happen
+            self._failures = self.corrector.failures
+            print(
+                f"agent {self.robot}: warning: the online back end could not update "
+                f"({self._failures} so far): {self.corrector.last_failure}; the map keeps the last "
+                "correction",
+                flush=True,
+            )
         loops = self.corrector.stats.get("loops", 0)
         now = time.monotonic()
         if loops != self._loops and now >= self._next:

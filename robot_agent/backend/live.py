@@ -58,6 +58,13 @@ def run_job(backend: OnlineBackend, job: Job) -> tuple[Correction, dict]:
     return corr, dict(backend.stats)
 
 
+@dataclass(frozen=True)
+class Failure:
+    """An update the back end could not do, and why (the back end itself goes on)."""
+
+    error: str
+
+
 class InlineRunner:
     """The back end in the caller's thread: ``submit`` computes at once."""
 
@@ -70,7 +77,10 @@ class InlineRunner:
         return False
 
     def submit(self, job: Job) -> None:
-        self._done = run_job(self.backend, job)
+        try:
+            self._done = run_job(self.backend, job)
+        except Exception as exc:  # as the process runner: the caller goes on
+            self._done = Failure(f"{type(exc).__name__}: {exc}")
 
     def poll(self, timeout_s: float = 0.0) -> tuple[Correction, dict] | None:
         done, self._done = self._done, None
@@ -92,7 +102,10 @@ def _serve(conn, cfg: SlamConfig) -> None:  # pragma: no cover - runs in the chi
             return
         if job is None:
             return
-        conn.send(run_job(backend, job))
+        try:
+            conn.send(run_job(backend, job))
+        except Exception as exc:  # an update that fails must not take the back end with it
+            conn.send(Failure(f"{type(exc).__name__}: {exc}"))
         del job
         release_free_memory()  # the update's temporaries back to the system (runs for days)
 
@@ -222,6 +235,9 @@ class LiveCorrector:
         self.updates = 0
         self.seconds_waited = 0.0  # the caller's time spent waiting (only in finish)
         self.update_s_recent = 0.0  # the longest update collected since the caller reset it
+        self._sent = 0  # scans of the tail handed over in the update in flight
+        self.failures = 0  # updates the back end could not do (it said why: last_failure)
+        self.last_failure = ""
 
     def on_scan(
         self, stamp_s: float, odometry, ranges_m, angles_rad, laser_offset, range_max_m=np.inf
@@ -234,10 +250,13 @@ class LiveCorrector:
         )
         rec = ScanRecord(index, float(stamp_s), np.asarray(odometry, float).copy(), pts.astype(np.float32))
         self._tail.append(rec)
-        if len(self._tail) > self.max_tail:  # keep the last keyframe's scan and the newest
-            first = self._tail.popleft()
-            self._tail.popleft()
-            self._tail.appendleft(first)
+        # too long (the robot stood still for long, or the back end is slow): the oldest scan
+        # not handed over goes — never the last keyframe's (the first), nor one handed over in
+        # the update in flight (it may be that update's newest keyframe, which the next update's
+        # path must start from), nor the newest
+        drop = max(self._sent, 1)
+        if len(self._tail) > self.max_tail and drop < len(self._tail) - 1:
+            del self._tail[drop]
             self.dropped_tail += 1
         self._clock = max(self._clock, float(stamp_s))
 
@@ -270,6 +289,8 @@ class LiveCorrector:
                     return False
                 if self._collect(self.runner.poll(min(left, 0.1))):
                     return True
+                if not self.runner.busy:  # it could not (last_failure says why)
+                    return False
         finally:
             self.seconds_waited += time.monotonic() - t0
 
@@ -317,6 +338,7 @@ class LiveCorrector:
         slam = self.slam
         best = slam.particles.best()
         recs = list(self._tail)
+        self._sent = len(recs)
         idx = np.array([r.index for r in recs], dtype=int)
         poses, jumps = self._filter_poses(best, idx)  # (the last keyframe's may be forgotten)
         track = Track(
@@ -359,6 +381,11 @@ class LiveCorrector:
 
     def _collect(self, done) -> bool:
         if done is None:
+            return False
+        self._sent = 0
+        if isinstance(done, Failure):  # the robot goes on with the last correction; the scans
+            self.failures += 1  # stay for the next update
+            self.last_failure = done.error
             return False
         self.correction, self.stats = done
         self.updates += 1

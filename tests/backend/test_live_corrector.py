@@ -231,3 +231,70 @@ def test_adopting_a_correction_moves_the_filter_and_keeps_its_own_path():
     _, p2 = slam.best_trajectory()
     step = np.hypot(*np.diff(p2[145:160, :2], axis=0).T)
     assert step.max() < 0.2  # the robot moves a few cm per scan
+
+
+class Slow(InlineRunner):
+    """A back end whose updates take ``scans`` of the filter's scans to come back."""
+
+    def __init__(self, cfg, scans):
+        super().__init__(cfg)
+        self.scans, self.waited, self.jobs = scans, 0, []
+
+    @property
+    def busy(self):
+        return self._done is not None
+
+    def submit(self, job):
+        self.jobs.append(job)
+        super().submit(job)
+        self.waited = 0
+
+    def poll(self, timeout_s=0.0):
+        self.waited += 1
+        return super().poll() if self.waited > self.scans else None
+
+
+def test_a_slow_back_end_with_a_tail_too_long_still_gets_its_newest_keyframe():
+    """Found by the 24-hour soak (15 h, 14x real time, updates of 20 s): while an update was in
+    flight the tail passed max_tail, and trimming it dropped scans handed over in that update —
+    one became its newest keyframe, the next update's path could not start there, and the back
+    end's process died ("track: starts after the last keyframe"), the agent with it. Now the
+    scans handed over stay while their update is in flight."""
+    slam = FastSLAM(SlamConfig(particles=5), np.random.default_rng(0))
+    runner = Slow(slam.cfg, scans=120)
+    c = LiveCorrector(slam, runner, max_tail=60)
+    for s in LiveSim(builtin_world("office"), 0, seed=0).scans(120.0):
+        slam.step(s.stamp_s, s.odometry, s.ranges_m, s.angles_rad, s.laser_offset, s.range_max_m)
+        c.on_scan(s.stamp_s, s.odometry, s.ranges_m, s.angles_rad, s.laser_offset, s.range_max_m)
+        c.tick()
+        assert len(c._tail) <= 2 * c.max_tail  # still bounded: handed-over scans plus the newest
+    assert c.failures == 0, c.last_failure
+    assert c.dropped_tail > 100 and c.updates >= 3
+    for job, before in zip(runner.jobs[1:], runner.jobs, strict=False):
+        assert job.track.scan[0] <= before.track.scan[-1]  # each path starts within the last
+
+
+def test_an_update_that_fails_leaves_the_back_end_running():
+    """A job the back end cannot do comes back as a Failure (the process goes on, and the next
+    job is done); the corrector keeps its last correction and counts it."""
+    from robot_agent.backend.live import Failure, Job
+    from robot_agent.backend.online import Track
+
+    proc = ProcessRunner(SlamConfig(particles=5))
+    try:
+        track = Track.whole(np.arange(3.0), np.zeros((3, 3)), np.zeros((3, 3)))
+        pts = {i: np.array([[1.0, 0.0], [0.0, 1.0]], np.float32) for i in range(3)}
+        bad = Job(track, pts, np.zeros((5, 3)), [])  # poses for 5 keyframes, and it has none
+        for job, failing in ((bad, True), (Job(track, pts, np.zeros((0, 3)), []), False)):
+            proc.submit(job)
+            got = None
+            for _ in range(600):
+                if (got := proc.poll(0.1)) is not None:
+                    break
+            assert isinstance(got, Failure) == failing, got
+    finally:
+        proc.close()
+    slam = FastSLAM(SlamConfig(particles=5), np.random.default_rng(0))
+    c = LiveCorrector(slam)
+    assert c._collect(Failure("ValueError: x")) is False
+    assert c.failures == 1 and c.last_failure == "ValueError: x" and len(c.correction.kf_scan) == 0
