@@ -58,6 +58,7 @@ class _Corrector:
     def __init__(self):
         self.stats = {"loops": 3, "keyframes": 40, "update_s_max": 0.5, "retired_thinned": 7}
         self.updates = 9
+        self.failures, self.last_failure = 0, ""
 
 
 def test_the_back_end_report_says_what_the_bounds_dropped(capsys):
@@ -66,3 +67,17 @@ def test_the_back_end_report_says_what_the_bounds_dropped(capsys):
     out = capsys.readouterr().out
     assert "3 loops, 40 keyframes, 9 updates" in out
     assert "path of the oldest 1234 scans forgotten, 7 keyframes thinned from the graph" in out
+
+
+def test_the_back_end_report_warns_of_every_failed_update(capsys):
+    core = type("Core", (), {"slam": type("Slam", (), {"stats": {}})()})()
+    corrector = _Corrector()
+    report = service.BackendReport("robot1", corrector)
+    report(core)
+    assert "warning" not in capsys.readouterr().out
+    corrector.failures, corrector.last_failure = 1, "ValueError: track: starts after the last keyframe"
+    report(core)
+    out = capsys.readouterr().out
+    assert "warning: the online back end could not update (1 so far): ValueError: track" in out
+    report(core)  # said once
+    assert "warning" not in capsys.readouterr().out
