@@ -24,6 +24,7 @@ import numpy as np
 from robot_agent.backend.online import Correction, OnlineBackend, Track
 from robot_agent.slam.extraction import scan_points
 from robot_agent.slam.fastslam import FastSLAM, SlamConfig
+from robot_agent.slam.trajectory import keyframe_of
 from shared.geometry import apply_points, compose, inverse
 from shared.memory import release_free_memory
 
@@ -166,7 +167,7 @@ def correction_moves(c: Correction, scans: np.ndarray) -> np.ndarray:
     scans = np.asarray(scans)
     if len(c.kf_scan) == 0:
         return np.zeros((*scans.shape, 3))
-    k = np.maximum(np.searchsorted(c.kf_scan, scans, side="right") - 1, 0)
+    k = keyframe_of(c.kf_scan, scans)
     return compose(c.corrected[k], inverse(c.filter[k]))
 
 

@@ -40,7 +40,7 @@ from robot_agent.slam.motion import (
 from robot_agent.slam.particles import ParticleSet, SegmentMaps
 from robot_agent.slam.proposal import ProposalConfig, align, align_points
 from robot_agent.slam.resampling import effective_sample_size, systematic_resample
-from robot_agent.slam.trajectory import Trajectory
+from robot_agent.slam.trajectory import Trajectory, keyframe_of
 from robot_agent.slam.update import (
     CleaningConfig,
     TrustConfig,
@@ -435,7 +435,7 @@ class FastSLAM:
         kf_scan, moves = np.asarray(kf_scan), np.asarray(moves, dtype=float)
 
         def at(scans) -> np.ndarray:
-            return moves[np.maximum(np.searchsorted(kf_scan, scans, side="right") - 1, 0)]
+            return moves[keyframe_of(kf_scan, scans)]
 
         self.trajectory.move(kf_scan, moves)
         ps = self.particles

@@ -25,6 +25,12 @@ from shared.geometry import compose
 COMPACT_EVERY = 32  # processed steps between looks for a common ancestor
 
 
+def keyframe_of(kf_scan: np.ndarray, scans) -> np.ndarray:
+    """Index into ``kf_scan (K,)`` (increasing) of the last keyframe at or before each of
+    ``scans`` (before the first, the first): whose correction moves that scan."""
+    return np.maximum(np.searchsorted(kf_scan, scans, side="right") - 1, 0)
+
+
 class GrowingArray:
     """A numpy array that grows at its end (amortized doubling)."""
 
@@ -224,13 +230,13 @@ class Trajectory:
         if len(kf_scan) == 0:
             return
         kf_scan, moves = np.asarray(kf_scan), np.asarray(moves, dtype=float)
-        scans = self._step_scan.view()
-        at = moves[np.maximum(np.searchsorted(kf_scan, scans, side="right") - 1, 0)]  # (steps,3)
+        at = moves[keyframe_of(kf_scan, self._step_scan.view())]  # (steps,3)
         f = len(self._frozen)
         if f:
             self._frozen.view()[:] = compose(at[:f], self._frozen.view())
-        for k in range(len(self._poses)):
-            self._poses[k] = compose(at[f + k], self._poses[k])
+        if self._poses:  # the open steps at once: (steps, P, 3)
+            moved = compose(at[f:, None, :], np.stack(self._poses))
+            self._poses = [p.copy() for p in moved]  # own arrays: no step keeps the whole stack alive
 
     def scan_of_step(self, steps: np.ndarray) -> np.ndarray:
         """The scan each processed step (``FastSLAM.step_index``, from 1) processed (of a
