@@ -114,6 +114,9 @@ def main(argv: list[str] | None = None) -> int:
                     "retired_thinned": st.get("retired_thinned", 0),
                     "retired_forgotten": st.get("forgotten", 0),
                     "jump_edges": st.get("jumps", 0),  # their keyframes stay in the graph
+                    "optimizations": st.get("optimizations", 0),
+                    "optimizations_warm": st.get("optimizations_warm", 0),  # narrow kernel only
+                    "optimizations_cut": st.get("optimize_cut", 0),  # stopped at their deadline
                     "loop_hints_kept": len(slam.loop_hints),
                     "map_bytes": sum(len(b) for b in latest),
                 }

@@ -31,8 +31,9 @@ EXPLORER_MAP_EVERY = 5  # scans between rebuilding the map the explorer plans on
 # path at the end of its run; beyond this many (1.1 h at 5 Hz, ~14 MB at 180 beams) it stops
 # keeping them: the online back end goes on, and its final map is the corrected one, not rebuilt
 MAX_KEPT_SCANS = 20_000
-SIM_HISTORY_SCANS = 100_000  # a simulated robot runs without end: the filter keeps its path for
-# the newest this many scans (5.6 h at 5 scans/s), and so does the truth beside it
+SIM_HISTORY_SCANS = 18_000  # a simulated robot runs without end: the filter keeps its path for
+# the newest this many scans (1 h at 5 scans/s), and so does the truth beside it; older corrected
+# poses live on in the back end's keyframes, older places in the map
 
 
 def endless_config(cfg):

@@ -131,6 +131,7 @@ class OnlineBackend:
     # one's frame, ...
     _ret_filter: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # ... its filter pose
     _waiting: int = 0
+    _flushed: bool = False  # the last _admit let waiting surprises in
 
     @property
     def keyframes(self) -> int:
@@ -189,12 +190,16 @@ class OnlineBackend:
             if new % cfg.check_every:
                 continue
             found += self._query(f, est, stamps, new, arc)
-        accepted = self._admit(found, est, final=requeries == -1)
-        changed = accepted > 0 or len(self._jump_edges) != self.stats.get("jumps", 0)
+        final = requeries == -1
+        accepted = self._admit(found, est, final=final)
+        jumped = len(self._jump_edges) != self.stats.get("jumps", 0)
+        changed = accepted > 0 or jumped
         self.stats["jumps"] = len(self._jump_edges)
+        warm = not (final or jumped or self._flushed)
         if changed:
-            est = self._optimize(f, est)
+            est = self._optimize(f, est, warm, bounded=not final)
             self.stats["optimizations"] = self.stats.get("optimizations", 0) + 1
+            self.stats["optimizations_warm"] = self.stats.get("optimizations_warm", 0) + int(warm)
         budget = cfg.online_requeries if requeries is None else requeries
         deadline = t0 + cfg.online_budget_s if budget >= 0 and cfg.online_budget_s > 0 else np.inf
         passes = 0
@@ -204,7 +209,7 @@ class OnlineBackend:
             more = self._requery(f, est, stamps, budget, deadline)
             if not self._admit(more, est, final=budget < 0):
                 break
-            est = self._optimize(f, est)
+            est = self._optimize(f, est, warm and not self._flushed, bounded=not final)
             if budget < 0 and len(more) < cfg.min_pass_loops:
                 break
         self._ref, self._x = f, est
@@ -241,7 +246,8 @@ class OnlineBackend:
             chi = np.sqrt(float(r @ lp.info @ r) / 3.0)
             (self._surprises if chi > self.cfg.max_loop_chi else self.loops).append(lp)
         admitted = len(found) - (len(self._surprises) - self._waiting)
-        if self._surprises and (final or len(self._surprises) >= self.cfg.online_surprises):
+        self._flushed = bool(self._surprises) and (final or len(self._surprises) >= self.cfg.online_surprises)
+        if self._flushed:
             self.loops += self._surprises
             admitted += len(self._surprises)
             self._surprises = []
@@ -250,9 +256,11 @@ class OnlineBackend:
         self.stats["loops_admitted"] = self.stats.get("loops_admitted", 0) + admitted
         return admitted
 
-    def _optimize(self, f: np.ndarray, est: np.ndarray) -> np.ndarray:
+    def _optimize(self, f: np.ndarray, est: np.ndarray, warm: bool = False, bounded: bool = True):
         """The graph: the chain between keyframes (but where retired ones were: their edges,
-        carried over to the keyframes they retired to), the jumps, the loops."""
+        carried over to the keyframes they retired to), the jumps, the loops; from ``est``, by the
+        narrow kernel alone when ``warm`` (the new loops agree with it), within
+        online_optimize_s when ``bounded`` (not at the end of the run)."""
         pos = {k: p for p, k in enumerate(self.kf_id)}
         jumps = {pos[k] - 1: motion for k, motion in self._jump_edges.items() if k in pos and pos[k] > 0}
         keep = np.array([k not in self._broken_in for k in self.kf_id[1:]], bool)
@@ -264,7 +272,12 @@ class OnlineBackend:
             z = np.array([v[0] for _, v in pairs]).reshape(-1, 3)
             info = np.linalg.inv(np.array([v[1] for _, v in pairs]).reshape(-1, 3, 3))
             extra = (a, b, z, info)
-        return optimize(f, self.loops, self.cfg, self.stats, jumps, x0=est, chain_keep=keep, extra=extra)
+        limit = self.cfg.online_optimize_s
+        deadline = time.perf_counter() + limit if limit > 0 and bounded else np.inf
+        return optimize(
+            f, self.loops, self.cfg, self.stats, jumps, x0=est, chain_keep=keep, extra=extra, warm=warm,
+            deadline=deadline,
+        )  # fmt: skip
 
     def _retire(self) -> None:
         """Keyframes older than the window leave the graph (:meth:`_retire_onto`): those that the

@@ -23,6 +23,7 @@ back end takes that trajectory as the odometry of a pose graph and adds loop edg
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -97,13 +98,17 @@ class BackendConfig:
     online_requeries: int = 100  # ... re-searching at most this many moved keyframes, and none
     online_budget_s: float = 2.0  # once the update took this long (the rest wait); loops
     online_surprises: int = 3  # that the estimate contradicts go in when this many have come
+    # each update's optimization: when its new loops all agree with the last solution, the narrow
+    # kernel alone from there (the wide-to-narrow schedule when surprises or jumps came in, and at
+    # the end); no Gauss-Newton iteration starts after this much of it (0: no bound)
+    online_optimize_s: float = 3.0
     # a keyframe the corrected path puts within this of an older one (the robot passing a known
     # place again) leaves the graph once this many keyframes are newer: its scans follow that
     # older one from then on, its edges are carried over to it (robot_agent/backend/online.py)
     online_retire_m: float = 0.3  # (0: never)
     online_retire_rad: float = np.radians(10.0)
     online_window: int = 100
-    online_max_keyframes: int = 3000  # the graph's bound: beyond it, keyframes older than the
+    online_max_keyframes: int = 2000  # the graph's bound: beyond it, keyframes older than the
     # window retire onto their nearest older one, nearest first, down to 90 % of it (0: no bound)
     online_adopt: bool = True  # the filter continues from each correction as it comes: its
     # particles, their maps and history move with it (False: the correction is applied only to
@@ -335,12 +340,17 @@ def optimize(
     x0: np.ndarray | None = None,
     chain_keep: np.ndarray | None = None,
     extra: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+    warm: bool = False,
+    deadline: float = np.inf,
 ) -> np.ndarray:
     """Keyframe poses ``(K,3)`` after the pose graph (chain + verified loops, robust), from
     ``x0 (K,3)`` (default ``kf_poses``, the path the chain is measured on).
     ``jump_edges``: chain edge index -> motion to use instead, loosely held; ``chain_keep (K-1,)``:
     the chain edges used (default all); ``extra``: more edges ``a, b (E,), z (E,3), info (E,3,3)``
-    held like the chain (not robust)."""
+    held like the chain (not robust). ``warm``: ``x0`` already agrees with every loop but a few
+    that agree with it too (an online update's new loops): the narrow kernel alone, no wide one
+    first. No Gauss-Newton iteration starts after ``deadline`` (``time.perf_counter()``): the
+    solution so far is returned, and ``stats["optimize_cut"]`` counts it."""
     a, b, z, info = posegraph.chain_edges(kf_poses, cfg.chain)
     for e, motion in (jump_edges or {}).items():
         z[e] = motion
@@ -359,11 +369,12 @@ def optimize(
     lz = np.array([lp.z for lp in loops], dtype=float).reshape(-1, 3)
     li = np.array([lp.info for lp in loops], dtype=float).reshape(-1, 3, 3)
     keep = np.ones(len(la), bool)
+    # a wide kernel first, then narrower: loops far from the initial path (a large drift) must
+    # pull it before the narrow kernel may call the ones that still disagree outliers
+    kernels = (cfg.robust_wide_k, np.sqrt(cfg.robust_wide_k * cfg.robust_k), cfg.robust_k)
     for _round in range(3):
-        # a wide kernel first, then narrower: loops far from the initial path (a large drift)
-        # must pull it before the narrow kernel may call the ones that still disagree outliers
         x = start.copy()
-        for k in (cfg.robust_wide_k, np.sqrt(cfg.robust_wide_k * cfg.robust_k), cfg.robust_k):
+        for k in kernels[-1:] if warm else kernels:
             x = posegraph.optimize(
                 x,
                 np.concatenate([a, la[keep]]),
@@ -373,7 +384,13 @@ def optimize(
                 iterations=10,
                 robust_from=len(a),
                 robust_k=k,
+                deadline=deadline,
             )
+            if time.perf_counter() > deadline:
+                break
+        if time.perf_counter() > deadline:
+            stats["optimize_cut"] = stats.get("optimize_cut", 0) + 1
+            break
         r = relative(x[la], x[lb]) - lz
         r[:, 2] = wrap_angle(r[:, 2])
         chi = np.sqrt(posegraph.mahalanobis2(r, li) / 3.0)

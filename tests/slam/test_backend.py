@@ -59,6 +59,43 @@ def test_backend_optimize_drops_a_false_loop():
     assert np.max(np.hypot(*(x[:, :2] - true[kf, :2]).T)) < 0.7
 
 
+def test_a_warm_start_with_agreeing_loops_needs_only_the_narrow_kernel():
+    """An online update: the last solution, and a new loop that agrees with it. The narrow kernel
+    alone from there lands where the whole wide-to-narrow schedule does."""
+    true, drifted = _square(0.002)
+    kf = np.arange(0, len(true), 5)
+    info = np.diag([400.0, 400.0, 3283.0])
+    loops = [be.Loop(0, len(kf) - 1, relative(true[kf[0]], true[kf[-1]]), 1.0, info, 1.0)]
+    cfg = be.BackendConfig()
+    last = be.optimize(drifted[kf], loops, cfg, {})
+    loops.append(
+        be.Loop(2, len(kf) - 3, relative(last[2], last[-3]) + np.array([0.02, -0.01, 0.005]), 1.0, info, 1.0)
+    )
+    cold = be.optimize(drifted[kf], loops, cfg, {}, x0=last)
+    warm = be.optimize(drifted[kf], loops, cfg, {}, x0=last, warm=True)
+    assert np.max(np.abs(warm - last)) > 0.005  # the new loop moved it
+    np.testing.assert_allclose(warm, cold, atol=2e-3)
+
+
+def test_an_optimization_past_its_deadline_returns_what_it_has():
+    true, drifted = _square(0.002)
+    a, b, z, info = chain_edges(drifted, ChainNoise())
+    args = (drifted, np.append(a, 0), np.append(b, len(drifted) - 1))
+    args += (np.vstack([z, relative(true[0], true[-1])]), np.vstack([info, [1e4, 1e4, 1e5]]))
+    one = optimize(*args, iterations=1)
+    np.testing.assert_allclose(optimize(*args, deadline=0.0), one)  # one iteration, then stop
+    assert np.max(np.abs(optimize(*args) - one)) > 1e-4  # (the full run goes further)
+    kf = np.arange(0, len(true), 5)
+    loops = [
+        be.Loop(
+            0, len(kf) - 1, relative(true[kf[0]], true[kf[-1]]), 1.0, np.diag([400.0, 400.0, 3283.0]), 1.0
+        )
+    ]
+    stats: dict = {}
+    be.optimize(drifted[kf], loops, be.BackendConfig(), stats, deadline=0.0)
+    assert stats["optimize_cut"] == 1
+
+
 def _room_points(pose: np.ndarray, rng: np.random.Generator, walls: np.ndarray) -> np.ndarray:
     """Points on ``walls (W,2,2)`` seen from ``pose`` (no occlusion), in the robot frame."""
     pts = []
