@@ -195,27 +195,57 @@ class SnapshotWriter:
         (self.out / f"{self.robot}.snapshot.json").write_text(json.dumps(info))
 
 
+STUCK_QUIET_SCANS = 50  # scans without a stuck step that end a run of them
+
+
 class OdometryReport:
-    """One line per odometry jump the scans contradicted (:attr:`FastSLAM.odometry_jumps`)."""
+    """One line per odometry jump the scans contradicted (:attr:`FastSLAM.odometry_jumps`), and
+    one per run of steps the scans moved while odometry stood (:attr:`FastSLAM.odometry_stuck`:
+    said at its first step, and when it ends, with how many steps and how far)."""
 
     def __init__(self, robot: str):
         self.robot = robot
         self._said = 0
+        self._stuck_said = 0
+        self._stuck_run: list = []  # the steps of the run of stuck steps going on
 
     def __call__(self, core) -> None:
         slam = core.slam
         n = slam.stats.get("odometry_jumps", 0)
-        if n == self._said:
-            return
-        for scan, u, there, stay in list(slam.odometry_jumps)[-(n - self._said) :]:
+        if n != self._said:
+            for scan, u, there, stay in list(slam.odometry_jumps)[-(n - self._said) :]:
+                print(
+                    f"agent {self.robot}: warning: odometry jumped {math.hypot(u[0], u[1]):.1f} m and "
+                    f"{math.degrees(u[2]):.0f}° at scan {scan}; the scan fits the map where the robot "
+                    f"was ({stay:.2f} of its points) and not where odometry put it ({there:.2f}): that "
+                    "increment is not used",
+                    flush=True,
+                )
+            self._said = n
+        self._stuck(slam)
+
+    def _stuck(self, slam) -> None:
+        n = slam.stats.get("odometry_stuck", 0)
+        new = list(slam.odometry_stuck)[-(n - self._stuck_said) :] if n > self._stuck_said else []
+        self._stuck_said = n
+        for scan, _, u in new:
+            if not self._stuck_run:
+                print(
+                    f"agent {self.robot}: warning: odometry stands while the scans move (scan {scan}: "
+                    f"{math.hypot(u[0], u[1]):.2f} m, {math.degrees(u[2]):.0f}°): a stuck wheel? the "
+                    "scans drive the steps until odometry moves again",
+                    flush=True,
+                )
+            self._stuck_run.append((scan, u))
+        last = self._stuck_run[-1][0] if self._stuck_run else None
+        if last is not None and len(slam.trajectory) - 1 - last > STUCK_QUIET_SCANS:
+            moved = sum(math.hypot(u[0], u[1]) for _, u in self._stuck_run)
             print(
-                f"agent {self.robot}: warning: odometry jumped {math.hypot(u[0], u[1]):.1f} m and "
-                f"{math.degrees(u[2]):.0f}° at scan {scan}; the scan fits the map where the robot was "
-                f"({stay:.2f} of its points) and not where odometry put it ({there:.2f}): that "
-                "increment is not used",
+                f"agent {self.robot}: odometry moves again (from scan {last}): {len(self._stuck_run)} "
+                f"steps, {moved:.1f} m driven by the scans",
                 flush=True,
             )
-        self._said = n
+            self._stuck_run = []
 
 
 class LaserReport:

@@ -63,6 +63,18 @@ class WeightConfig:
     max_through_penalty: float = 10.0
 
 
+# odometry that changes by less than this from one scan to the next has not changed (encoder
+# ticks, not noise); after this many such scans in a row a bridged scan may drive a step
+ODOMETRY_STANDS_M = 1e-4
+ODOMETRY_STANDS_RAD = np.radians(0.01)
+STOOD_SCANS = 2
+STUCK_STEPS = 10  # the scans followed this many steps' worth (1 m, 50°) while odometry stood:
+# a step is taken there (odometry that stalls and catches up, as real logs' does, stalls for less)
+STUCK_FIT_M = 0.05  # and the scan fits the map within this much ...
+STUCK_FIT_SHARE = 0.3  # ... with this share of its points at the aligned pose ...
+STUCK_FIT_GAIN = 0.1  # ... and this much more than where odometry puts the robot
+
+
 @dataclass(frozen=True)
 class FilterConfig:
     ess_threshold: float = 0.5  # resample when ESS < this × P
@@ -83,6 +95,10 @@ class FilterConfig:
     # glitch, an edited or broken log) and that increment is not used (0: never checked)
     odometry_jump_m: float = 2.0
     odometry_jump_rad: float = np.radians(120.0)
+    # odometry unchanged from scan to scan while a bridged scan's alignment moved a whole step
+    # (min_travel_m / min_turn_rad), and a whole step from where odometry puts it: odometry stood
+    # while the robot moved (a stuck wheel), and the step is processed with the scan's motion
+    scan_driven_steps: bool = True
 
 
 @dataclass(frozen=True)
@@ -135,11 +151,21 @@ class FastSLAM:
             "history_closed": 0,  # steps closed along the best particle's history (max_open_steps)
             "odometry_jumps": 0,  # odometry increments the scans contradicted (not used)
             "odometry_jumps_unverified": 0,  # large ones the scans could not judge (used)
+            "odometry_stuck": 0,  # steps the scans moved while odometry stood (stuck wheel)
+            "odometry_caught_up": 0,  # ... after which odometry reported the motion after all
         }
         # (scan index, increment (3,), fit where odometry put it, fit where the robot was): the
         # newest odometry jumps the scans contradicted
         self.odometry_jumps: deque[tuple[int, np.ndarray, float, float]] = deque(maxlen=100)
+        # (scan index, odometry's increment (3,), the scan's): the newest steps the scans moved
+        # while odometry stood
+        self.odometry_stuck: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=100)
         self._reloc_pending: reloc_mod.Pending | None = None
+        self._prev_odo: np.ndarray | None = None  # the previous scan's odometry ...
+        self._odometry_stood = 0  # ... and for how many scans in a row it has not changed
+        self._bridged: np.ndarray | None = None  # the last bridged scan's motion since the step
+        self._owed: np.ndarray | None = None  # the motion the scans drove while odometry stood,
+        # which odometry may still report when it moves again (a stall that catches up)
         self._odometer_m = 0.0  # distance driven (odometry), and at the last relocalization
         self._anchor_m = 0.0
         # (scan index, pose (3,)): where each confirmed relocalization put the robot, for the
@@ -165,6 +191,12 @@ class FastSLAM:
         cfg = self.cfg
         ps = self.particles
         odometry = np.asarray(odometry, dtype=float)
+        scan_driven = False  # the step's motion is the scan's, not odometry's (a stuck wheel)
+        if self._prev_odo is not None:  # odometry that does not change at all from scan to scan
+            d = odometry_increment(self._prev_odo, odometry)
+            stood = np.hypot(d[0], d[1]) < ODOMETRY_STANDS_M and abs(d[2]) < ODOMETRY_STANDS_RAD
+            self._odometry_stood = self._odometry_stood + 1 if stood else 0
+        self._prev_odo = odometry
         if self._last_odo is not None:
             u = odometry_increment(self._last_odo, odometry)
             if (
@@ -174,18 +206,32 @@ class FastSLAM:
             ):
                 self._last_odo = odometry  # the jump absorbed: increments count from here on
                 u = np.zeros(3)
-            moved = np.hypot(u[0], u[1]) >= cfg.filter.min_travel_m or abs(u[2]) >= cfg.filter.min_turn_rad
-            if not moved:  # bridge: no map update, the pose from the scan (or odometry) only
+            if self._owed is not None and self._odometry_stood == 0:  # odometry moves again
+                u = self._settle(u, ranges_m, angles_rad, laser_offset, range_max_m)
+            if not self._moved(u):  # bridge: no map update, the pose from the scan (or odometry) only
                 best = ps.best()
+                still = u
+                # odometry stands: the scans are followed from where the last bridged one was
+                start = self._bridged if self._odometry_stood and self._bridged is not None else u
                 if cfg.filter.refine_bridged and cfg.proposal.enabled:
-                    u = self._refine_bridged(best, u, ranges_m, angles_rad, laser_offset, range_max_m)
-                self.trajectory.bridge(stamp_s, u)
-                return Estimate(
-                    stamp_s, compose(ps.poses[best], u), False, effective_sample_size(ps.log_weights), 0
-                )
+                    u = self._refine_bridged(best, start, ranges_m, angles_rad, laser_offset, range_max_m)
+                    self._bridged = u
+                scan = (ranges_m, angles_rad, laser_offset, range_max_m)
+                if not (pose is None and self._stuck(still, u, scan)):
+                    self.trajectory.bridge(stamp_s, u)
+                    return Estimate(
+                        stamp_s, compose(ps.poses[best], u), False, effective_sample_size(ps.log_weights), 0
+                    )
+                # odometry stood or lagged while the scan moved a step's worth (a stuck or spinning
+                # wheel, a pushed robot): the step is processed, moved by what the scan says
+                self.stats["odometry_stuck"] += 1
+                self.odometry_stuck.append((len(self.trajectory), still.copy(), u.copy()))
+                self._owed = compose(np.zeros(3) if self._owed is None else self._owed, relative(still, u))
+                scan_driven = True
         else:
             u = np.zeros(3)
         self.step_index += 1
+        self._bridged = None
         k = self.step_index
         self._odometer_m += float(np.hypot(u[0], u[1]))
 
@@ -228,7 +274,8 @@ class FastSLAM:
             info = np.linalg.inv(cov)
             prior_term = -0.5 * np.einsum("pi,pij,pj->p", d, info, d)
             post = prop.cov / cfg.proposal.sample_scale
-            ps.slip, ps.slip_cov = update_slip(ps.slip, ps.slip_cov, jac, info, post, d, cfg.motion)
+            if not scan_driven:  # odometry's systematic error is learned from odometry's motion
+                ps.slip, ps.slip_cov = update_slip(ps.slip, ps.slip_cov, jac, info, post, d, cfg.motion)
         else:
             ps.poses = sample_gaussian(self.rng, mean, cov)
         if self._last_odo is None:  # the first scan defines the map frame: the start pose, exactly
@@ -383,6 +430,64 @@ class FastSLAM:
         self.stats["injections"] += len(targets)
         self.trajectory.inherit(targets, sources)
 
+    def _far(self, u: np.ndarray) -> bool:
+        """``u`` is STUCK_STEPS whole steps (min_travel_m / min_turn_rad) or more; one, once
+        odometry is known to stand (a step the scans drove since it last moved)."""
+        f = self.cfg.filter
+        steps = STUCK_STEPS if self._owed is None else 1
+        return bool(np.hypot(u[0], u[1]) >= steps * f.min_travel_m or abs(u[2]) >= steps * f.min_turn_rad)
+
+    def _moved(self, u: np.ndarray) -> bool:
+        f = self.cfg.filter
+        return bool(np.hypot(u[0], u[1]) >= f.min_travel_m or abs(u[2]) >= f.min_turn_rad)
+
+    def _stuck(self, odometry_u: np.ndarray, scan_u: np.ndarray, scan: tuple) -> bool:
+        """Odometry has not changed at all for STOOD_SCANS scans, and a bridged scan's alignment
+        ``scan_u`` moved a whole step (min_travel_m / min_turn_rad) from the last step and a whole
+        step away from where odometry ``odometry_u`` puts it: odometry stood while the robot moved
+        (a stuck or spinning wheel, a pushed robot). (Odometry that lags the laser while turning
+        fast still changes from scan to scan: Intel's does, by up to 5° more than the scans.) And
+        the scan (``scan``: ranges, angles, laser offset, range limit) must say so itself: its
+        points fit the map within STUCK_FIT_M at the aligned pose (a share of STUCK_FIT_SHARE at
+        least) better by STUCK_FIT_GAIN than where odometry puts the robot — an alignment that
+        slid along a corridor or caught people walking by does not."""
+        if not self.cfg.filter.scan_driven_steps or self._odometry_stood < STOOD_SCANS:
+            return False
+        if not (self._far(scan_u) and self._far(relative(odometry_u, scan_u))):
+            return False
+        here = self.particles.poses[self.particles.best()]
+        fits = self._scan_fit(
+            np.array([compose(here, odometry_u), compose(here, scan_u)]), *scan, STUCK_FIT_M
+        )
+        return fits is not None and fits[1] >= STUCK_FIT_SHARE and fits[1] >= fits[0] + STUCK_FIT_GAIN
+
+    def _settle(self, u: np.ndarray, ranges_m, angles_rad, laser_offset, range_max_m) -> np.ndarray:
+        """Odometry moves again, by ``u``, after the scans drove steps while it stood (their
+        motion beyond odometry's: ``_owed``). A stalled reading that catches up reports that motion
+        now, on top of the new one; a wheel that lost it does not. The scan says which: aligned
+        from each of the two increments (with and without the owed motion), the one whose
+        alignment fits the map better (ties: moved less to get there) is used."""
+        owed, self._owed = self._owed, None
+        paid = relative(owed, u)  # odometry reports the owed motion now: the rest is new
+        lost = u if self._bridged is None else compose(self._bridged, u)  # it does not: the scans
+        # followed the robot since the last step, odometry's increment comes on top
+        cands = np.array([lost, paid])
+        best = self.particles.best()
+        here = self.particles.poses[best]
+        scan = (ranges_m, angles_rad, laser_offset, range_max_m)
+        if not (self.cfg.filter.refine_bridged and self.cfg.proposal.enabled):
+            return u
+        aligned = np.array([self._refine_bridged(best, c, *scan) for c in cands])
+        fits = self._scan_fit(compose(here, aligned), *scan, STUCK_FIT_M)
+        if fits is None:
+            return u
+        d = relative(cands, aligned)
+        moved = np.hypot(d[:, 0], d[:, 1]) + np.abs(d[:, 2])
+        pick = int(np.lexsort((moved, -np.round(fits, 2)))[0])
+        if pick == 1:
+            self.stats["odometry_caught_up"] += 1
+        return cands[pick]
+
     def _implausible(self, u: np.ndarray) -> bool:
         f = self.cfg.filter
         return f.odometry_jump_m > 0 and (
@@ -395,30 +500,34 @@ class FastSLAM:
         puts the robot and where it was: fitting where it was (0.3 at least, and by 0.2 more),
         odometry jumped (True), and the increment is not used — the scan is aligned from the last
         pose. Otherwise (a gap in the log while the robot drove, an unmapped place) it is used."""
+        here = self.particles.poses[self.particles.best()]
+        fits = self._scan_fit(
+            np.array([compose(here, u), here]), ranges_m, angles_rad, laser_offset, range_max_m, 0.15
+        )
+        if fits is not None and fits[1] >= 0.3 and fits[1] >= fits[0] + 0.2:
+            self.stats["odometry_jumps"] += 1
+            self.odometry_jumps.append((len(self.trajectory), u.copy(), fits[0], fits[1]))
+            return True
+        self.stats["odometry_jumps_unverified"] += 1
+        return False
+
+    def _scan_fit(
+        self, poses: np.ndarray, ranges_m, angles_rad, laser_offset, range_max_m, within_m: float
+    ) -> np.ndarray | None:
+        """Share ``(N,)`` of the scan's points (100 at most, spread over the scan) within
+        ``within_m`` of an element of the best particle's map, with the robot at each of
+        ``poses (N,3)``; None when the scan or the map is empty."""
         ps = self.particles
         best = ps.best()
         pts = apply_points(laser_offset, scan_points(ranges_m, angles_rad, self.cfg.extraction, range_max_m))
         if len(pts) > 100:
             pts = pts[np.linspace(0, len(pts) - 1, 100).astype(int)]
-        maps = ps.maps
-        segs = maps.seg[best][maps.valid[best]]
+        segs = ps.maps.seg[best][ps.maps.valid[best]]
         if len(pts) == 0 or len(segs) == 0:
-            self.stats["odometry_jumps_unverified"] += 1
-            return False
-
-        def fit(pose: np.ndarray) -> float:
-            world = apply_points(pose, pts)
-            d = point_segment_distance(world[:, None, :], segs[None, :, :, :]).min(axis=1)
-            return float(np.mean(d < 0.15))
-
-        here = ps.poses[best]
-        there, stay = fit(compose(here, u)), fit(here)
-        if stay >= 0.3 and stay >= there + 0.2:
-            self.stats["odometry_jumps"] += 1
-            self.odometry_jumps.append((len(self.trajectory), u.copy(), there, stay))
-            return True
-        self.stats["odometry_jumps_unverified"] += 1
-        return False
+            return None
+        world = apply_points(poses, pts)  # (N,K,2)
+        d = point_segment_distance(world[:, :, None, :], segs[None, None, :, :, :]).min(axis=2)
+        return np.mean(d < within_m, axis=1)
 
     def move_frame(self, kf_scan: np.ndarray, moves: np.ndarray) -> None:
         """The map frame bent by a back end's correction, so that the filter continues from the

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from robot_agent.agent import AgentConfig, AgentCore
-from robot_agent.service import OdometryReport
 from robot_agent.slam.fastslam import FastSLAM, SlamConfig
 from robot_agent.sources import read_log
 from shared.geometry import point_segment_distance
+from tests.reported import run_reported
 
 LOG = Path(__file__).parents[1] / "data" / "intel_head.clf.gz"
 SCANS = 700
@@ -42,16 +42,7 @@ def _edited(tmp_path: Path, persistent: bool) -> Path:
 
 
 def _run(path: Path, capsys) -> tuple[AgentCore, str]:
-    core = AgentCore("robot1", FastSLAM(SlamConfig(particles=10), np.random.default_rng(0)), AgentConfig())
-    report = OdometryReport("robot1")
-    out = []
-    for i, scan in enumerate(read_log(path).scans()):
-        if i == SCANS:
-            break
-        core.step(scan)
-        report(core)
-        out.append(capsys.readouterr().out)
-    return core, "".join(out)
+    return run_reported(path, SCANS, capsys=capsys)
 
 
 def reference_map() -> np.ndarray:
