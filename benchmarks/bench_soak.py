@@ -117,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
                     "optimizations": st.get("optimizations", 0),
                     "optimizations_warm": st.get("optimizations_warm", 0),  # narrow kernel only
                     "optimizations_cut": st.get("optimize_cut", 0),  # stopped at their deadline
+                    "virtual_edges": st.get("virtual_edges", 0),  # edges carried from retired ones
                     "loop_hints_kept": len(slam.loop_hints),
                     "map_bytes": sum(len(b) for b in latest),
                 }
