@@ -273,10 +273,13 @@ class OnlineBackend:
             info = np.linalg.inv(np.array([v[1] for _, v in pairs]).reshape(-1, 3, 3))
             extra = (a, b, z, info)
         limit = self.cfg.online_optimize_s
-        deadline = time.perf_counter() + limit if limit > 0 and bounded else np.inf
+        stop = None
+        if limit > 0 and bounded:
+            deadline = time.perf_counter() + limit
+            stop = lambda: time.perf_counter() > deadline  # noqa: E731
         return optimize(
             f, self.loops, self.cfg, self.stats, jumps, x0=est, chain_keep=keep, extra=extra, warm=warm,
-            deadline=deadline,
+            stop=stop,
         )  # fmt: skip
 
     def _retire(self) -> None:

@@ -12,7 +12,7 @@ Residual of an edge ``(a, b, z)``: ``r = [Rₐᵀ(t_b − t_a) − z_xy, θ_b �
 
 from __future__ import annotations
 
-import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,14 +70,14 @@ def optimize(
     tol: float = 1e-6,
     robust_from: int | None = None,
     robust_k: float = 3.0,
-    deadline: float = np.inf,
+    stop: Callable[[], bool] | None = None,
 ) -> np.ndarray:
     """Poses ``(N,3)`` minimizing ``Σ rᵀ Ω r`` over edges ``a, b (E,)`` with measured motions
     ``z (E,3)`` and information ``Ω``: ``info (E,3,3)``, or ``(E,3)`` for a diagonal one, from
     ``x0 (N,3)``; node 0 is held fixed (the map frame). Edges from index ``robust_from`` on get a
     Cauchy kernel of width ``robust_k`` (in normalized residual units), by iteratively
-    reweighting. No iteration starts after ``deadline`` (``time.perf_counter()``; the first
-    always runs)."""
+    reweighting. No iteration starts once ``stop()`` says so (the caller's clock: the core keeps
+    none; the first iteration always runs)."""
     x = np.array(x0, dtype=float, copy=True)
     n = len(x)
     if n < 2 or len(a) == 0:
@@ -117,7 +117,7 @@ def optimize(
         step = spla.spsolve(h[free][:, free].tocsc(), -g[free], permc_spec="MMD_AT_PLUS_A")
         x[1:] += step.reshape(-1, 3)
         x[:, 2] = wrap_angle(x[:, 2])
-        if np.max(np.abs(step)) < tol or time.perf_counter() > deadline:
+        if np.max(np.abs(step)) < tol or (stop is not None and stop()):
             break
     return x
 

@@ -83,7 +83,7 @@ def test_an_optimization_past_its_deadline_returns_what_it_has():
     args = (drifted, np.append(a, 0), np.append(b, len(drifted) - 1))
     args += (np.vstack([z, relative(true[0], true[-1])]), np.vstack([info, [1e4, 1e4, 1e5]]))
     one = optimize(*args, iterations=1)
-    np.testing.assert_allclose(optimize(*args, deadline=0.0), one)  # one iteration, then stop
+    np.testing.assert_allclose(optimize(*args, stop=lambda: True), one)  # one iteration, then stop
     assert np.max(np.abs(optimize(*args) - one)) > 1e-4  # (the full run goes further)
     kf = np.arange(0, len(true), 5)
     loops = [
@@ -92,7 +92,7 @@ def test_an_optimization_past_its_deadline_returns_what_it_has():
         )
     ]
     stats: dict = {}
-    be.optimize(drifted[kf], loops, be.BackendConfig(), stats, deadline=0.0)
+    be.optimize(drifted[kf], loops, be.BackendConfig(), stats, stop=lambda: True)
     assert stats["optimize_cut"] == 1
 
 
