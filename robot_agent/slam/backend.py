@@ -385,9 +385,10 @@ def optimize(
                 robust_k=k,
                 stop=stop,
             )
-            if stop is not None and stop():
+            cut = stop is not None and stop()
+            if cut:
                 break
-        if stop is not None and stop():
+        if cut:
             stats["optimize_cut"] = stats.get("optimize_cut", 0) + 1
             break
         r = relative(x[la], x[lb]) - lz

@@ -95,9 +95,9 @@ class FilterConfig:
     # glitch, an edited or broken log) and that increment is not used (0: never checked)
     odometry_jump_m: float = 2.0
     odometry_jump_rad: float = np.radians(120.0)
-    # odometry unchanged from scan to scan while a bridged scan's alignment moved a whole step
-    # (min_travel_m / min_turn_rad), and a whole step from where odometry puts it: odometry stood
-    # while the robot moved (a stuck wheel), and the step is processed with the scan's motion
+    # odometry unchanged from scan to scan while the bridged scans followed the robot STUCK_STEPS
+    # steps' worth beyond it: odometry stood while the robot moved (a stuck wheel), and steps are
+    # taken with the scans' motion until it moves again (:meth:`FastSLAM._stuck`)
     scan_driven_steps: bool = True
 
 
@@ -222,8 +222,8 @@ class FastSLAM:
                     return Estimate(
                         stamp_s, compose(ps.poses[best], u), False, effective_sample_size(ps.log_weights), 0
                     )
-                # odometry stood or lagged while the scan moved a step's worth (a stuck or spinning
-                # wheel, a pushed robot): the step is processed, moved by what the scan says
+                # odometry stood while the scans followed the robot on (a stuck or spinning wheel, a
+                # pushed robot): the step is processed, moved by what the scan says
                 self.stats["odometry_stuck"] += 1
                 self.odometry_stuck.append((len(self.trajectory), still.copy(), u.copy()))
                 self._owed = compose(np.zeros(3) if self._owed is None else self._owed, relative(still, u))
@@ -430,21 +430,16 @@ class FastSLAM:
         self.stats["injections"] += len(targets)
         self.trajectory.inherit(targets, sources)
 
-    def _far(self, u: np.ndarray) -> bool:
-        """``u`` is STUCK_STEPS whole steps (min_travel_m / min_turn_rad) or more; one, once
-        odometry is known to stand (a step the scans drove since it last moved)."""
+    def _moved(self, u: np.ndarray, steps: int = 1) -> bool:
+        """``u`` is ``steps`` whole steps (min_travel_m / min_turn_rad) or more."""
         f = self.cfg.filter
-        steps = STUCK_STEPS if self._owed is None else 1
         return bool(np.hypot(u[0], u[1]) >= steps * f.min_travel_m or abs(u[2]) >= steps * f.min_turn_rad)
-
-    def _moved(self, u: np.ndarray) -> bool:
-        f = self.cfg.filter
-        return bool(np.hypot(u[0], u[1]) >= f.min_travel_m or abs(u[2]) >= f.min_turn_rad)
 
     def _stuck(self, odometry_u: np.ndarray, scan_u: np.ndarray, scan: tuple) -> bool:
         """Odometry has not changed at all for STOOD_SCANS scans, and a bridged scan's alignment
-        ``scan_u`` moved a whole step (min_travel_m / min_turn_rad) from the last step and a whole
-        step away from where odometry ``odometry_u`` puts it: odometry stood while the robot moved
+        ``scan_u`` moved STUCK_STEPS steps' worth from the last step and from where odometry
+        ``odometry_u`` puts it (one step's worth once a step was driven so since odometry last
+        moved): odometry stood while the robot moved
         (a stuck or spinning wheel, a pushed robot). (Odometry that lags the laser while turning
         fast still changes from scan to scan: Intel's does, by up to 5° more than the scans.) And
         the scan (``scan``: ranges, angles, laser offset, range limit) must say so itself: its
@@ -453,7 +448,8 @@ class FastSLAM:
         slid along a corridor or caught people walking by does not."""
         if not self.cfg.filter.scan_driven_steps or self._odometry_stood < STOOD_SCANS:
             return False
-        if not (self._far(scan_u) and self._far(relative(odometry_u, scan_u))):
+        steps = STUCK_STEPS if self._owed is None else 1
+        if not (self._moved(scan_u, steps) and self._moved(relative(odometry_u, scan_u), steps)):
             return False
         here = self.particles.poses[self.particles.best()]
         fits = self._scan_fit(
@@ -468,6 +464,8 @@ class FastSLAM:
         from each of the two increments (with and without the owed motion), the one whose
         alignment fits the map better (ties: moved less to get there) is used."""
         owed, self._owed = self._owed, None
+        if not (self.cfg.filter.refine_bridged and self.cfg.proposal.enabled):
+            return u
         paid = relative(owed, u)  # odometry reports the owed motion now: the rest is new
         lost = u if self._bridged is None else compose(self._bridged, u)  # it does not: the scans
         # followed the robot since the last step, odometry's increment comes on top
@@ -475,8 +473,6 @@ class FastSLAM:
         best = self.particles.best()
         here = self.particles.poses[best]
         scan = (ranges_m, angles_rad, laser_offset, range_max_m)
-        if not (self.cfg.filter.refine_bridged and self.cfg.proposal.enabled):
-            return u
         aligned = np.array([self._refine_bridged(best, c, *scan) for c in cands])
         fits = self._scan_fit(compose(here, aligned), *scan, STUCK_FIT_M)
         if fits is None:
