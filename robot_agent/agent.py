@@ -56,9 +56,11 @@ class AgentCore:
         prior_sigma: np.ndarray | None = None,
         session: str | None = None,
         corrector: LiveCorrector | None = None,
+        new_corrector: Callable[[FastSLAM], LiveCorrector] | None = None,
     ):
         self.robot = robot
         self.corrector = corrector  # the online back end: applied to what is published
+        self.new_corrector = new_corrector  # makes the next session's (default: none)
         self.slam = slam
         self.cfg = cfg
         self.session = session or uuid.uuid4().hex[:16]
@@ -76,6 +78,10 @@ class AgentCore:
         self._last_stamp_s = 0.0
         self._trimmer = Trimmer()  # freed memory back to the system now and then (runs for days)
         self.health = LaserHealth()  # unusable readings counted, a blind laser noticed
+        self.first_scan = 0  # the run's scan at which this session's filter started
+        # the sessions this run ended because its filter lost the robot: (session, first scan,
+        # last scan, the filter's statistics)
+        self.ended: list[tuple[str, int, int, dict]] = []
 
     def step(self, scan: Scan) -> Estimate:
         self.health.add(scan.ranges_m, scan.range_max_m)
@@ -95,8 +101,31 @@ class AgentCore:
             )
             if self.corrector.tick():
                 self._next_map_s = -np.inf  # a new correction: the corrected map goes out now
+        if self.slam.lost:
+            self.new_session()
         self._trimmer.maybe()
         return self.estimate
+
+    def new_session(self) -> None:
+        """The filter lost the robot — moved where its map does not reach, or a map it cannot
+        find itself in (:mod:`robot_agent.slam.kidnap`): what it mapped stays as published (the
+        server keeps an ended session's map where it placed it), and mapping starts again in a
+        new frame, as a new session the server places like any robot. Its map was held since the
+        doubt began, so nothing the robot saw after it was moved went into it."""
+        old = self.slam
+        self.ended.append((self.session, self.first_scan, self.scans - 1, dict(old.stats)))
+        log.warning(
+            "%s: lost at scan %d; session %s ends, a new one begins", self.robot, self.scans - 1, self.session
+        )
+        self.slam = FastSLAM(old.cfg, old.rng)
+        self.session = uuid.uuid4().hex[:16]
+        self.first_scan = self.scans
+        self.prior = self.prior_sigma = None  # the new frame is nowhere known
+        self._fingerprint = None
+        self._next_map_s = -np.inf
+        if self.corrector is not None:
+            self.corrector.close()
+            self.corrector = None if self.new_corrector is None else self.new_corrector(self.slam)
 
     def published_pose(self) -> np.ndarray:
         """The current pose as published: the filter's, corrected by the online back end."""

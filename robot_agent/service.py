@@ -118,7 +118,7 @@ class SimSource:
         # ... kept as long as the filter's path
         self.history = 0 if slam is None else slam.cfg.filter.history_scans
         self.explorer = None
-        self.slam = slam
+        self.core = None  # the agent's (set once made): its filter maps, the explorer reads it
         self._map = np.zeros((0, 2, 2))
         self._ranges: list[np.ndarray] = []  # every scan's, for the back end (MAX_KEPT_SCANS)
         self._odometry: list[np.ndarray] = []
@@ -160,7 +160,7 @@ class SimSource:
         if self.explorer is None:
             return
         if len(self.stamps) % EXPLORER_MAP_EVERY == 1:
-            gm, _ = self.slam.published_map()
+            gm, _ = self.core.slam.published_map()
             self._map = gm.seg
         v, w = self.explorer.command(
             scan.stamp_s, est.pose, self._map, scan.ranges_m, scan.angles_rad, scan.laser_offset,
@@ -178,8 +178,8 @@ class SnapshotWriter:
     """At scan ``at``: the trajectory the robot publishes then (the filter's path as the online
     back end's latest correction moves it) to ``out``, with the moment (``time.monotonic()``)."""
 
-    def __init__(self, out: Path, robot: str, at: int, corrector):
-        self.out, self.robot, self.at, self.corrector = out, robot, at, corrector
+    def __init__(self, out: Path, robot: str, at: int):
+        self.out, self.robot, self.at = out, robot, at
 
     def __call__(self, core) -> None:
         if core.scans != self.at:
@@ -187,8 +187,8 @@ class SnapshotWriter:
         from shared.metrics import write_poses
 
         stamps, poses = core.slam.best_trajectory()
-        if self.corrector is not None:
-            poses = self.corrector.corrected_path(poses, core.slam.trajectory.first_scan)
+        if core.corrector is not None:
+            poses = core.corrector.corrected_path(poses, core.slam.trajectory.first_scan)
         self.out.mkdir(parents=True, exist_ok=True)
         write_poses(self.out / f"{self.robot}.snapshot.poses.txt", stamps, poses)
         info = {"monotonic_s": time.monotonic(), "scans": core.scans}
@@ -199,18 +199,33 @@ STUCK_QUIET_SCANS = 50  # scans without a stuck step that end a run of them
 
 
 class OdometryReport:
-    """One line per odometry jump the scans contradicted (:attr:`FastSLAM.odometry_jumps`), and
-    one per run of steps the scans moved while odometry stood (:attr:`FastSLAM.odometry_stuck`:
-    said at its first step, and when it ends, with how many steps and how far)."""
+    """One line per odometry jump the scans contradicted (:attr:`FastSLAM.odometry_jumps`), one
+    per run of steps the scans moved while odometry stood (:attr:`FastSLAM.odometry_stuck`:
+    said at its first step, and when it ends, with how many steps and how far), one per doubt
+    whether the robot was moved unseen and one at its end (:attr:`FastSLAM.kidnap_events`:
+    found elsewhere in the map, odometry erred, or lost — a new session)."""
 
     def __init__(self, robot: str):
         self.robot = robot
+        self._slam = None
         self._said = 0
         self._stuck_said = 0
         self._stuck_run: list = []  # the steps of the run of stuck steps going on
+        self._kidnap_said = 0
 
     def __call__(self, core) -> None:
         slam = core.slam
+        if slam is not self._slam:  # a new session (the filter lost the robot): counts restart
+            if self._slam is not None and core.ended:
+                self._kidnap(core, self._slam, core.ended[-1][1])
+                print(
+                    f"agent {self.robot}: warning: lost at scan {core.ended[-1][2]}: the robot is nowhere "
+                    f"in its map and its estimate fits nothing; session {core.ended[-1][0]} ends with "
+                    f"the map as it was before the doubt, a new one begins (session {core.session})",
+                    flush=True,
+                )
+            self._slam, self._said, self._stuck_said, self._stuck_run, self._kidnap_said = slam, 0, 0, [], 0
+        self._kidnap(core, slam, core.first_scan)
         n = slam.stats.get("odometry_jumps", 0)
         if n != self._said:
             for scan, u, there, stay in list(slam.odometry_jumps)[-(n - self._said) :]:
@@ -223,6 +238,40 @@ class OdometryReport:
                 )
             self._said = n
         self._stuck(slam)
+
+    def _kidnap(self, core, slam, first: int) -> None:
+        """One line per doubt and one per its end (:mod:`robot_agent.slam.kidnap`); scans are
+        counted over the run (``first``: the session's first)."""
+        st = slam.stats
+        n = (
+            st.get("kidnap_doubts", 0)
+            + st.get("kidnappings", 0)
+            + st.get("kidnap_cleared", 0)
+            + st.get("lost", 0)
+        )
+        new = list(slam.kidnap_events)[-(n - self._kidnap_said) :] if n > self._kidnap_said else []
+        self._kidnap_said = n
+        for scan, what, move in new:
+            at = first + scan
+            if what == "doubt":
+                print(
+                    f"agent {self.robot}: warning: from scan {at} the scans disagree with odometry (moved "
+                    "without odometry seeing it?): the map is held while the agent looks for where it is",
+                    flush=True,
+                )
+            elif what == "moved":
+                print(
+                    f"agent {self.robot}: warning: the robot was moved: found at scan {at} "
+                    f"{math.hypot(move[0], move[1]):.1f} m and {math.degrees(move[2]):.0f}° from where "
+                    "odometry put it, in its own map; it goes on from there",
+                    flush=True,
+                )
+            elif what == "cleared":
+                print(
+                    f"agent {self.robot}: odometry erred, the robot was not moved (scan {at}: its estimate "
+                    "fitted the map throughout): mapping goes on",
+                    flush=True,
+                )
 
     def _stuck(self, slam) -> None:
         n = slam.stats.get("odometry_stuck", 0)
@@ -298,6 +347,8 @@ class BackendReport:
         self._failures = 0
 
     def __call__(self, core) -> None:
+        if core.corrector is not self.corrector:  # a new session's back end
+            self.corrector, self._loops, self._failures = core.corrector, 0, 0
         if self.corrector is None:
             return
         if self.corrector.failures != self._failures:  # every one: they should never happen
@@ -352,18 +403,23 @@ def run(args: argparse.Namespace) -> int:
     if cfg.backend.enabled:  # the online back end, in a process of its own
         from robot_agent.backend.live import LiveCorrector, ProcessRunner
 
-        corrector = LiveCorrector(slam, ProcessRunner(cfg))
+        def new_corrector(s):
+            return LiveCorrector(s, ProcessRunner(cfg))
+
+        corrector = new_corrector(slam)
     core = AgentCore(
         args.robot,
         slam,
         AgentConfig(speed=args.speed, publish=PublishConfig()),
         prior=prior,
         corrector=corrector,
+        new_corrector=None if corrector is None else new_corrector,
     )
     keys = Keys(args.fleet)
     sim = None
     if args.world is not None:
         sim = SimSource(args, slam)
+        sim.core = core
         scans, on_estimate = sim.scans(), sim.on_estimate
     else:
         from robot_agent.sources import read_log
@@ -388,15 +444,15 @@ def run(args: argparse.Namespace) -> int:
             ]
             if args.snapshot_at is not None and args.out and args.log is not None:
                 n = (args.last if args.last is not None else len(laser_log)) - args.first
-                hooks.append(
-                    SnapshotWriter(Path(args.out), args.robot, max(1, round(args.snapshot_at * n)), corrector)
-                )
+                hooks.append(SnapshotWriter(Path(args.out), args.robot, max(1, round(args.snapshot_at * n))))
 
             def on_progress(c) -> None:
                 for hook in hooks:
                     hook(c)
 
             pub = run_agent(bus, keys, core, scans, stop, on_estimate, on_progress)
+            slam, corrector = core.slam, core.corrector  # the last session's (the filter lost the
+            # robot and began anew: core.ended)
             stamps, filter_poses = slam.best_trajectory()  # the best particle's, in the robot's map frame
             poses = filter_poses
             if corrector is not None and len(poses):
@@ -418,6 +474,7 @@ def run(args: argparse.Namespace) -> int:
             # along the corrected path, published last, so the server places the robot by the map
             # its written poses agree with
             first, scan_log = (0, sim.recorded_log()) if sim is not None else (args.first, laser_log)
+            first += core.first_scan
             if corrector is not None and len(poses) and not stop.is_set() and scan_log is not None:
                 from robot_agent.backend import remap
 
@@ -433,8 +490,8 @@ def run(args: argparse.Namespace) -> int:
                     flush=True,
                 )
     finally:
-        if corrector is not None:
-            corrector.close()
+        if core.corrector is not None:
+            core.corrector.close()
     wall = time.monotonic() - t0
     if args.out:
         out = Path(args.out)
@@ -458,6 +515,9 @@ def run(args: argparse.Namespace) -> int:
             "map_seq": core.map_seq,
             "prior": None if prior is None else prior.tolist(),
             "filter": dict(slam.stats),
+            "sessions_ended": [
+                dict(session=ses, first_scan=a, last_scan=b, filter=st) for ses, a, b, st in core.ended
+            ],
             "backend": backend,
             "laser": dict(
                 core.health.status(), **{f"unusable_{k}": v for k, v in core.health.by_kind.items()}

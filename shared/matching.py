@@ -15,10 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.geometry import apply_segments, transform_points, wrap_angle
+from shared.geometry import apply_segments, point_segment_distance, transform_points, wrap_angle
 
-# Hypotheses × observed × map triples facing-tested at once; bounds the temporaries (~10 MB).
-SCORE_CHUNK_ELEMENTS = 1_000_000
+# Hypotheses × observed × map triples facing-tested at once; bounds the temporaries (measured:
+# 38 MB at a million, the whole-map search of a robot in doubt on ACES; ~10 MB at this).
+SCORE_CHUNK_ELEMENTS = 250_000
 
 
 @dataclass(frozen=True)
@@ -29,6 +30,8 @@ class MatchingConfig:
     obs_max_pair_gap_m: float | None = None  # the same for observed pairs (None: any; a scan is
     # small, but a whole robot map matched against another map needs its pairs local too)
     max_obs_pairs: int = 60  # from the longest observed segments
+    gap_to_segment: bool = False  # a pair's gap: endpoint to segment (a wall ending on another's
+    # middle, a T, is a pair too) instead of endpoint to endpoint
     min_length_m: float = 0.5  # segments shorter than this take no part in hypotheses
     score_perp_m: float = 0.12  # a transformed segment lies on an element within this offset ...
     score_angle_rad: float = np.radians(5.0)  # ... and this facing difference ...
@@ -45,13 +48,27 @@ def _segment_gap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.min(np.hypot(d[..., 0], d[..., 1]), axis=(-1, -2))
 
 
+def _end_to_segment_gap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest distance from an endpoint of ``a (...,2,2)`` to segment ``b`` or back."""
+    d_ab = point_segment_distance(a, b[..., None, :, :]).min(axis=-1)
+    d_ba = point_segment_distance(b, a[..., None, :, :]).min(axis=-1)
+    return np.minimum(d_ab, d_ba)
+
+
 def _pairs(ends: np.ndarray, facing: np.ndarray, cfg: MatchingConfig, max_gap: float | None) -> tuple:
     n = len(ends)
     i, j = np.triu_indices(n, 1)
     rel = wrap_angle(facing[j] - facing[i])
     ok = np.abs(np.sin(rel)) >= np.sin(cfg.min_pair_angle_rad)
     if max_gap is not None:
-        ok &= _segment_gap(ends[i], ends[j]) <= max_gap
+        # no gap is smaller than the centres' distance less the half lengths: the pairs farther
+        # apart go before the gap is computed (its temporaries are tens of bytes a pair)
+        mid = 0.5 * (ends[:, 0] + ends[:, 1])
+        half = 0.5 * np.hypot(*(ends[:, 1] - ends[:, 0]).T)
+        ok &= np.hypot(*(mid[i] - mid[j]).T) - half[i] - half[j] <= max_gap
+        i, j, rel = i[ok], j[ok], rel[ok]
+        gap = _end_to_segment_gap if cfg.gap_to_segment else _segment_gap
+        ok = gap(ends[i], ends[j]) <= max_gap
     return i[ok], j[ok], rel[ok]
 
 

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from robot_agent.slam import consensus as consensus_mod
+from robot_agent.slam import kidnap as kidnap_mod
 from robot_agent.slam import relocalize as reloc_mod
 from robot_agent.slam.association import AssociationConfig, associate, match_log_likelihood, observe
 from robot_agent.slam.backend import BackendConfig
@@ -52,7 +53,7 @@ from robot_agent.slam.update import (
     trusted_mask,
     visibility,
 )
-from shared.geometry import apply_points, compose, point_segment_distance, relative, wrap_angle
+from shared.geometry import apply_points, compose, inverse, point_segment_distance, relative, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -116,6 +117,7 @@ class SlamConfig:
     filter: FilterConfig = field(default_factory=FilterConfig)
     consensus: consensus_mod.ConsensusConfig = field(default_factory=consensus_mod.ConsensusConfig)
     relocalization: reloc_mod.RelocalizationConfig = field(default_factory=reloc_mod.RelocalizationConfig)
+    kidnap: kidnap_mod.KidnapConfig = field(default_factory=kidnap_mod.KidnapConfig)  # moved unseen
     backend: BackendConfig = field(default_factory=BackendConfig)  # pose graph over the output path
 
 
@@ -153,7 +155,19 @@ class FastSLAM:
             "odometry_jumps_unverified": 0,  # large ones the scans could not judge (used)
             "odometry_stuck": 0,  # steps the scans moved while odometry stood (stuck wheel)
             "odometry_caught_up": 0,  # ... after which odometry reported the motion after all
+            "kidnap_doubts": 0,  # scans disagreed with odometry: the map held while in doubt ...
+            "kidnappings": 0,  # ... the robot was found elsewhere in the map and moved there
+            "kidnap_cleared": 0,  # ... the estimate fitted the map all along (odometry erred)
+            "lost": 0,  # ... found nowhere, the estimate fitting nothing: the filter gave up
         }
+        # (scan index, what, the move (3,) or None): the newest doubts and how they ended ("doubt",
+        # "moved", "cleared", "lost")
+        self.kidnap_events: deque[tuple[int, str, np.ndarray | None]] = deque(maxlen=100)
+        self.doubt: kidnap_mod.Doubt | None = None  # scans disagree with odometry: the map is held
+        self.lost = False  # the filter gave up: the robot is where its map does not reach
+        self._ref: tuple[np.ndarray, np.ndarray] | None = None  # the last agreeing scan (points, odometry)
+        self._disagree = 0  # scans since, in a row, that disagree with it ...
+        self._disagree_step = 0  # ... from the step this one is
         # (scan index, increment (3,), fit where odometry put it, fit where the robot was): the
         # newest odometry jumps the scans contradicted
         self.odometry_jumps: deque[tuple[int, np.ndarray, float, float]] = deque(maxlen=100)
@@ -192,6 +206,8 @@ class FastSLAM:
         ps = self.particles
         odometry = np.asarray(odometry, dtype=float)
         scan_driven = False  # the step's motion is the scan's, not odometry's (a stuck wheel)
+        if cfg.kidnap.enabled and pose is None:
+            self._watch(odometry, ranges_m, angles_rad, laser_offset, range_max_m)
         if self._prev_odo is not None:  # odometry that does not change at all from scan to scan
             d = odometry_increment(self._prev_odo, odometry)
             stood = np.hypot(d[0], d[1]) < ODOMETRY_STANDS_M and abs(d[2]) < ODOMETRY_STANDS_RAD
@@ -296,20 +312,25 @@ class FastSLAM:
         ps.log_weights = ps.log_weights + cfg.weights.gain * (ll + prior_term) - penalty
         ps.normalize()
 
-        # 6. update / add, misses
-        matched_cols = np.zeros(local.valid.shape, bool)
-        p_idx, o_idx = np.nonzero(assoc.matched)
-        matched_cols[p_idx, assoc.index[p_idx, o_idx]] = True
-        merge_matches(local, obs, assoc, k, cfg.update)
-        apply_misses(local, through, in_view, matched_cols, cfg.update)
-        # 7. cleaning
-        if k % cfg.filter.clean_every == 0:
-            recent = np.flatnonzero(
-                np.any(local.valid & (local.last_seen > k - cfg.filter.clean_every), axis=0)
-            )
-            clean(local, k, cfg.cleaning, recent)
-        ps.maps.put_columns(cols, local)
-        add_new(ps.maps, obs, assoc, k, cfg.update)
+        if self.doubt is None:
+            # 6. update / add, misses
+            matched_cols = np.zeros(local.valid.shape, bool)
+            p_idx, o_idx = np.nonzero(assoc.matched)
+            matched_cols[p_idx, assoc.index[p_idx, o_idx]] = True
+            merge_matches(local, obs, assoc, k, cfg.update)
+            apply_misses(local, through, in_view, matched_cols, cfg.update)
+            # 7. cleaning
+            if k % cfg.filter.clean_every == 0:
+                recent = np.flatnonzero(
+                    np.any(local.valid & (local.last_seen > k - cfg.filter.clean_every), axis=0)
+                )
+                clean(local, k, cfg.cleaning, recent)
+            ps.maps.put_columns(cols, local)
+            add_new(ps.maps, obs, assoc, k, cfg.update)
+        else:  # in doubt the map stays as it was: is the robot where the filter thinks?
+            usable = min(cfg.extraction.max_usable_range_m, range_max_m)
+            rays = reloc_mod.ScanRays(ranges_m, angles_rad, laser_offset, usable, cfg.update)
+            self._resolve(segs, facing, k, rays, (ranges_m, angles_rad, laser_offset, range_max_m))
 
         self.trajectory.record(stamp_s, ps.poses)
         if self.trajectory.open_steps > cfg.filter.max_open_steps:  # particles that do not coalesce
@@ -328,7 +349,12 @@ class FastSLAM:
         if cfg.consensus.enabled and k % cfg.consensus.every == 0:
             self.global_map = consensus_mod.build_global_map(ps, k, cfg.trust, cfg.consensus)
             consensus_mod.refresh_particles(ps, self.global_map, k, cfg.consensus)
-        if cfg.relocalization.enabled and k % cfg.relocalization.every == 0 and len(segs):
+        if (
+            cfg.relocalization.enabled
+            and k % cfg.relocalization.every == 0
+            and len(segs)
+            and self.doubt is None
+        ):
             usable = min(cfg.extraction.max_usable_range_m, range_max_m)
             rays = reloc_mod.ScanRays(ranges_m, angles_rad, laser_offset, usable, cfg.update)
             self._maybe_relocalize(segs, facing, k, rays)
@@ -429,6 +455,74 @@ class FastSLAM:
         targets, sources = reloc_mod.inject(ps, result, young_since)
         self.stats["injections"] += len(targets)
         self.trajectory.inherit(targets, sources)
+
+    def _watch(self, odometry: np.ndarray, ranges_m, angles_rad, laser_offset, range_max_m) -> None:
+        """Does the scan lie on the last agreeing one, moved by odometry's increment? Two in a row
+        that do not: doubt (:mod:`robot_agent.slam.kidnap`)."""
+        kc = self.cfg.kidnap
+        pts = apply_points(laser_offset, scan_points(ranges_m, angles_rad, self.cfg.extraction, range_max_m))
+        pts = kidnap_mod.thin(pts, kc.points)
+        if self.doubt is not None:
+            self.doubt.scans += 1
+            return
+        if self._ref is None or kidnap_mod.overlap(*self._ref, pts, odometry, kc) >= kc.min_overlap:
+            self._ref, self._disagree = (pts, odometry), 0
+            return
+        self._disagree += 1
+        if self._disagree == 1:
+            self._disagree_step = self.step_index + 1  # the first step it may make
+        if self._disagree >= kc.suspect_scans:
+            first = len(self.trajectory) - self._disagree + 1  # the first scan that disagreed
+            self.doubt = kidnap_mod.Doubt(first, self._odometer_m)
+            self.stats["kidnap_doubts"] += 1
+            self.kidnap_events.append((first, "doubt", None))
+            maps = self.particles.maps  # what the scans since mapped goes: it may be elsewhere
+            maps.valid &= ~(maps.born >= self._disagree_step)
+
+    def _resolve(
+        self, segs: ScanSegments, facing: np.ndarray, k: int, rays: reloc_mod.ScanRays, scan: tuple
+    ) -> None:
+        """A step in doubt (the map held): look for the scan in the whole map; found twice,
+        consistently, far from the estimate, every particle moves there. After ``doubt_m`` of
+        driving without: the estimate fitted the map where the doubt began (odometry erred: go
+        on; the robot may have driven out of the map since) or it did not (lost)."""
+        d, kc, ps = self.doubt, self.cfg.kidnap, self.particles
+        best = ps.best()
+        pose = ps.poses[best].copy()
+        fit = self._scan_fit(pose[None], *scan, kc.fit_m)
+        d.fits.append(0.0 if fit is None else float(fit[0]))
+        gm = self.global_map
+        if gm is None or k - gm.step >= self.cfg.consensus.every:
+            gm = self.global_map = consensus_mod.build_global_map(ps, k, self.cfg.trust, self.cfg.consensus)
+        rc = self.cfg.relocalization
+        result = reloc_mod.relocalize_global(
+            pose, gm, segs, facing, rc, rays, kc.far_m, kc.far_rad, kc.pair_gap_m, kc.explain_share
+        )
+        if result is not None:
+            ok, d.pending = reloc_mod.confirm(d.pending, result, pose, k, rc)
+            if ok:
+                move = compose(result.poses[0], inverse(pose))
+                ps.poses[:] = compose(move, ps.poses)
+                # the path since the doubt began was tracked in the held map from where the robot
+                # was not: it moves too (the back end and a map rebuilt along it take it there)
+                self.trajectory.move(np.array([d.scan - 1, d.scan]), np.array([np.zeros(3), move]))
+                self.stats["kidnappings"] += 1
+                self.kidnap_events.append((len(self.trajectory), "moved", move))
+                self.loop_hints.append((len(self.trajectory), ps.poses[best].copy()))
+                self._end_doubt()
+                return
+        if self._odometer_m - d.odometer_m >= kc.doubt_m or (d.scans >= kc.doubt_scans and len(d.fits) >= 3):
+            if max(d.fits[: kc.first_steps]) < kc.lost_fit:  # not where the doubt began either
+                self.lost = True
+                self.stats["lost"] += 1
+                self.kidnap_events.append((len(self.trajectory), "lost", None))
+            else:
+                self.stats["kidnap_cleared"] += 1
+                self.kidnap_events.append((len(self.trajectory), "cleared", None))
+            self._end_doubt()
+
+    def _end_doubt(self) -> None:
+        self.doubt, self._ref, self._disagree = None, None, 0
 
     def _moved(self, u: np.ndarray, steps: int = 1) -> bool:
         """``u`` is ``steps`` whole steps (min_travel_m / min_turn_rad) or more."""

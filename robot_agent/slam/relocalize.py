@@ -21,6 +21,7 @@ but its beams run through the end wall or the far rooms' walls.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -263,3 +264,56 @@ def inject(
     ps.log_weights[targets] = ps.log_weights[best]
     ps.normalize()
     return targets, sources
+
+
+def relocalize_global(
+    pose: np.ndarray,
+    gm: GlobalMap,
+    segs: ScanSegments,
+    facing: np.ndarray,
+    cfg: RelocalizationConfig,
+    rays: ScanRays | None,
+    far_m: float,
+    far_rad: float,
+    pair_gap_m: float,
+    min_share: float,
+) -> Relocalization | None:
+    """Where in the whole map the scan is, when the robot may have been moved without odometry
+    seeing it (kidnapping): hypotheses against every reliable element (no search radius, no jump
+    bound, no age: the map is the one from before the doubt, kept unchanged since), the best one
+    farther than ``far_m`` / ``far_rad`` from the estimate ``pose (3,)`` (closer ones are tracking,
+    the proposal's job), explaining ``min_score_m`` of the scan and ``score_gain_m`` more than the
+    estimate, unique by ``unique_ratio`` against every distinct rival (the estimate included) and,
+    given ``rays``, its beams through no more reliable elements than the estimate's; or None.
+    Map pairs of segments up to ``pair_gap_m`` apart fix hypotheses; the best must explain
+    ``min_share`` of the scan's segment length (the place it is in, not an alike corridor of it)."""
+    reliable = (gm.hits >= cfg.min_hits) & (gm.trust >= cfg.min_trust)
+    if reliable.sum() < cfg.min_old_elements or len(segs) == 0:
+        return None
+    # the whole map: its long walls' corners too, where one ends on another's middle, and walls
+    # across a door from each other (``pair_gap_m``)
+    mc = dataclasses.replace(cfg.matching, gap_to_segment=True, max_pair_gap_m=pair_gap_m)
+    map_ends, map_facing = gm.seg[reliable], gm.facing[reliable]
+    hyp = pose_hypotheses(segs.endpoints, facing, map_ends, map_facing, mc)
+    if len(hyp) == 0:
+        return None
+    scores = overlap_scores(np.vstack([pose, hyp]), segs.endpoints, facing, map_ends, map_facing, mc)
+    current, scores = float(scores[0]), scores[1:]
+    d = relative(pose, hyp)
+    far = (np.hypot(d[:, 0], d[:, 1]) > far_m) | (np.abs(d[:, 2]) > far_rad)
+    length = float(np.sum(np.hypot(*(segs.endpoints[:, 1] - segs.endpoints[:, 0]).T)))
+    good = far & (scores >= max(cfg.min_score_m, min_share * length)) & (scores >= current + cfg.score_gain_m)
+    if not np.any(good):
+        return None
+    best = int(np.argmax(np.where(good, scores, -np.inf)))
+    if not _unique(hyp, scores, best, pose, current, cfg):
+        return None
+    hyp, scores = hyp[good], scores[good]
+    if rays is not None:
+        through = through_counts(np.vstack([pose, hyp]), map_ends, gm.alpha[reliable], map_facing, rays)
+        ok = through[1:] <= through[0] + cfg.max_extra_through
+        if not ok[np.argmax(scores)]:
+            return None
+        hyp, scores = hyp[ok], scores[ok]
+    keep = cluster_poses(hyp, scores, 0.2, np.radians(3.0))[: cfg.inject]
+    return Relocalization(hyp[keep], scores[keep], current)

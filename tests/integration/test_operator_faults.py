@@ -70,3 +70,42 @@ def test_row1_an_odometry_jump_in_a_robots_log_is_reported_and_the_fused_map_sta
         ends = fused.seg.astype(float).reshape(-1, 2)
         far = point_segment_distance(ends[:, None, :], building[None, :, :, :]).min(axis=1)
         assert far.max() < 5.0, f"{int((far > 5).sum())} segment ends more than 5 m from the building"
+
+
+def test_a_robot_carried_elsewhere_in_its_map_is_reported_and_the_fused_map_stays_sane(tmp_path):
+    """Issue 24 item 1, a teleport, as an operator runs it: router, server and an agent (with
+    its online back end and the map rebuilt at the end) on the Intel excerpt carried at scan
+    1000 back to where scan 150 was, odometry none the wiser. The agent says the robot was moved
+    and where it was found, and exits 0; the fused map's segments lie on the building's walls
+    (the map of the intact excerpt): measured 86 ends, 0.052 m from them on average, 0.73 m at
+    most (3 beyond 0.3 m). Before: 21 m off for good, the corridor mapped over."""
+    from fleet_slam.watch import FusedWatcher
+    from shared.bus import Bus, BusConfig
+    from shared.geometry import point_segment_distance
+    from shared.keys import Keys
+    from tests.slam.test_kidnap import INTEL, building_map, teleported
+
+    log = teleported(tmp_path, 1000, INTEL, 150, 150)
+    building = building_map(1000)
+    endpoint = loopback_endpoint()
+    with ProcGroup(tmp_path / "logs") as group:
+        router = group.start("router", python_module("shared.bus", "router", "--listen", endpoint))
+        assert router.wait_for("listening", STARTUP_S), router.output()
+        server = group.start("server", python_module("map_server", "--connect", endpoint))
+        assert server.wait_for("running", STARTUP_S), server.output()
+        argv = ["--robot", "robot1", "--log", log, "--particles", 10, "--speed", 0]
+        agent = group.start("robot1", python_module("robot_agent", *argv, "--connect", endpoint))
+        code = agent.popen.wait(timeout=300)
+        out = agent.output()
+        assert code == 0, out[-3000:]
+        assert "warning: from scan 1000 the scans disagree with odometry" in out, out[-3000:]
+        assert "warning: the robot was moved: found at scan 10" in out, out[-3000:]
+        with Bus(BusConfig(connect=(endpoint,))) as bus:
+            fused = FusedWatcher(bus, Keys()).fetch(timeout_s=10.0)
+        assert fused is not None and len(fused.seg) > 20
+        ends = fused.seg.astype(float).reshape(-1, 2)
+        far = point_segment_distance(ends[:, None, :], building[None, :, :, :]).min(axis=1)
+        assert far.mean() < 0.1 and far.max() < 1.0, (
+            f"{int((far > 0.3).sum())} of {len(far)} segment ends more than 0.3 m off the building's walls, "
+            f"{far.max():.2f} m at most"
+        )

@@ -1,5 +1,7 @@
 """Pose hypotheses from segment pairs and overlap scoring (report §6)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -184,3 +186,32 @@ def test_cluster_poses_keeps_the_best_of_each_cluster():
     keep = cluster_poses(poses, scores, 0.2, np.radians(3.0))
     # 0 is within 0.1 m and 0° of 1 (better): suppressed; 3 is 0.2 rad away in heading: its own cluster
     np.testing.assert_array_equal(keep, [1, 2, 3])
+
+
+def test_a_t_junction_is_a_pair_when_gaps_run_to_the_segment():
+    """A wall ending on another's middle (a T): 2.5 m from either end of it, 0 m from the wall.
+    The endpoint gap misses the pair; ``gap_to_segment`` (the whole-map search of a robot that
+    was carried) finds it."""
+    ends = np.array([[[-5.0, 0.0], [5.0, 0.0]], [[0.0, 0.0], [0.0, 3.0]]])
+    facing = np.array([np.pi / 2, 0.0])
+    plain = MatchingConfig(max_pair_gap_m=1.5)
+    assert len(matching._pairs(ends, facing, plain, 1.5)[0]) == 0
+    to_segment = dataclasses.replace(plain, gap_to_segment=True)
+    assert len(matching._pairs(ends, facing, to_segment, 1.5)[0]) == 1
+
+
+@pytest.mark.parametrize("to_segment", [False, True])
+def test_pairs_skip_far_apart_ones_without_losing_any(to_segment):
+    """The centre-distance bound drops pairs before their gap is computed: the pairs are those
+    of the gap computed for every pair (random walls, 3 seeds)."""
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        ends, facing = rng.uniform(0, 30, (300, 2, 2)), rng.uniform(-np.pi, np.pi, 300)
+        cfg = MatchingConfig(max_pair_gap_m=3.0, gap_to_segment=to_segment)
+        i, j = np.triu_indices(len(ends), 1)
+        ok = np.abs(np.sin(matching.wrap_angle(facing[j] - facing[i]))) >= np.sin(cfg.min_pair_angle_rad)
+        gap = matching._end_to_segment_gap if to_segment else matching._segment_gap
+        want = np.flatnonzero(ok)[gap(ends[i[ok]], ends[j[ok]]) <= 3.0]
+        a, b, _ = matching._pairs(ends, facing, cfg, 3.0)
+        assert np.array_equal(a, i[want]) and np.array_equal(b, j[want])
+        assert len(want) > 0
