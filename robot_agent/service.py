@@ -338,10 +338,12 @@ class LaserReport:
 
 
 class BackendReport:
-    """One line when the online back end's loops change, at most every ``every_s`` of wall time."""
+    """One line when the online back end's loops change, at most every ``every_s`` of wall time
+    (the agent's back end, ``core.corrector``: a new session has a new one)."""
 
-    def __init__(self, robot: str, corrector, every_s: float = 10.0):
-        self.robot, self.corrector, self.every_s = robot, corrector, every_s
+    def __init__(self, robot: str, every_s: float = 10.0):
+        self.robot, self.every_s = robot, every_s
+        self.corrector = None
         self._loops = 0
         self._next = 0.0
         self._failures = 0
@@ -438,7 +440,7 @@ def run(args: argparse.Namespace) -> int:
         with Bus(bus_cfg, cancel=stop) as bus:
             print(f"agent {args.robot}: session {core.session}, connected", flush=True)
             hooks = [
-                BackendReport(args.robot, corrector),
+                BackendReport(args.robot),
                 LaserReport(args.robot),
                 OdometryReport(args.robot),
             ]

@@ -62,17 +62,18 @@ class _Corrector:
 
 
 def test_the_back_end_report_says_what_the_bounds_dropped(capsys):
-    core = type("Core", (), {"slam": type("Slam", (), {"stats": {"scans_forgotten": 1234}})()})()
-    service.BackendReport("robot1", _Corrector())(core)
+    slam = type("Slam", (), {"stats": {"scans_forgotten": 1234}})()
+    core = type("Core", (), {"slam": slam, "corrector": _Corrector()})()
+    service.BackendReport("robot1")(core)
     out = capsys.readouterr().out
     assert "3 loops, 40 keyframes, 9 updates" in out
     assert "path of the oldest 1234 scans forgotten, 7 keyframes thinned from the graph" in out
 
 
 def test_the_back_end_report_warns_of_every_failed_update(capsys):
-    core = type("Core", (), {"slam": type("Slam", (), {"stats": {}})()})()
     corrector = _Corrector()
-    report = service.BackendReport("robot1", corrector)
+    core = type("Core", (), {"slam": type("Slam", (), {"stats": {}})(), "corrector": corrector})()
+    report = service.BackendReport("robot1")
     report(core)
     assert "warning" not in capsys.readouterr().out
     corrector.failures, corrector.last_failure = 1, "ValueError: track: starts after the last keyframe"

@@ -459,12 +459,12 @@ class FastSLAM:
     def _watch(self, odometry: np.ndarray, ranges_m, angles_rad, laser_offset, range_max_m) -> None:
         """Does the scan lie on the last agreeing one, moved by odometry's increment? Two in a row
         that do not: doubt (:mod:`robot_agent.slam.kidnap`)."""
-        kc = self.cfg.kidnap
-        pts = apply_points(laser_offset, scan_points(ranges_m, angles_rad, self.cfg.extraction, range_max_m))
-        pts = kidnap_mod.thin(pts, kc.points)
         if self.doubt is not None:
             self.doubt.scans += 1
             return
+        kc = self.cfg.kidnap
+        pts = apply_points(laser_offset, scan_points(ranges_m, angles_rad, self.cfg.extraction, range_max_m))
+        pts = kidnap_mod.thin(pts, kc.points)
         if self._ref is None or kidnap_mod.overlap(*self._ref, pts, odometry, kc) >= kc.min_overlap:
             self._ref, self._disagree = (pts, odometry), 0
             return
@@ -478,6 +478,7 @@ class FastSLAM:
             self.kidnap_events.append((first, "doubt", None))
             maps = self.particles.maps  # what the scans since mapped goes: it may be elsewhere
             maps.valid &= ~(maps.born >= self._disagree_step)
+            self.global_map = None  # built again without it
 
     def _resolve(
         self, segs: ScanSegments, facing: np.ndarray, k: int, rays: reloc_mod.ScanRays, scan: tuple
