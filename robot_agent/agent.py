@@ -152,7 +152,11 @@ class AgentCore:
             self.pose_seq,
             self._last_stamp_s,
             self.published_pose(),
-            self.health.status(),
+            dict(
+                self.health.status(),
+                odometry_doubt=float(self.slam.doubt is not None),  # is the robot where it thinks?
+                sessions_ended=float(len(self.ended)),  # the filter lost the robot this often
+            ),
         )
         self.pose_seq += 1
         return msg

@@ -71,16 +71,20 @@ def _run(path: Path, capsys, held_at: int, cfg: SlamConfig | None = None):
     report = OdometryReport("robot1")
     published: dict[str, np.ndarray] = {}
     held = None
-    poses, out = [], []
+    poses, out, doubt = [], [], []
     for i, scan in enumerate(read_log(path).scans()):
         if i == held_at:
             held = published.get(core.session)
         poses.append(core.step(scan).pose)
         report(core)
+        pose_msg = core.pose_message()
+        if pose_msg is not None:  # what the robot's pose messages say, by scan
+            doubt.append((i, pose_msg.status["odometry_doubt"], pose_msg.status["sessions_ended"]))
         msgs = core.map_messages()
         if msgs:
             published[core.session] = np.concatenate([m.seg for m in msgs])
         out.append(capsys.readouterr().out)
+    core.doubt_said = np.array(doubt)
     return core, published, held, np.array(poses), "".join(out)
 
 
@@ -107,6 +111,9 @@ def test_a_robot_carried_elsewhere_in_its_map_is_found_there_and_its_map_is_not_
     found = int(re.search(r"the robot was moved: found at scan (\d+) ([\d.]+) m", out).group(1))
     assert at < found < at + 60, out  # measured: scan 1040
     assert re.search(rf"from scan {at} the scans disagree with odometry", out), out
+    said = core.doubt_said  # the pose messages say the doubt while it lasts, and only then
+    in_doubt = said[(said[:, 0] > at + 1) & (said[:, 0] < found)]
+    assert len(in_doubt) and in_doubt[:, 1].all() and not said[said[:, 0] > found + 1][:, 1].any()
     # from where it was found on, the path is where the intact run's is (measured: 0.02 m)
     k = np.arange(found + 10, len(poses))
     d = relative(intact[start + k - at], poses[k])
@@ -151,6 +158,7 @@ def test_a_robot_carried_where_its_map_does_not_reach_starts_a_new_session(tmp_p
     assert far.max() < 0.05, f"{int((far > 0.05).sum())} of {len(far)} ends off the map held"
     assert core.session != old and core.first_scan == last + 1
     assert len(published[core.session]) > 0, "the new session maps and publishes"
+    assert core.doubt_said[-1, 2] == 1  # the pose messages count the ended session
     assert re.search(
         rf"warning: lost at scan {last}: .* session {old} ends .* \(session {core.session}\)", out
     ), out
