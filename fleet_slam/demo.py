@@ -1,6 +1,6 @@
 """`fleet-slam demo`: the whole fleet on one machine — an embedded zenoh router, the map server and
 N agents, each a separate process on loopback — with a progress display, then the outputs of
-DESIGN.md (see :mod:`fleet_slam.report`).
+docs/design.md (see :mod:`fleet_slam.report`).
 
 Two kinds of fleet: simulated robots patrolling the routes of a built-in world (known starts are
 sent as priors unless ``unknown_starts``), or a real CARMEN log cut into ``split`` consecutive

@@ -1,4 +1,4 @@
-"""`fleet-slam replay`: offline SLAM over a CARMEN log, with the outputs of DESIGN.md."""
+"""`fleet-slam replay`: offline SLAM over a CARMEN log, with the outputs of docs/design.md."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ def replay_to_dir(
     live: int = 0,
     strict: bool = False,
 ) -> dict:
-    """Replay ``log_path`` and write the outputs of DESIGN.md to ``out_dir``; the metrics. With
+    """Replay ``log_path`` and write the outputs of docs/design.md to ``out_dir``; the metrics. With
     ``live`` > 1 the run is cut into that many parts and the trajectory the robot would publish
     at the end of each is scored too (``metrics["live"]``, on the relations before that moment),
     and the online back end's path at the end (``metrics["relations_online"]``)."""

@@ -1,4 +1,4 @@
-"""The demo's outputs and metrics (DESIGN.md; keys documented in the README).
+"""The demo's outputs and metrics (docs/design.md; keys documented in the README).
 
 Frames: the server's *global* frame is the prior frame (known starts: the world frame) or the
 reference robot's map frame (unknown starts). For a simulated fleet the true pose of the global

@@ -1,4 +1,4 @@
-"""The agent process: a scan source -> FastSLAM -> poses and trusted maps on the bus (DESIGN.md).
+"""The agent process: a scan source -> FastSLAM -> poses and trusted maps on the bus (docs/design.md).
 
 :class:`AgentCore` turns scans into wire messages and knows nothing of zenoh; :func:`run_agent`
 drives it from a source at the source's own pace (``speed`` × real time), publishes on a

@@ -1,6 +1,6 @@
 """Wire codec: messages <-> msgpack bytes. The only module that imports msgpack.
 
-A payload is one msgpack map ``{"schema": 1, "kind": ..., <fields>}``. Arrays travel as raw
+A payload is one msgpack map ``{"schema": SCHEMA_VERSION, "kind": ..., <fields>}``. Arrays travel as raw
 little-endian bytes with a fixed dtype per field (``WIRE_DTYPES``) beside the element counts they
 are checked against, so a short or long buffer is an error, never a silent reshape. Decoding trusts
 nothing: the size before unpacking, msgpack's own limits, the exact key set, python types, buffer

@@ -1,4 +1,4 @@
-"""Zenoh key expressions (DESIGN.md): every key lives under ``fleet/<fleet-id>/``.
+"""Zenoh key expressions (docs/design.md): every key lives under ``fleet/<fleet-id>/``.
 
 - ``robots/<id>/map``   a robot's trusted segment map (put on change; the agent's queryable answers
   with its latest map so a restarted server can pull it);

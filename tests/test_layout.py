@@ -1,4 +1,4 @@
-"""The layout rules of DESIGN.md, enforced on the import graph at any depth (tests/import_graph.py):
+"""The layout rules of docs/design.md, enforced on the import graph at any depth (tests/import_graph.py):
 the pure core reaches no I/O, shared/ imports no side, map_server and robot_agent not each other."""
 
 from pathlib import Path

@@ -1,4 +1,4 @@
-"""Simulated worlds, lidar, differential-drive robot and odometry (see DESIGN.md, ``sim/``)."""
+"""Simulated worlds, lidar, differential-drive robot and odometry (see docs/design.md, ``sim/``)."""
 
 from robot_agent.sim.lidar import (
     MAX_PAIRS_PER_CHUNK,

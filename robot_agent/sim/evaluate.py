@@ -2,7 +2,7 @@
 
 - ATE RMSE after SE(2) alignment of the estimated to the true path (shared/metrics.py);
 - map precision and completeness of the published segments (aligned by the same transform)
-  against the walls the robot actually saw from its true path (DESIGN.md);
+  against the walls the robot actually saw from its true path (docs/design.md);
 - loop closure: for every pair of true poses that are close in space but far apart in time
   (the robot came back), the error of the estimated relative pose. A loop is closed when the
   95th percentile of that error is below ``loop_tolerance_m``.

@@ -1,4 +1,4 @@
-"""`fleet-slam demo` end to end (short): every output of DESIGN.md, sane metrics, no process left."""
+"""`fleet-slam demo` end to end (short): every output of docs/design.md, sane metrics, no process left."""
 
 from __future__ import annotations
 
