@@ -82,6 +82,7 @@ class AgentCore:
         # the sessions this run ended because its filter lost the robot: (session, first scan,
         # last scan, the filter's statistics)
         self.ended: list[tuple[str, int, int, dict]] = []
+        self.ended_paths: list[tuple[np.ndarray, np.ndarray]] = []  # their stamps (S,), poses (S,3)
 
     def step(self, scan: Scan) -> Estimate:
         self.health.add(scan.ranges_m, scan.range_max_m)
@@ -114,6 +115,10 @@ class AgentCore:
         doubt began, so nothing the robot saw after it was moved went into it."""
         old = self.slam
         self.ended.append((self.session, self.first_scan, self.scans - 1, dict(old.stats)))
+        stamps, poses = old.best_trajectory()  # as published: with the back end's last correction
+        if self.corrector is not None and len(poses):
+            poses = self.corrector.corrected_path(poses, old.trajectory.first_scan)
+        self.ended_paths.append((stamps, poses))
         log.warning(
             "%s: lost at scan %d; session %s ends, a new one begins", self.robot, self.scans - 1, self.session
         )
@@ -165,6 +170,8 @@ class AgentCore:
         """The map's chunks when due (``map_period_s``) and changed since the last ones (or ``force``)."""
         if self.estimate is None or (not force and self._last_stamp_s < self._next_map_s):
             return None
+        if self.slam.doubt is not None and not force:  # the map as it was before the doubt stands:
+            return None  # the back end's corrections meanwhile may follow the robot's path elsewhere
         self._next_map_s = self._last_stamp_s + self.cfg.map_period_s
         arrays = top_particle_maps(self.slam, self.cfg.publish)
         if self.corrector is not None:  # every element moved with the keyframe it was made from

@@ -499,7 +499,10 @@ def run(args: argparse.Namespace) -> int:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         write_poses(out / f"{args.robot}.filter.poses.txt", stamps, filter_poses)
-        write_poses(out / f"{args.robot}.poses.txt", stamps, poses)
+        write_poses(out / f"{args.robot}.poses.txt", stamps, poses)  # the last session's
+        # each ended session's path, in its own frame
+        for (ses, *_), (s_stamps, s_poses) in zip(core.ended, core.ended_paths, strict=True):
+            write_poses(out / f"{args.robot}.{ses}.poses.txt", s_stamps, s_poses)
         write_tum(out / f"{args.robot}.tum", stamps, poses)
         if sim is not None:
             sim.write_truth(out, args.robot)
@@ -517,7 +520,7 @@ def run(args: argparse.Namespace) -> int:
             "map_seq": core.map_seq,
             "prior": None if prior is None else prior.tolist(),
             "filter": dict(slam.stats),
-            "sessions_ended": [
+            "sessions_ended": [  # each one's path in <robot>.<session>.poses.txt
                 dict(session=ses, first_scan=a, last_scan=b, filter=st) for ses, a, b, st in core.ended
             ],
             "backend": backend,

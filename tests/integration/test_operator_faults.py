@@ -109,3 +109,50 @@ def test_a_robot_carried_elsewhere_in_its_map_is_reported_and_the_fused_map_stay
             f"{int((far > 0.3).sum())} of {len(far)} segment ends more than 0.3 m off the building's walls, "
             f"{far.max():.2f} m at most"
         )
+
+
+def test_a_robot_carried_where_its_map_does_not_reach_gets_a_new_session_and_its_old_map_stays(tmp_path):
+    """The Intel excerpt's first 700 scans, then ACES's (the robot carried into another
+    building), as an operator runs it: the agent says it lost the robot and begins a new
+    session, exits 0, writes the ended session's path beside the new one's; the fused map keeps
+    the ended session's map where it was — the Intel walls, nothing of ACES bent onto them.
+    Measured: 66 ends, 0.014 m from the intact excerpt's walls on average, 0.038 m at most; while
+    the agent still published during the doubt, the back end's corrections (its keyframes followed
+    the robot into ACES) had moved one segment 3.4 m."""
+    import json
+
+    from fleet_slam.watch import FusedWatcher
+    from shared.bus import Bus, BusConfig
+    from shared.geometry import point_segment_distance
+    from shared.keys import Keys
+    from tests.slam.test_kidnap import ACES, building_map, teleported
+
+    log = teleported(tmp_path, 700, ACES, 0, 250)
+    building = building_map(700)
+    endpoint = loopback_endpoint()
+    out_dir = tmp_path / "out"
+    with ProcGroup(tmp_path / "logs") as group:
+        router = group.start("router", python_module("shared.bus", "router", "--listen", endpoint))
+        assert router.wait_for("listening", STARTUP_S), router.output()
+        server = group.start("server", python_module("map_server", "--connect", endpoint))
+        assert server.wait_for("running", STARTUP_S), server.output()
+        argv = ["--robot", "robot1", "--log", log, "--particles", 10, "--speed", 0, "--out", out_dir]
+        agent = group.start("robot1", python_module("robot_agent", *argv, "--connect", endpoint))
+        code = agent.popen.wait(timeout=300)
+        out = agent.output()
+        assert code == 0, out[-3000:]
+        assert "warning: lost at scan" in out and "a new one begins" in out, out[-3000:]
+        summary = json.loads((out_dir / "robot1.agent.json").read_text())
+        (ended,) = summary["sessions_ended"]
+        old = (out_dir / f"robot1.{ended['session']}.poses.txt").read_text().splitlines()
+        new = (out_dir / "robot1.poses.txt").read_text().splitlines()
+        assert len(old) == ended["last_scan"] + 1 and len(new) == 950 - len(old)
+        with Bus(BusConfig(connect=(endpoint,))) as bus:
+            fused = FusedWatcher(bus, Keys()).fetch(timeout_s=10.0)
+        assert fused is not None and len(fused.seg) > 20
+        ends = fused.seg.astype(float).reshape(-1, 2)
+        far = point_segment_distance(ends[:, None, :], building[None, :, :, :]).min(axis=1)
+        assert far.mean() < 0.1 and far.max() < 1.0, (
+            f"{int((far > 0.3).sum())} of {len(far)} fused segment ends more than 0.3 m off the Intel walls, "
+            f"{far.max():.2f} m at most"
+        )

@@ -159,6 +159,8 @@ def test_a_robot_carried_where_its_map_does_not_reach_starts_a_new_session(tmp_p
     assert core.session != old and core.first_scan == last + 1
     assert len(published[core.session]) > 0, "the new session maps and publishes"
     assert core.doubt_said[-1, 2] == 1  # the pose messages count the ended session
+    stamps, poses = core.ended_paths[0]  # its path, every scan of it, for the agent's --out
+    assert len(stamps) == len(poses) == last + 1 and np.isfinite(poses).all()
     assert re.search(
         rf"warning: lost at scan {last}: .* session {old} ends .* \(session {core.session}\)", out
     ), out
