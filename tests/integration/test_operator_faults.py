@@ -77,7 +77,7 @@ def test_a_robot_carried_elsewhere_in_its_map_is_reported_and_the_fused_map_stay
     its online back end and the map rebuilt at the end) on the Intel excerpt carried at scan
     1000 back to where scan 150 was, odometry none the wiser. The agent says the robot was moved
     and where it was found, and exits 0; the fused map's segments lie on the building's walls
-    (the map of the intact excerpt): measured 86 ends, 0.052 m from them on average, 0.73 m at
+    (the map of the intact excerpt): measured 86 ends, 0.050 m from them on average, 0.73 m at
     most (3 beyond 0.3 m). Before: 21 m off for good, the corridor mapped over."""
     from fleet_slam.watch import FusedWatcher
     from shared.bus import Bus, BusConfig
