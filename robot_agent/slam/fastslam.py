@@ -559,6 +559,8 @@ class FastSLAM:
         from each of the two increments (with and without the owed motion), the one whose
         alignment fits the map better (ties: moved less to get there) is used."""
         owed, self._owed = self._owed, None
+        if self.doubt is None:  # the scans' and odometry's motions are reconciled here: the watch
+            self._ref, self._disagree = None, 0  # for a move unseen starts again from this scan
         if not (self.cfg.filter.refine_bridged and self.cfg.proposal.enabled):
             return u
         paid = relative(owed, u)  # odometry reports the owed motion now: the rest is new
