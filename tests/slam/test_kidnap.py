@@ -167,7 +167,7 @@ def test_a_robot_carried_where_its_map_does_not_reach_starts_a_new_session(tmp_p
 
 
 def test_odometry_that_errs_where_the_estimate_fits_is_doubted_and_cleared(capsys):
-    """MIT-CSAIL's odometry disagrees with its scans from scan 115 on (as at 4 more places of the
+    """MIT-CSAIL's odometry disagrees with its scans from scan 115 on (as at 3 more places of the
     whole log, ACES at 2): the estimate fits the map where the doubt began, nothing better is
     found elsewhere, the doubt is cleared and mapping goes on (what doubts cost the whole logs'
     accuracy: benchmarks/bench_logs.py; Intel's and ACES's excerpts have none)."""
