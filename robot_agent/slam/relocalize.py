@@ -31,7 +31,15 @@ from robot_agent.slam.extraction import ScanSegments
 from robot_agent.slam.lines import transform_lines, transform_moments
 from robot_agent.slam.particles import ParticleSet, SegmentMaps
 from robot_agent.slam.update import UpdateConfig, visibility
-from shared.geometry import apply_segments, compose, inverse, point_segment_distance, relative, wrap_angle
+from shared.geometry import (
+    apply_segments,
+    compose,
+    inverse,
+    point_segment_distance,
+    relative,
+    segment_lengths,
+    wrap_angle,
+)
 from shared.matching import MatchingConfig, cluster_poses, overlap_scores, pose_hypotheses
 
 
@@ -158,20 +166,9 @@ def relocalize(
     good = far_enough & plausible & (scores >= cfg.min_score_m) & (scores >= current + cfg.score_gain_m)
     if not np.any(good):
         return None
-    best = int(np.argmax(np.where(good, scores, -np.inf)))
-    if not _unique(hyp, scores, best, pose, current, cfg):
-        return None
-    hyp, scores = hyp[good], scores[good]
-    if rays is not None:
-        # all reliable elements: an alias runs through the young ones the estimate is consistent
-        # with; after real drift the estimate's beams run through old ones as much
-        through = through_counts(np.vstack([pose, hyp]), gm.seg[near], gm.alpha[near], gm.facing[near], rays)
-        ok = through[1:] <= through[0] + cfg.max_extra_through
-        if not ok[np.argmax(scores)]:  # the best is refuted: the place is ambiguous, wait
-            return None
-        hyp, scores = hyp[ok], scores[ok]
-    keep = cluster_poses(hyp, scores, 0.2, np.radians(3.0))[: cfg.inject]
-    return Relocalization(hyp[keep], scores[keep], current)
+    # all reliable elements for the beams: an alias runs through the young ones the estimate is
+    # consistent with; after real drift the estimate's beams run through old ones as much
+    return _pick(pose, hyp, scores, current, good, cfg, rays, gm, near)
 
 
 def _unique(
@@ -301,18 +298,36 @@ def relocalize_global(
     current, scores = float(scores[0]), scores[1:]
     d = relative(pose, hyp)
     far = (np.hypot(d[:, 0], d[:, 1]) > far_m) | (np.abs(d[:, 2]) > far_rad)
-    length = float(np.sum(np.hypot(*(segs.endpoints[:, 1] - segs.endpoints[:, 0]).T)))
+    length = float(segment_lengths(segs.endpoints).sum())
     good = far & (scores >= max(cfg.min_score_m, min_share * length)) & (scores >= current + cfg.score_gain_m)
     if not np.any(good):
         return None
+    return _pick(pose, hyp, scores, current, good, cfg, rays, gm, reliable)
+
+
+def _pick(
+    pose: np.ndarray,
+    hyp: np.ndarray,
+    scores: np.ndarray,
+    current: float,
+    good: np.ndarray,
+    cfg: RelocalizationConfig,
+    rays: ScanRays | None,
+    gm: GlobalMap,
+    elements: np.ndarray,
+) -> Relocalization | None:
+    """The ``good`` hypotheses to inject, best first, when the best of them is unique and (given
+    ``rays``) its beams pass through no more of the map's ``elements`` (mask) than the
+    estimate's; else None (the place is ambiguous: wait)."""
     best = int(np.argmax(np.where(good, scores, -np.inf)))
     if not _unique(hyp, scores, best, pose, current, cfg):
         return None
     hyp, scores = hyp[good], scores[good]
     if rays is not None:
-        through = through_counts(np.vstack([pose, hyp]), map_ends, gm.alpha[reliable], map_facing, rays)
+        seg, alpha, facing = gm.seg[elements], gm.alpha[elements], gm.facing[elements]
+        through = through_counts(np.vstack([pose, hyp]), seg, alpha, facing, rays)
         ok = through[1:] <= through[0] + cfg.max_extra_through
-        if not ok[np.argmax(scores)]:
+        if not ok[np.argmax(scores)]:  # the best is refuted
             return None
         hyp, scores = hyp[ok], scores[ok]
     keep = cluster_poses(hyp, scores, 0.2, np.radians(3.0))[: cfg.inject]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 import pytest
 
 from fleet_slam.procs import ProcGroup, python_module
@@ -72,6 +73,30 @@ def test_row1_an_odometry_jump_in_a_robots_log_is_reported_and_the_fused_map_sta
         assert far.max() < 5.0, f"{int((far > 5).sum())} segment ends more than 5 m from the building"
 
 
+def _agent_on_log(tmp_path, log, *extra) -> tuple[str, object, np.ndarray]:
+    """Router, server and one agent (10 particles, as fast as it goes, ``extra`` arguments) on
+    ``log``: the agent's output (it exited 0), the fused map after it and its segment ends (N,2)."""
+    from fleet_slam.watch import FusedWatcher
+    from shared.bus import Bus, BusConfig
+    from shared.keys import Keys
+
+    endpoint = loopback_endpoint()
+    with ProcGroup(tmp_path / "logs") as group:
+        router = group.start("router", python_module("shared.bus", "router", "--listen", endpoint))
+        assert router.wait_for("listening", STARTUP_S), router.output()
+        server = group.start("server", python_module("map_server", "--connect", endpoint))
+        assert server.wait_for("running", STARTUP_S), server.output()
+        argv = ["--robot", "robot1", "--log", log, "--particles", 10, "--speed", 0, *extra]
+        agent = group.start("robot1", python_module("robot_agent", *argv, "--connect", endpoint))
+        code = agent.popen.wait(timeout=300)
+        out = agent.output()
+        assert code == 0, out[-3000:]
+        with Bus(BusConfig(connect=(endpoint,))) as bus:
+            fused = FusedWatcher(bus, Keys()).fetch(timeout_s=10.0)
+    assert fused is not None and len(fused.seg) > 20
+    return out, fused, fused.seg.astype(float).reshape(-1, 2)
+
+
 def test_a_robot_carried_elsewhere_in_its_map_is_reported_and_the_fused_map_stays_sane(tmp_path):
     """Issue 24 item 1, a teleport, as an operator runs it: router, server and an agent (with
     its online back end and the map rebuilt at the end) on the Intel excerpt carried at scan
@@ -79,36 +104,19 @@ def test_a_robot_carried_elsewhere_in_its_map_is_reported_and_the_fused_map_stay
     and where it was found, and exits 0; the fused map's segments lie on the building's walls
     (the map of the intact excerpt): measured 86 ends, 0.050 m from them on average, 0.73 m at
     most (3 beyond 0.3 m). Before: 21 m off for good, the corridor mapped over."""
-    from fleet_slam.watch import FusedWatcher
-    from shared.bus import Bus, BusConfig
     from shared.geometry import point_segment_distance
-    from shared.keys import Keys
     from tests.slam.test_kidnap import INTEL, building_map, teleported
 
     log = teleported(tmp_path, 1000, INTEL, 150, 150)
     building = building_map(1000)
-    endpoint = loopback_endpoint()
-    with ProcGroup(tmp_path / "logs") as group:
-        router = group.start("router", python_module("shared.bus", "router", "--listen", endpoint))
-        assert router.wait_for("listening", STARTUP_S), router.output()
-        server = group.start("server", python_module("map_server", "--connect", endpoint))
-        assert server.wait_for("running", STARTUP_S), server.output()
-        argv = ["--robot", "robot1", "--log", log, "--particles", 10, "--speed", 0]
-        agent = group.start("robot1", python_module("robot_agent", *argv, "--connect", endpoint))
-        code = agent.popen.wait(timeout=300)
-        out = agent.output()
-        assert code == 0, out[-3000:]
-        assert "warning: from scan 1000 the scans disagree with odometry" in out, out[-3000:]
-        assert "warning: the robot was moved: found at scan 10" in out, out[-3000:]
-        with Bus(BusConfig(connect=(endpoint,))) as bus:
-            fused = FusedWatcher(bus, Keys()).fetch(timeout_s=10.0)
-        assert fused is not None and len(fused.seg) > 20
-        ends = fused.seg.astype(float).reshape(-1, 2)
-        far = point_segment_distance(ends[:, None, :], building[None, :, :, :]).min(axis=1)
-        assert far.mean() < 0.1 and far.max() < 1.0, (
-            f"{int((far > 0.3).sum())} of {len(far)} segment ends more than 0.3 m off the building's walls, "
-            f"{far.max():.2f} m at most"
-        )
+    out, _, ends = _agent_on_log(tmp_path, log)
+    assert "warning: from scan 1000 the scans disagree with odometry" in out, out[-3000:]
+    assert "warning: the robot was moved: found at scan 10" in out, out[-3000:]
+    far = point_segment_distance(ends[:, None, :], building[None, :, :, :]).min(axis=1)
+    assert far.mean() < 0.1 and far.max() < 1.0, (
+        f"{int((far > 0.3).sum())} of {len(far)} segment ends more than 0.3 m off the building's walls, "
+        f"{far.max():.2f} m at most"
+    )
 
 
 def test_a_robot_carried_where_its_map_does_not_reach_gets_a_new_session_and_its_old_map_stays(tmp_path):
@@ -121,38 +129,21 @@ def test_a_robot_carried_where_its_map_does_not_reach_gets_a_new_session_and_its
     the robot into ACES) had moved one segment 3.4 m."""
     import json
 
-    from fleet_slam.watch import FusedWatcher
-    from shared.bus import Bus, BusConfig
     from shared.geometry import point_segment_distance
-    from shared.keys import Keys
     from tests.slam.test_kidnap import ACES, building_map, teleported
 
     log = teleported(tmp_path, 700, ACES, 0, 250)
     building = building_map(700)
-    endpoint = loopback_endpoint()
     out_dir = tmp_path / "out"
-    with ProcGroup(tmp_path / "logs") as group:
-        router = group.start("router", python_module("shared.bus", "router", "--listen", endpoint))
-        assert router.wait_for("listening", STARTUP_S), router.output()
-        server = group.start("server", python_module("map_server", "--connect", endpoint))
-        assert server.wait_for("running", STARTUP_S), server.output()
-        argv = ["--robot", "robot1", "--log", log, "--particles", 10, "--speed", 0, "--out", out_dir]
-        agent = group.start("robot1", python_module("robot_agent", *argv, "--connect", endpoint))
-        code = agent.popen.wait(timeout=300)
-        out = agent.output()
-        assert code == 0, out[-3000:]
-        assert "warning: lost at scan" in out and "a new one begins" in out, out[-3000:]
-        summary = json.loads((out_dir / "robot1.agent.json").read_text())
-        (ended,) = summary["sessions_ended"]
-        old = (out_dir / f"robot1.{ended['session']}.poses.txt").read_text().splitlines()
-        new = (out_dir / "robot1.poses.txt").read_text().splitlines()
-        assert len(old) == ended["last_scan"] + 1 and len(new) == 950 - len(old)
-        with Bus(BusConfig(connect=(endpoint,))) as bus:
-            fused = FusedWatcher(bus, Keys()).fetch(timeout_s=10.0)
-        assert fused is not None and len(fused.seg) > 20
-        ends = fused.seg.astype(float).reshape(-1, 2)
-        far = point_segment_distance(ends[:, None, :], building[None, :, :, :]).min(axis=1)
-        assert far.mean() < 0.1 and far.max() < 1.0, (
-            f"{int((far > 0.3).sum())} of {len(far)} fused segment ends more than 0.3 m off the Intel walls, "
-            f"{far.max():.2f} m at most"
-        )
+    out, _, ends = _agent_on_log(tmp_path, log, "--out", out_dir)
+    assert "warning: lost at scan" in out and "a new one begins" in out, out[-3000:]
+    summary = json.loads((out_dir / "robot1.agent.json").read_text())
+    (ended,) = summary["sessions_ended"]
+    old = (out_dir / f"robot1.{ended['session']}.poses.txt").read_text().splitlines()
+    new = (out_dir / "robot1.poses.txt").read_text().splitlines()
+    assert len(old) == ended["last_scan"] + 1 and len(new) == 950 - len(old)
+    far = point_segment_distance(ends[:, None, :], building[None, :, :, :]).min(axis=1)
+    assert far.mean() < 0.1 and far.max() < 1.0, (
+        f"{int((far > 0.3).sum())} of {len(far)} fused segment ends more than 0.3 m off the Intel walls, "
+        f"{far.max():.2f} m at most"
+    )
