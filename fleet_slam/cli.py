@@ -110,6 +110,18 @@ def _cmd_subscribe(args: argparse.Namespace) -> int:
     return run(args)
 
 
+def _cmd_view(args: argparse.Namespace) -> int:
+    from fleet_slam.view import run
+
+    return run(args)
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from fleet_slam.export import run
+
+    return run(args)
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from fleet_slam.demo import DemoConfig, run_demo
     from fleet_slam.summary import print_summary
@@ -126,6 +138,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         log=args.log,
         split=args.split,
         relations=args.relations,
+        view=args.view,
     )
     print_summary(run_demo(cfg), cfg)
     return 0
@@ -153,6 +166,7 @@ def _add_fleet_commands(sub) -> None:
     d.add_argument("--split", type=int, default=3, help="pieces of --log")
     d.add_argument("--relations", default=None, help="--log: relations file to score the global poses")
     d.add_argument("--out", default="out/demo", help="output directory")
+    d.add_argument("--view", action="store_true", help="serve the live web view while the fleet runs")
     d.set_defaults(func=_cmd_demo)
 
     a = sub.add_parser("agent", help="one robot agent: FastSLAM on a simulated robot or a log, on the bus")
@@ -172,9 +186,40 @@ def _add_fleet_commands(sub) -> None:
     su.add_argument("--bus-config", default=None, metavar="FILE", help="zenoh config file (TLS; deploy/)")
     su.add_argument("--fleet", default="default", help="fleet id")
     su.add_argument("--once", action="store_true", help="take the latest fused map by query and exit")
-    su.add_argument("--save", default=None, help="write the map to FILE (.geojson or .svg) on every update")
+    su.add_argument(
+        "--save", default=None,
+        help="write the map to FILE on every update: .geojson, .svg, or .yaml (a nav2 occupancy grid, "
+        "FILE.pgm beside it)",
+    )  # fmt: skip
+    su.add_argument("--resolution", type=float, default=0.05, help="--save .yaml: metres per cell")
     su.add_argument("--count", type=int, default=None, help="exit after this many updates")
     su.set_defaults(func=_cmd_subscribe)
+    ex = sub.add_parser(
+        "export", help="write the server's fused map as files: a nav2 occupancy grid, GeoJSON or SVG",
+        description="Query the running server for the fused map (and the fleet's free space) and write it. "
+        "--format nav2: OUT.yaml + OUT.pgm as nav2's map_server loads them (mode trinary: walls "
+        "occupied, the space robots saw free free, the rest unknown); OUT may be a directory (map.yaml).",
+    )  # fmt: skip
+    ex.add_argument("out", metavar="OUT", help="map.yaml (nav2), map.geojson, map.svg, or a directory")
+    ex.add_argument("--format", choices=("nav2", "geojson", "svg"), default="nav2", help="what to write")
+    ex.add_argument("--resolution", type=float, default=0.05, help="nav2: metres per cell (default 0.05)")
+    ex.add_argument("--connect", action="append", default=None, help="router endpoint (tcp/127.0.0.1:7447)")
+    ex.add_argument("--bus-config", default=None, metavar="FILE", help="zenoh config file (TLS; deploy/)")
+    ex.add_argument("--fleet", default="default", help="fleet id")
+    ex.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the server's answer")
+    ex.set_defaults(func=_cmd_export)
+    vw = sub.add_parser(
+        "view", help="a live web view of the fleet: fused map, robots, paths, status (loopback page)",
+        description="Serve a page that shows the fused map as it changes (pushed, no reloading): segments, "
+        "the fleet's free space, each robot's pose and recent path, its alignment status and transform "
+        "uncertainty, the map version and age; pan (drag) and zoom (wheel). Nothing is loaded from the "
+        "internet.",
+    )  # fmt: skip
+    vw.add_argument("--connect", action="append", default=None, help="router endpoint (tcp/127.0.0.1:7447)")
+    vw.add_argument("--listen", default="127.0.0.1:8090", help="HOST:PORT of the page (port 0: any free one)")
+    vw.add_argument("--bus-config", default=None, metavar="FILE", help="zenoh config file (TLS; deploy/)")
+    vw.add_argument("--fleet", default="default", help="fleet id")
+    vw.set_defaults(func=_cmd_view)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -24,6 +24,8 @@ from fleet_slam.watch import FusedWatcher, Update
 STARTUP_TIMEOUT_S = 60.0
 SETTLE_QUIET_S = 3.0  # after the agents end: the fused map is final when quiet this long
 SETTLE_TIMEOUT_S = 30.0
+FREE_QUIET_S = 3.0  # the free space is final when its version holds this long (fused every 2 s at most)
+FREE_TIMEOUT_S = 15.0
 # --log: pieces replayed at full speed end within a minute or so, before the server calls their
 # maps mature (grown <= 25 % over 30 s of its time) and confirms a match (two attempts ~10 s
 # apart); the demo then waits this long at most for every piece to be placed
@@ -45,6 +47,8 @@ class DemoConfig:
     relations: str | None = None
     progress: bool | None = None  # None: when stderr is a terminal
     fleet: str = "default"
+    view: bool = False  # serve the live web view (fleet-slam view) while the fleet runs
+    view_listen: str = "127.0.0.1:8090"  # its address (a busy port: any free one)
 
     def robot_names(self) -> list[str]:
         return [f"robot{i + 1}" for i in range(self.split if self.log else self.robots)]
@@ -130,6 +134,8 @@ def run_demo(cfg: DemoConfig) -> dict:
         )
         if not server.wait_for("running", STARTUP_TIMEOUT_S):
             raise RuntimeError(f"the server did not start; see {server.log_path}")
+        if cfg.view:
+            _start_view(group, cfg, endpoint)
         with Bus(BusConfig(connect=(endpoint,))) as bus:
             watcher = FusedWatcher(bus, Keys(cfg.fleet))
             watcher.start(query_timeout_s=0.5)
@@ -150,15 +156,57 @@ def run_demo(cfg: DemoConfig) -> dict:
             final = watcher.wait_quiet(SETTLE_QUIET_S, SETTLE_TIMEOUT_S)
             final = watcher.fetch(2.0) or final
             updates = list(watcher.updates)
+            free = _settled_free(bus, Keys(cfg.fleet))
         server.stop()
         router.stop()
     if final is None:
         raise RuntimeError(f"no fused map was received; see {out / 'logs' / 'server.log'}")
-    metrics = write_report(cfg, out, final, updates, t_agents, agents_dir, split)
+    metrics = write_report(cfg, out, final, updates, t_agents, agents_dir, split, free)
     metrics["wall_time_s"] = time.monotonic() - t_start
     metrics["config"] = asdict(cfg)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics
+
+
+def _start_view(group: ProcGroup, cfg: DemoConfig, endpoint: str) -> None:
+    """The live web view as one more process of the fleet; prints its address."""
+    import socket
+
+    from fleet_slam.view import parse_listen
+
+    host, port = parse_listen(cfg.view_listen)
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host, port))
+        except OSError:
+            port = 0  # taken: any free port (the view prints which)
+    view = group.start(
+        "view", python_module("fleet_slam.cli", "view", "--connect", endpoint, "--listen", f"{host}:{port}",
+                              "--fleet", cfg.fleet),
+    )  # fmt: skip
+    if not view.wait_for("view: http", STARTUP_TIMEOUT_S):
+        raise RuntimeError(f"the view did not start; see {view.log_path}")
+    line = next(t for t in view.output().splitlines() if t.startswith("view: http"))
+    print(f"live view: {line.split()[1]}  (open it in a browser; it stops with the demo)", flush=True)
+
+
+def _settled_free(bus, keys):
+    """The fleet's free space once the server has fused the last of it (its fusions are spaced
+    ``min_gap_s`` = 2 s apart): the newest version, unchanged for FREE_QUIET_S."""
+    from fleet_slam.export import FreeWatcher
+
+    watcher = FreeWatcher(bus, keys)
+    deadline = time.monotonic() + FREE_TIMEOUT_S
+    last, since = None, time.monotonic()
+    while time.monotonic() < deadline:
+        f = watcher.fetch(1.0)
+        key = None if f is None else (f.session, f.version)
+        if key != last:
+            last, since = key, time.monotonic()
+        elif f is not None and time.monotonic() - since >= FREE_QUIET_S:
+            break
+        time.sleep(0.5)
+    return watcher.latest
 
 
 def _status_line(upd: Update | None, t0: float, names: list[str]) -> str:

@@ -17,7 +17,7 @@ import numpy as np
 
 from fleet_slam.watch import Update
 from shared.geometry import apply_segments, compose, identity, inverse
-from shared.messages import FusedMap
+from shared.messages import FusedFree, FusedMap
 from shared.metrics import (
     Relations,
     ate,
@@ -91,7 +91,10 @@ def fused_geojson(final: FusedMap) -> dict:
     return segments_geojson(final.seg, props, kind="fused")
 
 
-def write_report(cfg, out: Path, final: FusedMap, updates: list[Update], t0: float, agents_dir: Path, split):
+def write_report(
+    cfg, out: Path, final: FusedMap, updates: list[Update], t0: float, agents_dir: Path, split,
+    free: FusedFree | None = None,
+):  # fmt: skip
     names = cfg.robot_names()
     first = _first_merges(updates, t0)
     starts, world = {}, None
@@ -139,8 +142,15 @@ def write_report(cfg, out: Path, final: FusedMap, updates: list[Update], t0: flo
     save_geojson(out / "map.geojson", fused_geojson(final))
     save_picture(out / "map", pic)
     metrics = {"robots": robots, "fused_segments": len(final.seg), "fused_version": final.version}
+    grid = _save_grid(out, final, free)
+    metrics["grid"] = {"resolution_m": grid.resolution_m, "shape": list(grid.cells.shape)}
     if world is not None:
         metrics.update(_fused_quality(world, final, g, g_fit, [fits[n][0][1] for n in names]))
+        true_paths = [fits[n][0][1] for n in names]
+        metrics["grid"].update(_grid_quality(world, grid, g, true_paths))
+        if g_fit is not None:  # the grid in the world placed by the fitted global frame (see _slam_fits)
+            fit = _grid_quality(world, grid, g_fit, true_paths)
+            metrics["grid"].update({f"{k}_fit": v for k, v in fit.items() if not k.endswith("_cells")})
     wrong = [n for n, r in robots.items() if r.get("wrong_merge")]
     metrics["all_merged"] = all(r["status"] in ("reference", "prior", "aligned") for r in robots.values())
     metrics["wrong_merges"] = wrong
@@ -243,6 +253,38 @@ def _fused_quality(world, final: FusedMap, g, g_fit, true_paths: list[np.ndarray
         q = map_quality(apply_segments(g_fit, final.seg), world.walls, seen_points=seen)
         out |= {"fused_precision_fit": q.precision, "fused_completeness_fit": q.completeness}
     return out
+
+
+GRID_RESOLUTION_M = 0.05
+
+
+def _save_grid(out: Path, final: FusedMap, free: FusedFree | None):
+    """``map.yaml`` + ``map.pgm``: the fused map as a nav2 occupancy grid (the segments and the
+    walls seen that they lack, over the fleet's free space)."""
+    from shared.occupancy import fused_geometry, grid_walls, occupancy_grid
+    from shared.viz import save_nav2
+
+    grid = occupancy_grid(grid_walls(final.seg, free), fused_geometry(free), GRID_RESOLUTION_M)
+    save_nav2(out / "map.yaml", grid)
+    return grid
+
+
+def _grid_quality(world, grid, g, true_paths: list[np.ndarray]) -> dict:
+    """The exported grid against the world, in the global frame (``g``: its pose in the world):
+    true wall cells occupied (within a cell), covered cells free, wall cells marked free."""
+    from dataclasses import asdict
+
+    from robot_agent.sim import LidarConfig
+    from robot_agent.sim.evaluate import true_beams
+    from shared.geometry import apply_points
+    from shared.occupancy import grid_quality
+
+    beams = [true_beams(world, path, LidarConfig()) for path in true_paths]
+    to_global = inverse(g)
+    origins = apply_points(to_global, np.concatenate([b[0] for b in beams]))
+    ends = apply_points(to_global, np.concatenate([b[1] for b in beams]))
+    hit = np.concatenate([b[2] for b in beams])
+    return asdict(grid_quality(grid, apply_segments(to_global, world.walls), origins, ends, hit))
 
 
 def _log_scores(cfg, out: Path, all_stamps, all_poses, split) -> dict:

@@ -1,4 +1,5 @@
-"""`fleet-slam subscribe`: one line per fused-map update; ``--save`` writes it; ``--once`` queries."""
+"""`fleet-slam subscribe`: one line per fused-map update; ``--save`` writes it (``.geojson``, ``.svg``,
+or ``.yaml``: a nav2 occupancy grid with the fleet's free space); ``--once`` queries."""
 
 from __future__ import annotations
 
@@ -49,15 +50,26 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     stop_on_signals(stop)
     seen = threading.Semaphore(0)
+    grid = bool(args.save) and Path(args.save).suffix in (".yaml", ".yml")
+    free = None
 
     def on_update(u: Update) -> None:
         print(f"{u.via}: {describe(u.fused)}", flush=True)
-        if args.save:
+        if grid:
+            from fleet_slam.export import save_nav2_map
+
+            save_nav2_map(args.save, u.fused, free.latest if free is not None else None, args.resolution)
+        elif args.save:
             save(args.save, u.fused)
         seen.release()
 
     bus_cfg = client_config(args.connect, args.bus_config)
     with Bus(bus_cfg, cancel=stop) as bus:
+        if grid:  # the free space first: the first map saved has it
+            from fleet_slam.export import FreeWatcher
+
+            free = FreeWatcher(bus, Keys(args.fleet))
+            free.start(query_timeout_s=2.0)
         watcher = FusedWatcher(
             bus,
             Keys(args.fleet),

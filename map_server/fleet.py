@@ -207,6 +207,19 @@ class Fleet:
     def latest(self) -> FusedMap | None:
         return self._latest
 
+    def placements(self) -> dict[tuple[str, str], np.ndarray]:
+        """Where each placed map is: ``(robot, session) -> transform (3,)`` (its map frame in
+        the global frame), for the robots' current sessions and the retired pieces."""
+        out = {(r.robot, r.map.session): r.alignment.transform for r in self._placed() if r.map is not None}
+        for p in self._pieces():
+            out[(p.robot, p.session)] = p.alignment.transform
+        return out
+
+    def sessions(self) -> set[tuple[str, str]]:
+        """Every (robot, session) whose map the fleet keeps, placed or not."""
+        out = {(r.robot, r.map.session) for r in self.robots.values() if r.map is not None}
+        return out | {(p.robot, p.session) for p in self._pieces()}
+
     def _placed(self) -> list[RobotState]:
         return [r for r in self._ordered() if r.alignment.placed and r.layer is not None]
 

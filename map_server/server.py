@@ -18,14 +18,15 @@ import threading
 import time
 import uuid
 from collections import Counter, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from map_server.fleet import Fleet, FleetConfig
+from map_server.freespace import FreeFusionConfig, FreeSpaces
 from map_server.store import StateError, Store
 from shared import codec
 from shared.keys import Keys
 from shared.memory import Trimmer
-from shared.messages import MAX_ROBOTS, FusedMap, PoseUpdate, RobotMap, WireFormatError
+from shared.messages import MAX_ROBOTS, FreeSpace, FusedFree, FusedMap, PoseUpdate, RobotMap, WireFormatError
 
 log = logging.getLogger("fleet_slam.server")
 
@@ -40,6 +41,9 @@ class ServerConfig:
     log_rejections_every_s: float = 10.0  # rejected messages are counted; a summary is logged this often
     status_every_s: float = 10.0  # a status line (queue depth, fusion time, memory) is logged this often
     timing_window: int = 200  # fusion times kept for the status percentiles
+    free: FreeFusionConfig = field(default_factory=FreeFusionConfig)  # the fleet's free space
+
+FREE_BLOB = "free~"  # a robot session's free space in a snapshot: free~<robot>~<session>
 
 
 class MapServer:
@@ -60,6 +64,10 @@ class MapServer:
         self._time_offset = 0.0  # server time already spent before a restart (from the state)
         self._lock = threading.Lock()
         self._wake = threading.Event()
+        self.free = FreeSpaces(cfg.free)  # the robots' free space, and its union
+        self._frees: list[FreeSpace] = []  # queued free-space messages
+        self._latest_free: list[bytes] = []
+        self._stored_free: dict[str, tuple[int, bytes]] = {}  # blob name -> (seq, encoded)
         self._maps: list[RobotMap] = []  # queued complete maps
         self._poses: list[PoseUpdate] = []
         self._presence: list[tuple[str, bool]] = []
@@ -92,7 +100,13 @@ class MapServer:
             return
         meta, blobs = loaded
         try:  # the checksums hold, but the content must be a state this build reads too
+            frees = {n: b for n, b in blobs.items() if n.startswith(FREE_BLOB)}
+            blobs = {n: b for n, b in blobs.items() if n not in frees}
             maps = {name: codec.decode_stored_map(blob) for name, blob in blobs.items()}
+            for name, blob in frees.items():
+                m = codec.decode(blob, expect=FreeSpace)
+                self.free.put(m)
+                self._stored_free[name] = (m.seq, blob)
             self.fleet = Fleet.restore(meta["fleet"], maps, self.fleet_cfg, self.server_id)
             self._time_offset = float(meta.get("now_s", 0.0))
         except (KeyError, TypeError, ValueError) as exc:
@@ -102,6 +116,8 @@ class MapServer:
         latest = self.fleet.latest()
         if latest is not None:
             self._latest = self._payloads(latest)
+        if self.free.latest:  # the fleet's free space as the restored placements put it
+            self._latest_free = [self._free_payload(self._fuse_free(force=True))]
         log.info(
             "restored %d robots (%d retired sessions), fused version %s", len(self.fleet.robots),
             sum(map(len, self.fleet.retired.values())), None if latest is None else latest.version,
@@ -117,6 +133,13 @@ class MapServer:
         for gone in set(self._stored) - set(maps):  # replaced or dropped maps
             del self._stored[gone]
         blobs = {robot: self._stored[robot][1] for robot in maps}
+        frees = {f"{FREE_BLOB}{r}~{ses}": m for (r, ses), m in self.free.latest.items()}
+        for name, m in frees.items():
+            if name not in self._stored_free or self._stored_free[name][0] != m.seq:
+                self._stored_free[name] = (m.seq, codec.encode(m))
+        for gone in set(self._stored_free) - set(frees):
+            del self._stored_free[gone]
+        blobs.update({name: b for name, (_, b) in self._stored_free.items()})
         self.store.save({"fleet": meta, "now_s": self.now_s(), "server": self.server_id}, blobs)
 
     # -- bus callbacks (zenoh threads): decode, validate, queue ----------------------------------
@@ -178,6 +201,22 @@ class MapServer:
             with self._lock:
                 self._reject("pose", key, exc)
 
+    def on_free(self, key: str, payload: bytes, pulled: bool = False) -> None:
+        """A robot's free space, put or ``pulled``: queued (the newest of each session is kept)."""
+        try:
+            msg = self._decode(key, payload, FreeSpace)
+            with self._lock:
+                self._admit(msg.robot)
+                self._frees.append(msg)
+                self.received["free"] += 1
+        except WireFormatError as exc:
+            with self._lock:
+                self._reject("free", key, exc)
+
+    def answer_free(self, _key: str) -> list[tuple[str, bytes]]:
+        with self._lock:
+            return [(self.keys.fused_free, b) for b in self._latest_free]
+
     def on_presence(self, key: str, alive: bool) -> None:
         with self._lock:
             try:
@@ -199,9 +238,13 @@ class MapServer:
         self.bus.subscribe(self.keys.all_maps, self.on_map)
         self.bus.subscribe(self.keys.all_poses, self.on_pose)
         self.bus.watch_alive(self.keys.all_alive, self.on_presence)
+        self.bus.subscribe(self.keys.all_free, self.on_free)
         self.bus.serve(self.keys.fused, self.answer_fused)
+        self.bus.serve(self.keys.fused_free, self.answer_free)
         for key, payload in self.bus.get(self.keys.all_maps, timeout_s=self.cfg.pull_timeout_s):
             self.on_map(key, payload, pulled=True)
+        for key, payload in self.bus.get(self.keys.all_free, timeout_s=self.cfg.pull_timeout_s):
+            self.on_free(key, payload, pulled=True)
 
     def tick(self) -> FusedMap | None:
         """Apply the queued messages, fuse if anything changed, persist, publish. Returns the new
@@ -210,6 +253,7 @@ class MapServer:
         with self._lock:
             maps, poses, presence = self._maps, self._poses, self._presence
             self._maps, self._poses, self._presence = [], [], []
+            frees, self._frees = self._frees, []
         b = self.backlog
         b["maps"], b["poses"] = len(maps), len(poses)
         b["max_maps"], b["max_poses"] = max(b["max_maps"], len(maps)), max(b["max_poses"], len(poses))
@@ -225,7 +269,11 @@ class MapServer:
         if back:
             self._pull_maps(back)
         fused = self.fleet.fuse(now)
+        for m in frees:
+            self.free.put(m)
+        self.free.keep_only(self._free_sessions())
         if fused is None:
+            self._tick_free(now)
             return None
         self.fusions += 1
         fused = dataclasses.replace(fused, extra={**fused.extra, **self._stats_extra()})
@@ -236,7 +284,44 @@ class MapServer:
             self._latest = payloads
         for p in payloads:
             self.bus.put(self.keys.fused, p, reliable=True)
+        self._tick_free(now)
         return fused
+
+    # -- free space ------------------------------------------------------------------------------
+
+    def _free_sessions(self) -> set[tuple[str, str]]:
+        """The (robot, session)s whose free space is kept: those whose map the fleet keeps, and
+        for a robot with no map yet its newest session's (its map may be on the way)."""
+        keep = self.fleet.sessions()
+        newest: dict[str, tuple[float, str]] = {}
+        for (robot, ses), m in self.free.latest.items():
+            r = self.fleet.robots.get(robot)
+            if (r is None or r.map is None) and m.stamp_s >= newest.get(robot, (-1.0, ""))[0]:
+                newest[robot] = (m.stamp_s, ses)
+        return keep | {(robot, ses) for robot, (_, ses) in newest.items()}
+
+    def _fuse_free(self, force: bool = False) -> FusedFree | None:
+        placements = self.fleet.placements()
+        if not force and not self.free.due(placements, self.now_s()):
+            return None
+        latest = self.fleet.latest()
+        version, seg = (0, None) if latest is None else (latest.version, latest.seg)
+        return self.free.fuse(placements, self.server_id, version, self.now_s(), seg)
+
+    def _free_payload(self, f: FusedFree) -> bytes:
+        return codec.encode(dataclasses.replace(f, session=self.session))
+
+    def _tick_free(self, now: float) -> None:
+        """Fuse and publish the free space when it or a placement changed (at most every
+        ``free.min_gap_s``); persisted first, like the map."""
+        fused = self._fuse_free()
+        if fused is None:
+            return
+        self._persist()
+        payload = self._free_payload(fused)
+        with self._lock:
+            self._latest_free = [payload]
+        self.bus.put(self.keys.fused_free, payload, reliable=True)
 
     def _pull_maps(self, robots: list[str]) -> None:
         """Pull ``robots``' latest maps (their queryables) on a thread of its own, queued like puts.
@@ -252,6 +337,10 @@ class MapServer:
                         self.keys.robot_map(robot), timeout_s=self.cfg.pull_timeout_s
                     ):
                         self.on_map(key, payload, pulled=True)
+                    for key, payload in self.bus.get(
+                        self.keys.robot_free(robot), timeout_s=self.cfg.pull_timeout_s
+                    ):
+                        self.on_free(key, payload, pulled=True)
             except Exception as exc:  # e.g. the bus closed at shutdown: the next put catches up
                 log.warning("pulling the maps of %s failed: %s", robots, exc)
 

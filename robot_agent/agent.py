@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from robot_agent.backend.live import LiveCorrector
+from robot_agent.freespace import FreeSpaceConfig, FreeSpaceViews
 from robot_agent.health import LaserHealth
 from robot_agent.publish import MapArrays, PublishConfig, top_particle_maps
 from robot_agent.slam.fastslam import Estimate, FastSLAM
@@ -29,7 +30,7 @@ from robot_agent.sources.base import Scan
 from shared import codec
 from shared.keys import Keys
 from shared.memory import Trimmer
-from shared.messages import PoseUpdate, RobotMap
+from shared.messages import FreeSpace, PoseUpdate, RobotMap
 
 log = logging.getLogger("fleet_slam.agent")
 
@@ -42,6 +43,8 @@ class AgentConfig:
     map_period_s: float = 1.0  # source time between map publications (only when the map changed)
     speed: float = 1.0  # source seconds per wall second; 0 = as fast as possible
     publish: PublishConfig = field(default_factory=PublishConfig)
+    free_period_s: float = 10.0  # source time between free-space publications (only when changed)
+    free: FreeSpaceConfig = field(default_factory=FreeSpaceConfig)
 
 
 class AgentCore:
@@ -83,6 +86,11 @@ class AgentCore:
         # last scan, the filter's statistics)
         self.ended: list[tuple[str, int, int, dict]] = []
         self.ended_paths: list[tuple[np.ndarray, np.ndarray]] = []  # their stamps (S,), poses (S,3)
+        self.free = FreeSpaceViews(cfg.free)  # the space the laser saw free, per view
+        self.free_seq = 0
+        self._next_free_s = -np.inf
+        self._free_fingerprint: bytes | None = None
+        self._in_doubt = False
 
     def step(self, scan: Scan) -> Estimate:
         self.health.add(scan.ranges_m, scan.range_max_m)
@@ -102,10 +110,26 @@ class AgentCore:
             )
             if self.corrector.tick():
                 self._next_map_s = -np.inf  # a new correction: the corrected map goes out now
+        self._free_view(scan)
         if self.slam.lost:
             self.new_session()
         self._trimmer.maybe()
         return self.estimate
+
+    def _free_view(self, scan: Scan) -> None:
+        """The scan's free space kept as a view when it adds some; none while the filter doubts
+        odometry, and the views since the doubt began are forgotten (their poses are suspect)."""
+        doubt = self.slam.doubt
+        if doubt is not None:
+            if not self._in_doubt:
+                self.free.drop_from(doubt.scan)
+                self._in_doubt = True
+            return
+        self._in_doubt = False
+        self.free.add(
+            len(self.slam.trajectory) - 1, self.estimate.pose, scan.ranges_m, scan.angles_rad,
+            scan.laser_offset, scan.range_max_m,
+        )  # fmt: skip
 
     def new_session(self) -> None:
         """The filter lost the robot — moved where its map does not reach, or a map it cannot
@@ -128,6 +152,8 @@ class AgentCore:
         self.prior = self.prior_sigma = None  # the new frame is nowhere known
         self._fingerprint = None
         self._next_map_s = -np.inf
+        self.free = FreeSpaceViews(self.cfg.free)  # (the ended session's went out with its map)
+        self.free_seq, self._free_fingerprint, self._next_free_s = 0, None, -np.inf
         if self.corrector is not None:
             self.corrector.close()
             self.corrector = None if self.new_corrector is None else self.new_corrector(self.slam)
@@ -144,7 +170,7 @@ class AgentCore:
         self.corrector = None  # the rebuilt map and pose are in the corrected frame already
         if self.estimate is not None:
             self.estimate = dataclasses.replace(self.estimate, pose=np.asarray(pose, float).copy())
-        self._next_pose_s = self._next_map_s = -np.inf
+        self._next_pose_s = self._next_map_s = self._next_free_s = -np.inf
 
     def pose_message(self) -> PoseUpdate | None:
         """A pose update when one is due (every ``pose_period_s`` of source time)."""
@@ -190,6 +216,32 @@ class AgentCore:
         self.map_seq += 1
         return chunks
 
+    def free_message(self, force: bool = False) -> FreeSpace | None:
+        """The free space when due (``free_period_s``) and changed (a new view, or a correction
+        that moved one by a centimetre or a milliradian), or ``force``d; each view anchored at its
+        scan's pose on the path as published (the back end's latest correction, or the rebuilt
+        path)."""
+        if self.estimate is None or not len(self.free):
+            return None
+        if not force and (self._last_stamp_s < self._next_free_s or self.slam.doubt is not None):
+            return None
+        self._next_free_s = self._last_stamp_s + self.cfg.free_period_s
+        _, path = self.slam.best_trajectory()
+        first = self.slam.trajectory.first_scan
+        if self.corrector is not None and len(path):
+            path = self.corrector.corrected_path(path, first)
+        poses = self.free.refresh(path, first)
+        fp = np.concatenate([np.rint(poses[:, :2] * 100), np.rint(poses[:, 2:] * 1000)], axis=1)
+        fp = fp.astype(np.int64).tobytes()
+        if fp == self._free_fingerprint and not force:
+            return None
+        self._free_fingerprint = fp
+        view_pose, offsets, ring_view, vertices, wall = self.free.arrays(poses)
+        msg = FreeSpace(self.robot, self.session, self.free_seq, self._last_stamp_s, view_pose, offsets,
+                        ring_view, vertices, wall)  # fmt: skip
+        self.free_seq += 1
+        return msg
+
     def _chunks(self, a: MapArrays) -> list[RobotMap]:
         return codec.robot_map_chunks(
             self.robot, self.session, self.map_seq, self._last_stamp_s,
@@ -203,16 +255,22 @@ class Publisher:
 
     def __init__(self, bus, keys: Keys, core: AgentCore):
         self.bus, self.keys, self.core = bus, keys, core
-        self.bytes_sent = {"map": 0, "pose": 0}
-        self.messages_sent = {"map": 0, "pose": 0}
+        self.bytes_sent = {"map": 0, "pose": 0, "free": 0}
+        self.messages_sent = {"map": 0, "pose": 0, "free": 0}
         self._lock = threading.Lock()
         self._latest: list[bytes] = []
+        self._latest_free: list[bytes] = []
         bus.declare_alive(keys.robot_alive(core.robot))
         bus.serve(keys.robot_map(core.robot), self._answer)
+        bus.serve(keys.robot_free(core.robot), self._answer_free)
 
     def _answer(self, _key: str) -> list[tuple[str, bytes]]:
         with self._lock:
             return [(self.keys.robot_map(self.core.robot), b) for b in self._latest]
+
+    def _answer_free(self, _key: str) -> list[tuple[str, bytes]]:
+        with self._lock:
+            return [(self.keys.robot_free(self.core.robot), b) for b in self._latest_free]
 
     def publish(self, force_map: bool = False) -> None:
         pose = self.core.pose_message()
@@ -224,6 +282,12 @@ class Publisher:
             with self._lock:
                 self._latest = payloads
             self._put("map", self.keys.robot_map(self.core.robot), payloads, reliable=True)
+        free = self.core.free_message(force=force_map)
+        if free is not None:
+            payload = codec.encode(free)
+            with self._lock:
+                self._latest_free = [payload]
+            self._put("free", self.keys.robot_free(self.core.robot), [payload], reliable=True)
 
     def _put(self, what: str, key: str, payloads: list[bytes], reliable: bool) -> None:
         for p in payloads:

@@ -35,7 +35,10 @@ from shared.messages import (
     MAX_MAP_ELEMENTS,
     MAX_PARTICLES,
     MAX_ROBOTS,
+    MAX_VERTICES,
     SCHEMA_VERSION,
+    FreeSpace,
+    FusedFree,
     FusedMap,
     Message,
     PoseUpdate,
@@ -55,7 +58,10 @@ __all__ = [
     "robot_map_chunks", "split", "split_fused_map",
 ]  # fmt: skip
 
-KINDS = {RobotMap: "robot_map", PoseUpdate: "pose", FusedMap: "fused_map"}
+KINDS = {
+    RobotMap: "robot_map", PoseUpdate: "pose", FusedMap: "fused_map", FreeSpace: "free_space",
+    FusedFree: "fused_free",
+}  # fmt: skip
 
 # Fixed wire dtype of every array field, by field name (the same name has the same dtype everywhere).
 WIRE_DTYPES = {
@@ -64,6 +70,10 @@ WIRE_DTYPES = {
     "seg": "<f4", "trust": "<f4",  # float32: 8 µm at 100 m, 8 mm at the 100 km coordinate limit
     "element": "<i8", "members": "<u8", "hits": "<u4", "age": "<u4",
     "support": "<u4", "prov_offsets": "<u4", "prov_robot": "<u2",
+    # free space: a robot's views in centimetres around each view's pose (±327 m), the fused
+    # polygons in float32 metres
+    "view_pose": "<f4", "ring_offsets": "<u4", "ring_view": "<u4", "vertices_cm": "<i2", "wall_bits": "<u1",
+    "ring_hole": "<u1", "vertices": "<f4", "walls": "<f4",
 }  # fmt: skip
 
 # The exact key set of each map on the wire (besides "schema" and "kind" at the top level).
@@ -78,6 +88,14 @@ KEYS = {
         "server", "version", "stamp_s", "chunk", "n_chunks", "robots", "n_segments", "n_prov",
         "seg", "support", "prov_offsets", "prov_robot", "extra", "session",
     ),
+    "free_space": (
+        "robot", "session", "seq", "stamp_s", "n_views", "n_rings", "n_vertices", "view_pose",
+        "ring_offsets", "ring_view", "vertices_cm", "wall_bits",
+    ),
+    "fused_free": (
+        "server", "session", "version", "map_version", "stamp_s", "tolerance_m", "n_rings", "n_vertices",
+        "n_walls", "ring_offsets", "ring_hole", "vertices", "walls",
+    ),
     "robot_status": (
         "robot", "status", "online", "session", "map_seq", "n_elements", "transform", "sigma", "pose",
         "pose_stamp_s", "aligned_at_s",
@@ -85,9 +103,10 @@ KEYS = {
 }  # fmt: skip
 
 
-# What schema 2 (the one before) carried: its messages are still decoded.
-KEYS_SCHEMA_2 = dict(KEYS, pose=tuple(k for k in KEYS["pose"] if k != "status"))
-_KEYS_BY_SCHEMA = {2: KEYS_SCHEMA_2, SCHEMA_VERSION: KEYS}
+# What schemas 2 and 3 carried: their messages are still decoded (3 had no free space; 2 no pose status).
+KEYS_SCHEMA_3 = {k: v for k, v in KEYS.items() if k not in ("free_space", "fused_free")}
+KEYS_SCHEMA_2 = dict(KEYS_SCHEMA_3, pose=tuple(k for k in KEYS["pose"] if k != "status"))
+_KEYS_BY_SCHEMA = {2: KEYS_SCHEMA_2, 3: KEYS_SCHEMA_3, SCHEMA_VERSION: KEYS}
 
 
 @dataclass(frozen=True)
@@ -122,8 +141,8 @@ def encode_stored_map(msg: RobotMap) -> bytes:
 def _encode(msg: Message, limits: _Limits) -> bytes:
     kind = KINDS.get(type(msg))
     if kind is None:
-        raise TypeError(f"encode: expected RobotMap, PoseUpdate or FusedMap, got {type(msg).__name__}")
-    if kind != "pose" and len(msg.seg) > limits.elements:
+        raise TypeError(f"encode: expected one of {[k.__name__ for k in KINDS]}, got {type(msg).__name__}")
+    if kind in ("robot_map", "fused_map") and len(msg.seg) > limits.elements:
         raise WireFormatError(f"seg: {len(msg.seg)} elements in one {limits.what}, at most {limits.elements}")
     fields = {"schema": SCHEMA_VERSION, "kind": kind, **_ENCODERS[kind](msg)}
     data = msgpack.packb(fields, use_bin_type=True)
@@ -185,19 +204,42 @@ def _encode_fused_map(m: FusedMap) -> dict:
     }  # fmt: skip
 
 
-_ENCODERS = {"robot_map": _encode_robot_map, "pose": _encode_pose, "fused_map": _encode_fused_map}
+def _encode_free_space(m: FreeSpace) -> dict:
+    return {
+        "robot": m.robot, "session": m.session, "seq": int(m.seq), "stamp_s": float(m.stamp_s),
+        "n_views": len(m.view_pose), "n_rings": len(m.ring_view), "n_vertices": len(m.vertices),
+        **_arrays(m, "view_pose", "ring_offsets", "ring_view"),
+        "vertices_cm": _wire("vertices_cm", np.rint(m.vertices * 100.0)),
+        "wall_bits": _wire("wall_bits", np.packbits(m.wall.astype(np.uint8))),
+    }  # fmt: skip
+
+
+def _encode_fused_free(m: FusedFree) -> dict:
+    return {
+        "server": m.server, "session": m.session, "version": int(m.version),
+        "map_version": int(m.map_version), "stamp_s": float(m.stamp_s), "tolerance_m": float(m.tolerance_m),
+        "n_rings": len(m.ring_hole), "n_vertices": len(m.vertices), "n_walls": len(m.walls),
+        **_arrays(m, "ring_offsets", "ring_hole", "vertices", "walls"),
+    }  # fmt: skip
+
+
+_ENCODERS = {
+    "robot_map": _encode_robot_map, "pose": _encode_pose, "fused_map": _encode_fused_map,
+    "free_space": _encode_free_space, "fused_free": _encode_fused_free,
+}  # fmt: skip
 
 
 # -- decode -----------------------------------------------------------------------------------
 
 
 def decode(data: bytes, expect: type | None = None) -> Message:
-    """The message in ``data``; ``expect`` (RobotMap, PoseUpdate or FusedMap) refuses any other kind.
+    """The message in ``data``; ``expect`` (a message class of ``KINDS``) refuses any other kind.
 
     Raises only :class:`WireFormatError`, whose text names the field and what is wrong.
     """
     if expect is not None and expect not in KINDS:
-        raise TypeError(f"decode: expect must be RobotMap, PoseUpdate, FusedMap or None, got {expect!r}")
+        names = [k.__name__ for k in KINDS]
+        raise TypeError(f"decode: expect must be one of {names} or None, got {expect!r}")
     return _guarded(data, expect, _WIRE)
 
 
@@ -248,6 +290,8 @@ def _decode(data: bytes, expect: type | None, limits: _Limits) -> Message:
         raise WireFormatError(f"kind: unknown kind {kind!r:.40}, expected one of {tuple(_DECODERS)}")
     if expect is not None and kind != KINDS[expect]:
         raise WireFormatError(f"kind: expected {KINDS[expect]}, got {kind}")
+    if kind not in _KEYS_BY_SCHEMA[schema]:
+        raise WireFormatError(f"kind: {kind} does not exist in schema {schema}")
     return _DECODERS[kind](_Reader(kind, fields, limits=limits, keys=_KEYS_BY_SCHEMA[schema][kind]))
 
 
@@ -369,4 +413,32 @@ def _decode_fused_map(r: _Reader) -> FusedMap:
     )  # fmt: skip
 
 
-_DECODERS = {"robot_map": _decode_robot_map, "pose": _decode_pose, "fused_map": _decode_fused_map}
+def _decode_free_space(r: _Reader) -> FreeSpace:
+    v = r.count("n_views", MAX_VERTICES)
+    n_rings = r.count("n_rings", MAX_VERTICES)
+    p = r.count("n_vertices", MAX_VERTICES)
+    return FreeSpace(
+        robot=r.text("robot"), session=r.text("session"), seq=r.integer("seq"), stamp_s=r.number("stamp_s"),
+        view_pose=r.array("view_pose", (v, 3)), ring_offsets=r.array("ring_offsets", (n_rings + 1,)),
+        ring_view=r.array("ring_view", (n_rings,)),
+        vertices=r.array("vertices_cm", (p, 2)).astype(np.float64) / 100.0,
+        wall=np.unpackbits(r.array("wall_bits", ((p + 7) // 8,)), count=p),
+    )  # fmt: skip
+
+
+def _decode_fused_free(r: _Reader) -> FusedFree:
+    n_rings = r.count("n_rings", MAX_VERTICES)
+    p = r.count("n_vertices", MAX_VERTICES)
+    return FusedFree(
+        server=r.text("server"), session=r.text("session"), version=r.integer("version"),
+        map_version=r.integer("map_version"), stamp_s=r.number("stamp_s"),
+        tolerance_m=r.number("tolerance_m"), ring_offsets=r.array("ring_offsets", (n_rings + 1,)),
+        ring_hole=r.array("ring_hole", (n_rings,)), vertices=r.array("vertices", (p, 2)),
+        walls=r.array("walls", (r.count("n_walls", MAX_VERTICES), 2, 2)),
+    )  # fmt: skip
+
+
+_DECODERS = {
+    "robot_map": _decode_robot_map, "pose": _decode_pose, "fused_map": _decode_fused_map,
+    "free_space": _decode_free_space, "fused_free": _decode_fused_free,
+}  # fmt: skip

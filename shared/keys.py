@@ -4,7 +4,10 @@
   with its latest map so a restarted server can pull it);
 - ``robots/<id>/pose``  a robot's pose, often;
 - ``robots/<id>/alive`` liveliness token (presence);
-- ``map/fused``         the fused map (put on change; the server's queryable answers with the latest).
+- ``robots/<id>/free``  the space a robot's laser saw free, per view (put on change, every 10 s at
+  most; queryable like the map);
+- ``map/fused``         the fused map (put on change; the server's queryable answers with the latest);
+- ``map/free``          the fleet's free space in the global frame (put on change; queryable).
 """
 
 from __future__ import annotations
@@ -29,6 +32,17 @@ class Keys:
 
     def robot_alive(self, robot: str) -> str:
         return f"{self.prefix}/robots/{check_id('robot', robot)}/alive"
+
+    def robot_free(self, robot: str) -> str:
+        return f"{self.prefix}/robots/{check_id('robot', robot)}/free"
+
+    @property
+    def all_free(self) -> str:
+        return f"{self.prefix}/robots/*/free"
+
+    @property
+    def fused_free(self) -> str:
+        return f"{self.prefix}/map/free"
 
     @property
     def all_maps(self) -> str:

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-SCHEMA_VERSION = 3  # 2: FusedMap.session; 3: PoseUpdate.status (schema 2 is still read: codec)
+SCHEMA_VERSION = 4  # 2: FusedMap.session; 3: PoseUpdate.status; 4: free space (2 and 3 still read: codec)
 
 MAX_CHUNK_ELEMENTS = 2048  # elements (segments) per chunk: ~64 KB per message
 MAX_CHUNKS = 64  # chunks per map
@@ -38,6 +38,11 @@ MAX_COORD_M = 1.0e5  # |x|, |y| of any point or pose: 100 km
 ID_PATTERN = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")  # robot ids are key-expression chunks
 
 ALIGNMENT_STATUSES = ("reference", "prior", "aligned", "unaligned")
+
+MAX_VIEWS = 4096  # free-space views (keyframes) in one robot's FreeSpace
+MAX_RINGS = 16384  # polygon rings in one free-space message
+MAX_VERTICES = 131072  # polygon vertices in one free-space message (robot: 512 kB of int16 pairs)
+MAX_VIEW_REACH_M = 327.0  # a view's vertices travel as int16 centimetres around the view's pose
 
 
 class WireFormatError(ValueError):
@@ -341,4 +346,119 @@ class FusedMap:
         return next((r for r in self.robots if r.robot == robot_id), None)
 
 
-Message = RobotMap | PoseUpdate | FusedMap
+def _rings(name: str, offsets: object, n_vertices: int) -> np.ndarray:
+    """Ring offsets ``(R+1,)`` into ``n_vertices`` vertices: from 0 to all, each ring ≥ 3 vertices."""
+    off = check_array(name, offsets, (None,), "i", 0, n_vertices)
+    if len(off) < 1 or len(off) - 1 > MAX_RINGS:
+        raise WireFormatError(f"{name}: {len(off) - 1} rings, expected 0..{MAX_RINGS}")
+    if off[0] != 0 or off[-1] != n_vertices or np.any(np.diff(off) < 3):
+        raise WireFormatError(f"{name}: must run from 0 to {n_vertices} with at least 3 vertices a ring")
+    return off
+
+
+@dataclass(frozen=True, eq=False)
+class FreeSpace:
+    """The space a robot's laser saw free, per *view* (a keyframe: a scan kept because it saw free
+    space no earlier view had), in the robot's map frame (``robot_agent/freespace.py``).
+
+    ``view_pose (V,3)`` each view's robot pose as the agent's latest correction puts it (the
+    anchor: a correction of the path moves the view's polygon with it); ``ring_offsets (R+1,)``
+    and ``ring_view (R,)``: ring ``i`` is ``vertices[ring_offsets[i]:ring_offsets[i+1]]`` (an
+    open ring, at least 3 vertices, in the frame of view ``ring_view[i]``: metres, within
+    ``MAX_VIEW_REACH_M``; the wire carries centimetres). A view's rings are disjoint polygons
+    without holes: free space seen from one place, up to the hits. ``wall (P,)`` is 1 where the
+    edge from that vertex to the next of its ring runs along hits — a wall seen — and 0 where it
+    runs along a beam or the no-return reach (the wire packs it into bits).
+    """
+
+    robot: str
+    session: str
+    seq: int
+    stamp_s: float
+    view_pose: np.ndarray
+    ring_offsets: np.ndarray
+    ring_view: np.ndarray
+    vertices: np.ndarray
+    wall: np.ndarray
+
+    def __post_init__(self) -> None:
+        check_id("robot", self.robot)
+        check_id("session", self.session)
+        check_int("seq", self.seq)
+        check_float("stamp_s", self.stamp_s, lo=0.0)
+        poses = check_array("view_pose", self.view_pose, (None, 3), lo=-MAX_COORD_M, hi=MAX_COORD_M)
+        if len(poses) > MAX_VIEWS:
+            raise WireFormatError(f"view_pose: {len(poses)} views, at most {MAX_VIEWS}")
+        v = check_array("vertices", self.vertices, (None, 2), lo=-MAX_VIEW_REACH_M, hi=MAX_VIEW_REACH_M)
+        if len(v) > MAX_VERTICES:
+            raise WireFormatError(f"vertices: {len(v)} vertices, at most {MAX_VERTICES}")
+        off = _rings("ring_offsets", self.ring_offsets, len(v))
+        view = check_array("ring_view", self.ring_view, (len(off) - 1,), "i", 0, max(len(poses) - 1, 0))
+        if len(view) and not len(poses):
+            raise WireFormatError("ring_view: rings but no views")
+        wall = check_array("wall", np.asarray(self.wall).astype(np.int64), (len(v),), "i", 0, 1)
+        _freeze(self, view_pose=poses, ring_offsets=off, ring_view=view, vertices=v, wall=wall.astype(bool))
+
+    def rings(self) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """``(view, vertices (n,2), wall (n,))`` of every ring, in the view's frame."""
+        o = self.ring_offsets
+        return [(int(self.ring_view[i]), self.vertices[o[i] : o[i + 1]], self.wall[o[i] : o[i + 1]])
+                for i in range(len(o) - 1)]  # fmt: skip
+
+
+@dataclass(frozen=True, eq=False)
+class FusedFree:
+    """The fleet's free space in the global frame: the union of every placed robot's views, kept
+    off the walls they saw (``map_server/freespace.py``). Polygons as rings: ring ``i`` is
+    ``vertices[ring_offsets[i]:ring_offsets[i+1]]``; ``ring_hole[i]`` is 0 for a polygon's outer
+    ring and 1 for a hole of the last outer ring before it. ``walls (K,2,2)``: walls the robots'
+    lasers saw that the fused segment map does not hold (short or seldom seen ones), for an
+    occupancy grid. ``map_version`` is the fused map's version whose placements it used;
+    ``tolerance_m`` how far its simplification may move a boundary. ``session`` as in
+    :class:`FusedMap`."""
+
+    server: str
+    session: str
+    version: int
+    map_version: int
+    stamp_s: float
+    tolerance_m: float
+    ring_offsets: np.ndarray
+    ring_hole: np.ndarray
+    vertices: np.ndarray
+    walls: np.ndarray
+
+    def __post_init__(self) -> None:
+        check_id("server", self.server)
+        if self.session != "":
+            check_id("session", self.session)
+        check_int("version", self.version)
+        check_int("map_version", self.map_version)
+        check_float("stamp_s", self.stamp_s, lo=0.0)
+        check_float("tolerance_m", self.tolerance_m, lo=0.0, hi=100.0)
+        v = check_array("vertices", self.vertices, (None, 2), lo=-MAX_COORD_M, hi=MAX_COORD_M)
+        if len(v) > MAX_VERTICES:
+            raise WireFormatError(f"vertices: {len(v)} vertices, at most {MAX_VERTICES}")
+        off = _rings("ring_offsets", self.ring_offsets, len(v))
+        hole = check_array("ring_hole", self.ring_hole, (len(off) - 1,), "i", 0, 1)
+        if len(hole) and hole[0] != 0:
+            raise WireFormatError("ring_hole: the first ring must be an outer ring")
+        walls = check_array("walls", self.walls, (None, 2, 2), lo=-MAX_COORD_M, hi=MAX_COORD_M)
+        if len(walls) > MAX_MAP_ELEMENTS:
+            raise WireFormatError(f"walls: {len(walls)} segments, at most {MAX_MAP_ELEMENTS}")
+        _freeze(self, ring_offsets=off, ring_hole=hole, vertices=v, walls=walls)
+
+    def polygons(self) -> list[tuple[np.ndarray, list[np.ndarray]]]:
+        """``(outer (n,2), [hole (m,2), ...])`` of every polygon."""
+        out: list[tuple[np.ndarray, list[np.ndarray]]] = []
+        o = self.ring_offsets
+        for i in range(len(o) - 1):
+            ring = self.vertices[o[i] : o[i + 1]]
+            if self.ring_hole[i]:
+                out[-1][1].append(ring)
+            else:
+                out.append((ring, []))
+        return out
+
+
+Message = RobotMap | PoseUpdate | FusedMap | FreeSpace | FusedFree

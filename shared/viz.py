@@ -165,3 +165,51 @@ def save_geojson(path: str | Path, collection: dict) -> None:
 
 def _xml(s: str) -> str:
     return s.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+
+
+# -- occupancy grids for navigation stacks ----------------------------------------------------
+
+# Pixel values of a trinary map (negate 0: the darker, the more occupied): what ROS map_saver writes.
+NAV2_OCCUPIED_PX, NAV2_FREE_PX, NAV2_UNKNOWN_PX = 0, 254, 205
+NAV2_OCCUPIED_THRESH = 0.65
+NAV2_FREE_THRESH = 0.196  # unknown's 205 reads as 1 - 205/255 = 0.19608: not below this, so unknown
+
+
+def nav2_image(grid) -> np.ndarray:
+    """A :class:`shared.occupancy.Grid` as the 8-bit image of a trinary nav2 map (row 0 on top)."""
+    from shared.occupancy import FREE, OCCUPIED
+
+    img = np.full(grid.cells.shape, NAV2_UNKNOWN_PX, np.uint8)
+    img[grid.cells == FREE] = NAV2_FREE_PX
+    img[grid.cells == OCCUPIED] = NAV2_OCCUPIED_PX
+    return img[::-1]
+
+
+def save_nav2(yaml_path: str | Path, grid) -> tuple[Path, Path]:
+    """``grid`` as the map pair ROS ``map_server`` defined and nav2's reads: ``<stem>.pgm`` (binary
+    P5, 8 bit) and ``yaml_path`` (``image``, ``mode: trinary``, ``resolution``, ``origin`` — the
+    lower-left pixel's corner, ``[x, y, yaw]`` — ``negate``, ``occupied_thresh``, ``free_thresh``).
+    Both are written beside their targets and renamed over them."""
+    import os
+
+    yaml_path = Path(yaml_path)
+    if yaml_path.suffix not in (".yaml", ".yml"):
+        raise ValueError(f"{yaml_path}: a nav2 map is named *.yaml (its image goes beside it as *.pgm)")
+    pgm = yaml_path.with_suffix(".pgm")
+    img = nav2_image(grid)
+    h, w = img.shape
+    header = f"P5\n# fleet-slam occupancy grid, {grid.resolution_m} m per pixel\n{w} {h}\n255\n".encode()
+    yaml = (
+        f"image: {pgm.name}\n"
+        f"mode: trinary\n"
+        f"resolution: {grid.resolution_m:.6g}\n"
+        f"origin: [{grid.origin_x:.6f}, {grid.origin_y:.6f}, 0.0]\n"
+        f"negate: 0\n"
+        f"occupied_thresh: {NAV2_OCCUPIED_THRESH}\n"
+        f"free_thresh: {NAV2_FREE_THRESH}\n"
+    )
+    for target, data in ((pgm, header + img.tobytes()), (yaml_path, yaml.encode())):
+        tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+        tmp.write_bytes(data)
+        os.replace(tmp, target)
+    return pgm, yaml_path

@@ -48,6 +48,19 @@ def seen_wall_points(
     return pts[hit]
 
 
+def true_beams(
+    world: World, truth: np.ndarray, lidar: LidarConfig, every: int = SEEN_EVERY
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The true beams from every ``every``-th true pose: origins ``(N,2)``, ends ``(N,2)`` and
+    whether each hit a wall ``(N,)`` (what the sensors covered, for scoring a free-space grid)."""
+    poses = truth[::every]
+    dirs = poses[:, 2:3] + beam_angles(lidar)[None, :]
+    ranges = cast_rays(poses[:, :2], dirs, world.walls, lidar.range_max_m)
+    ends = np.stack([poses[:, :1] + ranges * np.cos(dirs), poses[:, 1:2] + ranges * np.sin(dirs)], -1)
+    origins = np.broadcast_to(poses[:, None, :2], ends.shape)
+    return origins.reshape(-1, 2), ends.reshape(-1, 2), (ranges < lidar.range_max_m).ravel()
+
+
 def revisit_errors(
     truth: np.ndarray,
     stamps_s: np.ndarray,

@@ -19,7 +19,8 @@ KEYS = Keys()
 
 
 class PullBus:
-    """Answers a map query with the robot's chunks; records the queries."""
+    """Answers a map query with the robot's chunks (and a free-space query with nothing);
+    records the queries."""
 
     def __init__(self, chunks):
         self.chunks, self.queries, self.puts = chunks, [], []
@@ -31,6 +32,8 @@ class PullBus:
     def get(self, key_expr, timeout_s=2.0):
         with self.lock:
             self.queries.append(key_expr)
+        if key_expr != KEYS.robot_map("robot1"):
+            return []
         return [(KEYS.robot_map("robot1"), codec.encode(c)) for c in self.chunks]
 
 
@@ -50,13 +53,13 @@ def test_a_robot_back_online_has_its_map_pulled_and_a_known_map_is_not_a_rejecti
     server.on_presence(KEYS.robot_alive("robot1"), False)
     server.on_presence(KEYS.robot_alive("robot1"), True)
     assert server.tick() is None  # nothing yet: the pull runs on its own thread
-    assert wait_for(lambda: bus.queries == [KEYS.robot_map("robot1")])
+    assert wait_for(lambda: bus.queries == [KEYS.robot_map("robot1"), KEYS.robot_free("robot1")])
     assert wait_for(lambda: server.received["map_chunk"] == 1)
     fused = server.tick()
     assert fused is not None and len(fused.seg) == 4 and fused.robot("robot1").online
     server.on_presence(KEYS.robot_alive("robot1"), True)  # again, e.g. another router restart
     server.tick()
-    assert wait_for(lambda: len(bus.queries) == 2)
+    assert wait_for(lambda: len(bus.queries) == 4)
     time.sleep(0.2)  # let the pull thread finish
     assert server.received["map_chunk"] == 1 and not server.rejected  # the same map: skipped
     bus.chunks = room_chunks(seq=2)  # a newer map the server missed

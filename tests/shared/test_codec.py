@@ -16,6 +16,8 @@ from shared.codec import Assembler, ChunkRejected, SeqFilter, decode, encode
 from shared.messages import (
     MAX_CHUNK_ELEMENTS,
     SCHEMA_VERSION,
+    FreeSpace,
+    FusedFree,
     FusedMap,
     PoseUpdate,
     RobotMap,
@@ -83,10 +85,23 @@ def pose_update(seq: int = 3, session: str = "s1", robot: str = "r1") -> PoseUpd
     return PoseUpdate(robot, session, seq, 4.5, np.array([1.5, -2.25, 3.0]))
 
 
+def free_space_and_fused_free() -> list:
+    """A robot's free space (two views, three rings) and a fused one (a polygon with a hole)."""
+    sq = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]])
+    free = FreeSpace(
+        "r1", "s1", 2, 4.0, np.array([[1.0, 2.0, 0.5], [3.0, 1.0, -1.0]]), np.array([0, 4, 8, 12]),
+        np.array([0, 1, 1]), np.concatenate([sq, sq + 0.5, sq * 0.5]), np.array([1, 1, 0, 0] * 3, bool),
+    )  # fmt: skip
+    fused = FusedFree("srv", "abc123", 5, 9, 3.0, 0.02, np.array([0, 4, 8]), np.array([0, 1]),
+                      np.concatenate([sq * 3, sq + 1.0]), np.array([[[0.0, 0.0], [1.0, 0.0]]]))  # fmt: skip
+    return [free, fused]
+
+
 def samples() -> list[bytes]:
     """One valid payload of each kind (small), for mutation."""
     rng = np.random.default_rng(7)
-    return [encode(pose_update()), encode(robot_map(rng, n=6)), encode(fused_map(rng, m=5))]
+    return [encode(pose_update()), encode(robot_map(rng, n=6)), encode(fused_map(rng, m=5)),
+            *map(encode, free_space_and_fused_free())]  # fmt: skip
 
 
 def unpacked(data: bytes) -> dict:
@@ -496,8 +511,8 @@ def test_refuses_a_top_level_that_is_not_a_map(obj, what):
 @pytest.mark.parametrize(
     "schema, match",
     [
-        (4, "schema: unknown schema version 4, this build speaks 3 \\(and reads 2, 3\\)"),
-        (1, "schema: unknown schema version 1, this build speaks 3"),
+        (5, "schema: unknown schema version 5, this build speaks 4 \\(and reads 2, 3, 4\\)"),
+        (1, "schema: unknown schema version 1, this build speaks 4"),
         (0, "schema: unknown schema version 0"),
         ("1", "schema: unknown schema version '1'"),
         (True, "schema: unknown schema version True"),
@@ -536,7 +551,7 @@ def test_refuses_unknown_kind_and_unexpected_kind():
         decode(pose, expect=RobotStatus)
 
 
-@pytest.mark.parametrize("i", [0, 1, 2])
+@pytest.mark.parametrize("i", [0, 1, 2, 3, 4])
 def test_refuses_missing_and_unknown_fields(i):
     data = samples()[i]
     kind = unpacked(data)["kind"]

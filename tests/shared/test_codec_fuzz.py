@@ -24,7 +24,16 @@ from hypothesis import strategies as st
 
 from shared import codec
 from shared.keys import Keys
-from shared.messages import ID_PATTERN, MAX_CHUNK_ELEMENTS, FusedMap, PoseUpdate, RobotMap, WireFormatError
+from shared.messages import (
+    ID_PATTERN,
+    MAX_CHUNK_ELEMENTS,
+    FreeSpace,
+    FusedFree,
+    FusedMap,
+    PoseUpdate,
+    RobotMap,
+    WireFormatError,
+)
 from tests.shared.test_codec import robot_map, robot_map_fields, samples, unpacked
 
 SAMPLES = samples()
@@ -55,7 +64,7 @@ def check(data: object) -> None:
         event("refused: " + str(e).split(":")[0])
         return
     event("decoded")
-    assert isinstance(msg, RobotMap | PoseUpdate | FusedMap)
+    assert isinstance(msg, RobotMap | PoseUpdate | FusedMap | FreeSpace | FusedFree)
     assert isinstance(codec.decode(codec.encode(msg)), type(msg))
 
 

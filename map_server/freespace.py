@@ -1,0 +1,127 @@
+"""The fleet's free space: every placed robot's views united in the global frame (pure).
+
+Each robot publishes the space its laser saw free as polygons per view, anchored at the view's
+pose in its own map frame, each edge marked as a wall seen or not (:class:`shared.messages.FreeSpace`,
+``robot_agent/freespace.py``). The server keeps the latest of each (robot, session) whose map it
+keeps — a robot's current session and its retired pieces — and places them where their maps are
+placed. The union in the global frame, shrunk by ``wall_margin_m`` (free space keeps off every
+wall seen, measured across the wall: the wall's cell stays a wall's even where the maps are a few
+centimetres apart) and simplified by ``tolerance_m``, is a :class:`shared.messages.FusedFree`;
+with it the wall edges the fused segment map does not hold within ``explained_m`` (a door jamb, a
+wall seen once through a door), none inside the free space (someone walking by). A robot not placed
+adds nothing (its frame is nowhere yet). Each (robot, session)'s own union is cached by its
+``seq``, so a new placement costs one transform and one union across robots, not every view again.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from shapely import affinity
+
+from shared.messages import FreeSpace, FusedFree
+from shared.occupancy import to_rings, unexplained, union, view_rings, view_walls
+
+
+@dataclass(frozen=True)
+class FreeFusionConfig:
+    tolerance_m: float = 0.02  # the fused polygons' simplification (a boundary moves at most this)
+    wall_margin_m: float = 0.08  # free space keeps this far from every wall seen (> both tolerances)
+    explained_m: float = 0.10  # a wall edge this close to a fused segment is the segment's
+    min_gap_s: float = 2.0  # server time between fusions of free space (a union is not free)
+    moved_m: float = 0.01  # a placement that moved this much (or moved_rad) re-fuses
+    moved_rad: float = 0.001
+
+
+Placements = dict[tuple[str, str], np.ndarray]  # (robot, session) -> its map frame in the global frame
+
+
+class FreeSpaces:
+    def __init__(self, cfg: FreeFusionConfig = FreeFusionConfig()):
+        self.cfg = cfg
+        self.latest: dict[tuple[str, str], FreeSpace] = {}
+        self._own_cache: dict[tuple[str, str], tuple[int, object, np.ndarray]] = {}  # seq, union, walls
+        self._fused_with: tuple[frozenset, dict] | None = None  # what the last fusion used
+        self.version = 0
+        self.changed = False  # a new message since the last fusion
+        self.fused: FusedFree | None = None
+        self._last_fuse_s = -np.inf
+
+    def put(self, m: FreeSpace) -> bool:
+        """Keep ``m`` if it is newer than what its (robot, session) has; returns whether kept."""
+        key = (m.robot, m.session)
+        old = self.latest.get(key)
+        if old is not None and m.seq <= old.seq:
+            return False
+        self.latest[key] = m
+        self.changed = True
+        return True
+
+    def keep_only(self, keys: set[tuple[str, str]]) -> None:
+        """Forget the free space of sessions the fleet no longer keeps (bounded like the maps)."""
+        for key in [k for k in self.latest if k not in keys]:
+            del self.latest[key]
+            self._own_cache.pop(key, None)
+            self.changed = True
+
+    def _own(self, key: tuple[str, str]) -> tuple[object, np.ndarray]:
+        """A session's views united and its wall edges ``(E,2,2)``, in its map frame."""
+        m = self.latest[key]
+        cached = self._own_cache.get(key)
+        if cached is None or cached[0] != m.seq:
+            cached = (m.seq, union(view_rings(m)), view_walls(m))
+            self._own_cache[key] = cached
+        return cached[1], cached[2]
+
+    def due(self, placements: Placements, now_s: float) -> bool:
+        """Whether a fusion now would differ from the last one: new free space, or a placement
+        added, dropped or moved; and the gap since the last has passed."""
+        if now_s - self._last_fuse_s < self.cfg.min_gap_s:
+            return False
+        if self.changed or self._fused_with is None:
+            return bool(self.latest) or self._fused_with is not None
+        keys, before = self._fused_with
+        used = frozenset(k for k in placements if k in self.latest)
+        if used != keys:
+            return True
+        for k in used:
+            d = np.asarray(placements[k]) - before[k]
+            turn = abs((d[2] + np.pi) % (2 * np.pi) - np.pi)
+            if np.hypot(d[0], d[1]) >= self.cfg.moved_m or turn >= self.cfg.moved_rad:
+                return True
+        return False
+
+    def fuse(
+        self, placements: Placements, server: str, map_version: int, now_s: float,
+        segments: np.ndarray | None = None,
+    ) -> FusedFree:  # fmt: skip
+        """The placed sessions' free space in the global frame, kept off the walls, and the walls
+        seen that ``segments (M,2,2)`` (the fused map) lacks (a new version)."""
+        parts, walls = [], []
+        used = {}
+        for key in sorted(k for k in placements if k in self.latest):
+            t = np.asarray(placements[key], float)
+            used[key] = t.copy()
+            own, own_walls = self._own(key)
+            if own.is_empty:
+                continue
+            c, s = np.cos(t[2]), np.sin(t[2])
+            parts.append(affinity.affine_transform(own, [c, -s, s, c, t[0], t[1]]))
+            walls.append(np.einsum("ij,...j->...i", [[c, -s], [s, c]], own_walls) + t[:2])
+        seen = shapely.union_all(parts) if parts else shapely.MultiPolygon()
+        free = seen.buffer(-self.cfg.wall_margin_m, join_style="mitre") if not seen.is_empty else seen
+        offsets, hole, vertices, tol = to_rings(free, self.cfg.tolerance_m)
+        known = free
+        if segments is not None and len(segments):
+            lines = shapely.multilinestrings(np.asarray(segments, float).reshape(-1, 2, 2))
+            known = shapely.union(free, lines.buffer(self.cfg.explained_m, cap_style="flat"))
+        extra = unexplained(np.concatenate(walls) if walls else np.zeros((0, 2, 2)), known)
+        self.version += 1
+        self.fused = FusedFree(server, "", self.version, int(map_version), max(now_s, 0.0), tol, offsets,
+                               hole, vertices, extra)  # fmt: skip
+        self._fused_with = (frozenset(used), used)
+        self.changed = False
+        self._last_fuse_s = now_s
+        return self.fused
