@@ -43,7 +43,7 @@ class AgentConfig:
     map_period_s: float = 1.0  # source time between map publications (only when the map changed)
     speed: float = 1.0  # source seconds per wall second; 0 = as fast as possible
     publish: PublishConfig = field(default_factory=PublishConfig)
-    free_period_s: float = 10.0  # source time between free-space publications (only when changed)
+    free_period_s: float = 15.0  # source time between free-space publications (only when changed)
     free: FreeSpaceConfig = field(default_factory=FreeSpaceConfig)
 
 

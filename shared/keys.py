@@ -4,7 +4,7 @@
   with its latest map so a restarted server can pull it);
 - ``robots/<id>/pose``  a robot's pose, often;
 - ``robots/<id>/alive`` liveliness token (presence);
-- ``robots/<id>/free``  the space a robot's laser saw free, per view (put on change, every 10 s at
+- ``robots/<id>/free``  the space a robot's laser saw free, per view (put on change, every 15 s at
   most; queryable like the map);
 - ``map/fused``         the fused map (put on change; the server's queryable answers with the latest);
 - ``map/free``          the fleet's free space in the global frame (put on change; queryable).

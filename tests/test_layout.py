@@ -38,13 +38,16 @@ IO_MODULES = {
 }
 # Read and found pure: shared.chunks (splits and reassembles messages in memory; its threading.Lock
 # only guards the Assembler's state — no bytes, no file, no clock), shared.messages, shared.keys,
-# shared.geometry, shared.matching.
+# shared.geometry, shared.matching, shared.occupancy.
 PURE = [
     *sorted(n for n in GRAPH.modules if n.startswith("robot_agent.slam.")),
     "robot_agent.explore",
+    "robot_agent.freespace",
+    "shared.occupancy",
     "map_server.alignment",
     "map_server.candidates",
     "map_server.fleet",
+    "map_server.freespace",
     "map_server.fusion",
     "map_server.registration",
     "map_server.state",

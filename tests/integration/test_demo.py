@@ -102,12 +102,19 @@ def _browse(url: str, endpoint: str, out: Path) -> dict:
     return dict(first=first, later=later, rows=rows, text=text, delays_ms=delays)
 
 
-def _export(endpoint: str, out: Path) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "fleet_slam.cli", "export", "--format", "nav2",
-         str(out / "export" / "live.yaml"), "--connect", endpoint],
-        capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
+def _export(endpoint: str, out: Path) -> list[subprocess.CompletedProcess]:
+    """``fleet-slam export`` and ``fleet-slam subscribe --once --save *.yaml`` against the running fleet."""
+    cli = [sys.executable, "-m", "fleet_slam.cli"]
+    return [
+        subprocess.run(
+            [*cli, "export", "--format", "nav2", str(out / "export" / "live.yaml"), "--connect", endpoint],
+            capture_output=True, text=True, timeout=60,
+        ),
+        subprocess.run(
+            [*cli, "subscribe", "--once", "--save", str(out / "export" / "sub.yaml"), "--connect", endpoint],
+            capture_output=True, text=True, timeout=60,
+        ),
+    ]  # fmt: skip
 
 
 def test_outputs_of_the_design(demo):
@@ -262,9 +269,9 @@ def test_the_live_view_shows_the_fleet_and_its_changes(demo):
           f"{delays.max():.0f} ms at most")  # reported, not asserted: wall-clock times
 
 
-def test_export_writes_the_running_servers_grid(demo):
-    *_, exported = demo
-    assert exported is not None and exported.returncode == 0, exported.stdout + exported.stderr
-    out = demo[0]
-    _, cells, _ = _read_nav2(out / "export" / "live.yaml")
-    assert (cells == 100).sum() > 500 and (cells == 0).sum() > 5000 and (cells == -1).sum() > 0
+def test_export_and_subscribe_write_the_running_servers_grid(demo):
+    out, *_, exported = demo
+    for run, name in zip(exported, ("live.yaml", "sub.yaml"), strict=True):
+        assert run.returncode == 0, run.stdout + run.stderr
+        _, cells, _ = _read_nav2(out / "export" / name)
+        assert (cells == 100).sum() > 500 and (cells == 0).sum() > 5000 and (cells == -1).sum() > 0, name
