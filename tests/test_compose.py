@@ -64,14 +64,15 @@ def test_a_broken_compose_file_is_rejected(tmp_path):
     assert run.returncode != 0
 
 
-def test_services_router_server_and_three_agents(config):
+def test_services_router_server_view_and_three_agents(config):
     services = config["services"]
-    assert set(services) == {"router", "server", "robot1", "robot2", "robot3"}
+    assert set(services) == {"router", "server", "view", "robot1", "robot2", "robot3"}
     router = services["router"]
     assert router["image"].startswith("eclipse/zenoh:")
     assert "--no-multicast-scouting" in router["command"]
     assert router["ports"] and all(p["host_ip"] == "127.0.0.1" for p in router["ports"])  # host: loopback
-    for name in ("server", "robot1", "robot2", "robot3"):
+    assert [(p["host_ip"], p["published"]) for p in services["view"]["ports"]] == [("127.0.0.1", "8090")]
+    for name in ("server", "view", "robot1", "robot2", "robot3"):
         s = services[name]
         assert "build" in s and s.get("init") is True
         cmd = s["command"]
@@ -80,12 +81,12 @@ def test_services_router_server_and_three_agents(config):
 
 
 def test_service_commands_parse_with_the_cli(config):
-    commands = {"map_server": "server", "robot_agent": "agent"}
+    commands = {"map_server": ["server"], "robot_agent": ["agent"], "fleet_slam.cli": []}
     for name, s in config["services"].items():
         if name == "router":
             continue
         module, *args = s["command"][2:]
-        parsed = build_parser().parse_args([commands[module], *args])
+        parsed = build_parser().parse_args([*commands[module], *args])
         assert parsed.connect == ["tcp/router:7447"], shlex.join(s["command"])
         if module == "robot_agent":
             assert parsed.robot == name and parsed.world == "office" and parsed.prior
@@ -104,7 +105,7 @@ def zenoh_file(path: Path, key: str):
 
 def test_the_profiles_replace_each_other(config, secure):
     # the plain router (anyone may write) must not run beside the secure one
-    assert set(config["services"]) == {"router", "server", "robot1", "robot2", "robot3"}
+    assert set(config["services"]) == {"router", "server", "view", "robot1", "robot2", "robot3"}
     assert set(secure["services"]) == {"secure-router", *MEMBERS}
 
 
