@@ -49,15 +49,20 @@ class FreeSpaces:
         self.fused: FusedFree | None = None
         self._last_fuse_s = -np.inf
 
-    def put(self, m: FreeSpace) -> bool:
-        """Keep ``m`` if it is newer than what its (robot, session) has; returns whether kept."""
+    def put(self, m: FreeSpace) -> str:
+        """Take ``m``: ``"kept"`` (newer than what its (robot, session) has: the whole of it, or
+        the views it adds put together with the previous message's), ``"stale"`` (not newer), or
+        ``"gap"`` (it adds to a message not received: the whole must be asked for)."""
         key = (m.robot, m.session)
         old = self.latest.get(key)
         if old is not None and m.seq <= old.seq:
-            return False
-        self.latest[key] = m
+            return "stale"
+        whole = m if m.rings_from == 0 else (None if old is None else m.merged_onto(old))
+        if whole is None:
+            return "gap"
+        self.latest[key] = whole
         self.changed = True
-        return True
+        return "kept"
 
     def keep_only(self, keys: set[tuple[str, str]]) -> None:
         """Forget the free space of sessions the fleet no longer keeps (bounded like the maps)."""

@@ -269,8 +269,9 @@ class MapServer:
         if back:
             self._pull_maps(back)
         fused = self.fleet.fuse(now)
-        for m in frees:
-            self.free.put(m)
+        gaps = sorted({m.robot for m in frees if self.free.put(m) == "gap"})
+        if gaps:  # a message missed: the agents' queryables answer with the whole free space
+            self._pull_maps(gaps, maps=False)
         self.free.keep_only(self._free_sessions())
         if fused is None:
             self._tick_free(now)
@@ -323,8 +324,9 @@ class MapServer:
             self._latest_free = [payload]
         self.bus.put(self.keys.fused_free, payload, reliable=True)
 
-    def _pull_maps(self, robots: list[str]) -> None:
-        """Pull ``robots``' latest maps (their queryables) on a thread of its own, queued like puts.
+    def _pull_maps(self, robots: list[str], maps: bool = True) -> None:
+        """Pull ``robots``' latest maps and free space (their queryables; ``maps=False``: the free
+        space only) on a thread of its own, queued like puts.
 
         A robot that comes (back) online may have put its last map while the server could not
         hear it — a router restart drops every put in flight and shows every token leave and come
@@ -335,7 +337,7 @@ class MapServer:
                 for robot in robots:
                     for key, payload in self.bus.get(
                         self.keys.robot_map(robot), timeout_s=self.cfg.pull_timeout_s
-                    ):
+                    ) if maps else ():
                         self.on_map(key, payload, pulled=True)
                     for key, payload in self.bus.get(
                         self.keys.robot_free(robot), timeout_s=self.cfg.pull_timeout_s

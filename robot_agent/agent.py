@@ -88,6 +88,8 @@ class AgentCore:
         self.ended_paths: list[tuple[np.ndarray, np.ndarray]] = []  # their stamps (S,), poses (S,3)
         self.free = FreeSpaceViews(cfg.free)  # the space the laser saw free, per view
         self.free_seq = 0
+        self.free_whole: FreeSpace | None = None  # the whole free space as of the last message
+        self._free_sent = 0  # views whose rings went out (a message carries only newer views' rings)
         self._next_free_s = -np.inf
         self._free_fingerprint: bytes | None = None
         self._in_doubt = False
@@ -123,6 +125,7 @@ class AgentCore:
         if doubt is not None:
             if not self._in_doubt:
                 self.free.drop_from(doubt.scan)
+                self._free_sent = min(self._free_sent, len(self.free))  # (a later view takes its place)
                 self._in_doubt = True
             return
         self._in_doubt = False
@@ -154,6 +157,7 @@ class AgentCore:
         self._next_map_s = -np.inf
         self.free = FreeSpaceViews(self.cfg.free)  # (the ended session's went out with its map)
         self.free_seq, self._free_fingerprint, self._next_free_s = 0, None, -np.inf
+        self.free_whole, self._free_sent = None, 0
         if self.corrector is not None:
             self.corrector.close()
             self.corrector = None if self.new_corrector is None else self.new_corrector(self.slam)
@@ -220,7 +224,8 @@ class AgentCore:
         """The free space when due (``free_period_s``) and changed (a new view, or a correction
         that moved one by a centimetre or a milliradian), or ``force``d; each view anchored at its
         scan's pose on the path as published (the back end's latest correction, or the rebuilt
-        path)."""
+        path). Every view's pose, but only the rings of views not sent before (``rings_from``);
+        :attr:`free_whole` is the whole of it, for the queryable."""
         if self.estimate is None or not len(self.free):
             return None
         if not force and (self._last_stamp_s < self._next_free_s or self.slam.doubt is not None):
@@ -237,8 +242,18 @@ class AgentCore:
             return None
         self._free_fingerprint = fp
         view_pose, offsets, ring_view, vertices, wall = self.free.arrays(poses)
-        msg = FreeSpace(self.robot, self.session, self.free_seq, self._last_stamp_s, view_pose, offsets,
-                        ring_view, vertices, wall)  # fmt: skip
+        whole = FreeSpace(self.robot, self.session, self.free_seq, self._last_stamp_s, view_pose, offsets,
+                          ring_view, vertices, wall)  # fmt: skip
+        new = np.nonzero(ring_view >= self._free_sent)[0]
+        take = np.concatenate([np.arange(offsets[i], offsets[i + 1]) for i in new]) if len(new) else []
+        take = np.asarray(take, dtype=int)
+        lengths = np.diff(offsets)[new]
+        new_offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+        msg = FreeSpace(
+            self.robot, self.session, self.free_seq, self._last_stamp_s, view_pose, new_offsets,
+            ring_view[new], vertices[take], wall[take], rings_from=self._free_sent,
+        )  # fmt: skip
+        self.free_whole, self._free_sent = whole, len(self.free)
         self.free_seq += 1
         return msg
 
@@ -284,10 +299,10 @@ class Publisher:
             self._put("map", self.keys.robot_map(self.core.robot), payloads, reliable=True)
         free = self.core.free_message(force=force_map)
         if free is not None:
-            payload = codec.encode(free)
+            whole = codec.encode(self.core.free_whole)  # what a query gets: the whole, same seq
             with self._lock:
-                self._latest_free = [payload]
-            self._put("free", self.keys.robot_free(self.core.robot), [payload], reliable=True)
+                self._latest_free = [whole]
+            self._put("free", self.keys.robot_free(self.core.robot), [codec.encode(free)], reliable=True)
 
     def _put(self, what: str, key: str, payloads: list[bytes], reliable: bool) -> None:
         for p in payloads:

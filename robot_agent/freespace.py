@@ -92,29 +92,41 @@ def scan_region(
     # the walls seen: neighbouring hits without a depth step between them
     ends = pts[0::2]
     same = hit[:-1] & hit[1:] & (np.abs(np.diff(reach)) <= cfg.step_m + cfg.step_share * reach[:-1])
-    walls = None
-    if same.any():
-        walls = shapely.multilinestrings(np.stack([ends[:-1][same], ends[1:][same]], axis=1))
     out = []
     for p in polygons(poly):
         if p.area <= cfg.tolerance_m**2:
             continue
         v = np.asarray(p.exterior.coords)[:-1]
-        out.append((v, _wall_edges(v, walls, cfg.tolerance_m + 0.02)))
+        out.append((v, _wall_edges(v, ends, same, a, (ox, oy, oth), cfg.tolerance_m + 0.02)))
     return out
 
 
-def _wall_edges(ring: np.ndarray, walls, within_m: float, step_m: float = 0.05) -> np.ndarray:
-    """Per edge of ``ring`` (from vertex i to the next): all of it within ``within_m`` of ``walls``."""
-    if walls is None:
+def _wall_edges(ring: np.ndarray, ends: np.ndarray, same: np.ndarray, angles: np.ndarray, laser,
+                within_m: float, step_m: float = 0.05) -> np.ndarray:  # fmt: skip
+    """Per edge of ``ring`` (from vertex i to the next): every point of it within ``within_m`` of
+    a wall seen — the segment between hits ``ends[k]``, ``ends[k+1]`` where ``same[k]``. The fan
+    is star-shaped from the laser: a point's bearing tells which beams' segment it may lie on."""
+    if not same.any():
         return np.zeros(len(ring), bool)
     nxt = np.roll(ring, -1, axis=0)
     n = np.maximum(np.ceil(np.linalg.norm(nxt - ring, axis=1) / step_m), 1).astype(int)
+    starts = np.concatenate([[0], np.cumsum(n + 1)[:-1]])
     owner = np.repeat(np.arange(len(ring)), n + 1)
-    t = (np.arange(len(owner)) - np.repeat(np.concatenate([[0], np.cumsum(n + 1)[:-1]]), n + 1)) / n[owner]
+    t = (np.arange(len(owner)) - np.repeat(starts, n + 1)) / n[owner]
     pts = ring[owner] + t[:, None] * (nxt[owner] - ring[owner])
-    near = shapely.distance(walls, shapely.points(pts)) <= within_m
-    return np.logical_and.reduceat(near, np.concatenate([[0], np.cumsum(n + 1)[:-1]]))
+    ox, oy, oth = laser
+    bearing = np.arctan2(pts[:, 1] - oy, pts[:, 0] - ox) - oth
+    bearing = angles[0] + (bearing - angles[0]) % (2 * np.pi)
+    k = np.searchsorted(angles, bearing) - 1
+    best = np.full(len(pts), np.inf)
+    for dk in (-1, 0, 1):
+        kk = np.clip(k + dk, 0, len(ends) - 2)
+        p0, p1 = ends[kk], ends[kk + 1]
+        d = p1 - p0
+        u = np.clip(np.sum((pts - p0) * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-12), 0.0, 1.0)
+        dist = np.linalg.norm(pts - (p0 + u[:, None] * d), axis=1)
+        best = np.where(same[kk], np.minimum(best, dist), best)
+    return np.logical_and.reduceat(best <= within_m, starts)
 
 
 class FreeSpaceViews:

@@ -89,7 +89,7 @@ KEYS = {
         "seg", "support", "prov_offsets", "prov_robot", "extra", "session",
     ),
     "free_space": (
-        "robot", "session", "seq", "stamp_s", "n_views", "n_rings", "n_vertices", "view_pose",
+        "robot", "session", "seq", "stamp_s", "n_views", "n_rings", "n_vertices", "rings_from", "view_pose",
         "ring_offsets", "ring_view", "vertices_cm", "wall_bits",
     ),
     "fused_free": (
@@ -208,7 +208,7 @@ def _encode_free_space(m: FreeSpace) -> dict:
     return {
         "robot": m.robot, "session": m.session, "seq": int(m.seq), "stamp_s": float(m.stamp_s),
         "n_views": len(m.view_pose), "n_rings": len(m.ring_view), "n_vertices": len(m.vertices),
-        **_arrays(m, "view_pose", "ring_offsets", "ring_view"),
+        "rings_from": int(m.rings_from), **_arrays(m, "view_pose", "ring_offsets", "ring_view"),
         "vertices_cm": _wire("vertices_cm", np.rint(m.vertices * 100.0)),
         "wall_bits": _wire("wall_bits", np.packbits(m.wall.astype(np.uint8))),
     }  # fmt: skip
@@ -423,6 +423,7 @@ def _decode_free_space(r: _Reader) -> FreeSpace:
         ring_view=r.array("ring_view", (n_rings,)),
         vertices=r.array("vertices_cm", (p, 2)).astype(np.float64) / 100.0,
         wall=np.unpackbits(r.array("wall_bits", ((p + 7) // 8,)), count=p),
+        rings_from=r.integer("rings_from"),
     )  # fmt: skip
 
 

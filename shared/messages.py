@@ -369,6 +369,12 @@ class FreeSpace:
     without holes: free space seen from one place, up to the hits. ``wall (P,)`` is 1 where the
     edge from that vertex to the next of its ring runs along hits — a wall seen — and 0 where it
     runs along a beam or the no-return reach (the wire packs it into bits).
+
+    ``rings_from``: the rings are those of views ``rings_from`` on (every view's pose is always
+    there). 0: the whole free space. Above 0: the views before it are as the message of ``seq - 1``
+    of the same session had them — a view's polygon never changes, so an agent sends each once and
+    then only the poses (:meth:`merged_onto` puts the two together; a receiver that missed one asks
+    the agent's queryable, which answers with the whole).
     """
 
     robot: str
@@ -380,6 +386,7 @@ class FreeSpace:
     ring_view: np.ndarray
     vertices: np.ndarray
     wall: np.ndarray
+    rings_from: int = 0
 
     def __post_init__(self) -> None:
         check_id("robot", self.robot)
@@ -393,11 +400,34 @@ class FreeSpace:
         if len(v) > MAX_VERTICES:
             raise WireFormatError(f"vertices: {len(v)} vertices, at most {MAX_VERTICES}")
         off = _rings("ring_offsets", self.ring_offsets, len(v))
-        view = check_array("ring_view", self.ring_view, (len(off) - 1,), "i", 0, max(len(poses) - 1, 0))
+        first = check_int("rings_from", self.rings_from, 0, len(poses))
+        view = check_array("ring_view", self.ring_view, (len(off) - 1,), "i", first, max(len(poses) - 1, 0))
         if len(view) and not len(poses):
             raise WireFormatError("ring_view: rings but no views")
         wall = check_array("wall", np.asarray(self.wall).astype(np.int64), (len(v),), "i", 0, 1)
         _freeze(self, view_pose=poses, ring_offsets=off, ring_view=view, vertices=v, wall=wall.astype(bool))
+
+    def merged_onto(self, before: FreeSpace) -> FreeSpace | None:
+        """The whole free space this message and ``before`` (the same session's ``seq - 1``, or a
+        whole one of that seq) make: ``before``'s rings of the views before ``rings_from``, this
+        one's of the rest, this one's poses. ``None`` if ``before`` is not that message."""
+        if self.rings_from == 0:
+            return self
+        if (before.robot, before.session, before.seq) != (self.robot, self.session, self.seq - 1):
+            return None
+        if before.rings_from != 0 or len(before.view_pose) < self.rings_from:
+            return None
+        o = before.ring_offsets
+        keep = np.nonzero(before.ring_view < self.rings_from)[0]
+        lengths = np.concatenate([np.diff(o)[keep], np.diff(self.ring_offsets)])
+        take = np.concatenate([np.arange(o[i], o[i + 1]) for i in keep]) if len(keep) else np.zeros(0, int)
+        return FreeSpace(
+            self.robot, self.session, self.seq, self.stamp_s, self.view_pose,
+            np.concatenate([[0], np.cumsum(lengths)]),
+            np.concatenate([before.ring_view[keep], self.ring_view]),
+            np.concatenate([before.vertices[take], self.vertices]),
+            np.concatenate([before.wall[take], self.wall]),
+        )  # fmt: skip
 
     def rings(self) -> list[tuple[int, np.ndarray, np.ndarray]]:
         """``(view, vertices (n,2), wall (n,))`` of every ring, in the view's frame."""

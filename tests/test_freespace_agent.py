@@ -118,14 +118,15 @@ def test_the_agent_sends_its_views_compactly_every_period(office_run):
     assert [f.seq for f in free] == list(range(len(free))) and len(free) >= 5
     assert np.all(np.diff([f.stamp_s for f in free]) >= AgentConfig().free_period_s - 1e-9)
     sizes = [len(codec.encode(f)) for f in free]
-    assert sizes[-1] / len(free[-1].view_pose) < 300  # bytes per view: a few hundred at most
+    whole = core.free_whole
+    assert len(codec.encode(whole)) / len(whole.view_pose) < 300  # bytes per view: a few hundred at most
     assert sum(sizes) <= 0.3 * map_bytes  # beside the map: at most 30 % more (issue 23)
     assert core.free_message() is None  # not due yet
 
 
 def test_the_free_space_sent_lies_in_the_worlds_free_space(office_run):
-    world, core, truth, _, free = office_run
-    last = free[-1]
+    world, core, truth, *_ = office_run
+    last = core.free_whole
     rings = view_rings(last, truth[0])  # the map frame is the start frame
     g = union(rings)
     inside = free_space(world)
@@ -136,3 +137,22 @@ def test_the_free_space_sent_lies_in_the_worlds_free_space(office_run):
     err = np.hypot(*(compose(truth[0], last.view_pose)[:, :2] - truth[core.free.scan][:, :2]).T)
     assert err.max() < 0.1
     assert shapely.is_valid(g) and all(len(v) >= 3 for v in place(rings, np.zeros(3)))
+
+
+def test_each_view_goes_out_once_then_only_its_pose(office_run):
+    """Every message carries every view's pose but only the rings of views not sent before; put
+    together in order they are the whole free space the agent holds."""
+    _, core, _, _, free = office_run
+    assert free[0].rings_from == 0 and all(f.rings_from > 0 for f in free[1:])
+    whole = free[0]
+    for f in free[1:]:
+        assert set(f.ring_view.tolist()) <= set(range(f.rings_from, len(f.view_pose)))
+        whole = f.merged_onto(whole)
+        assert whole is not None and whole.rings_from == 0
+    last = core.free_whole
+    assert whole.seq == last.seq and np.array_equal(whole.ring_view, last.ring_view)
+    np.testing.assert_array_equal(whole.vertices, last.vertices)
+    np.testing.assert_array_equal(whole.wall, last.wall)
+    assert free[-1].merged_onto(free[-3]) is None  # not the one before: refused
+    sizes = [len(codec.encode(f)) for f in free]
+    assert max(sizes[1:]) < len(codec.encode(last)) / 2  # increments are small

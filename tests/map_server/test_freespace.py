@@ -16,6 +16,7 @@ from shared.keys import Keys
 from shared.messages import FreeSpace, FusedFree
 from shared.occupancy import fused_geometry
 from tests.map_server.test_server_faults import PullBus, room_chunks
+from tests.netutil import wait_for
 
 KEYS = Keys()
 SQUARE = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]])
@@ -34,8 +35,8 @@ SIDE = 2.0 - 2 * M  # a 2 m square kept M off its edges
 
 def test_free_space_is_placed_united_and_refused_when_stale():
     fs = FreeSpaces(FreeFusionConfig(min_gap_s=2.0))
-    assert fs.put(views(seq=1)) and not fs.put(views(seq=1)) and not fs.put(views(seq=0))
-    assert fs.put(views("robot2", "s9", 0))
+    assert fs.put(views(seq=1)) == "kept" and fs.put(views(seq=1)) == fs.put(views(seq=0)) == "stale"
+    assert fs.put(views("robot2", "s9", 0)) == "kept"
     placements = {("robot1", "s1"): np.zeros(3), ("robot2", "s9"): np.array([1.0, 0.0, 0.0])}
     assert fs.due(placements, 0.0)
     f = fs.fuse(placements, "server", 4, 0.0)
@@ -62,6 +63,22 @@ def test_free_space_is_placed_united_and_refused_when_stale():
     assert set(fs.latest) == {("robot1", "s1")} and fs.changed
 
 
+def test_a_message_that_adds_views_is_put_together_with_the_one_before_or_asks_for_the_whole():
+    fs = FreeSpaces()
+    first = views(seq=0)
+    assert fs.put(first) == "kept"
+    two = np.array([[1.0, 1.0, 0.0], [5.0, 1.0, 0.0]])
+    adds = FreeSpace("robot1", "s1", 1, 6.0, two, np.array([0, 4]), np.array([1]), SQUARE,
+                     np.ones(4, bool), rings_from=1)  # fmt: skip
+    assert fs.put(adds) == "kept"
+    whole = fs.latest[("robot1", "s1")]
+    assert whole.rings_from == 0 and whole.ring_view.tolist() == [0, 1] and len(whole.vertices) == 8
+    later = FreeSpace("robot1", "s1", 3, 7.0, two, np.array([0]), np.zeros(0, int), np.zeros((0, 2)),
+                      np.zeros(0, bool), rings_from=2)  # fmt: skip
+    assert fs.put(later) == "gap"  # seq 2 missed
+    assert fs.latest[("robot1", "s1")].seq == 1
+
+
 def test_the_server_publishes_persists_and_restores_the_free_space(tmp_path):
     bus = PullBus([])
     server = MapServer(bus, KEYS, store=Store(tmp_path))
@@ -70,7 +87,11 @@ def test_the_server_publishes_persists_and_restores_the_free_space(tmp_path):
     server.on_free(KEYS.robot_free("robot1"), codec.encode(views(seq=3)))
     server.on_free(KEYS.robot_free("robot1"), codec.encode(views(robot="robot2")))  # wrong key
     assert server.rejected["free"] == 1 and "free: robot" in next(iter(server.reasons))
+    nothing = (np.array([0]), np.zeros(0, int), np.zeros((0, 2)), np.zeros(0, bool))
+    gap = FreeSpace("robot1", "s1", 9, 6.0, np.zeros((1, 3)), *nothing, rings_from=1)
+    server.on_free(KEYS.robot_free("robot1"), codec.encode(gap))  # adds to seq 8, never received
     assert server.tick() is not None
+    assert wait_for(lambda: KEYS.robot_free("robot1") in bus.queries)  # the whole is asked for
     puts = [codec.decode(p) for k, p in bus.puts if k == KEYS.fused_free]
     assert len(puts) == 1 and isinstance(puts[0], FusedFree) and puts[0].session == server.session
     kept = Polygon(SQUARE + 1.0).buffer(-M, join_style="mitre")
