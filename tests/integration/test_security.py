@@ -126,10 +126,13 @@ def test_a_robot_cannot_write_another_robots_keys_or_the_fused_map(fleet):
         Bus(anonymous()) as reader,
     ):
         maps, poses, alive, fused = Inbox(), Inbox(), Inbox(), Inbox()
+        frees, fused_free = Inbox(), Inbox()
         server.subscribe(KEYS.all_maps, maps)
         server.subscribe(KEYS.all_poses, poses)
+        server.subscribe(KEYS.all_free, frees)
         server.watch_alive(KEYS.all_alive, alive)
         reader.subscribe(KEYS.fused, fused)
+        reader.subscribe(KEYS.fused_free, fused_free)
         seen_by_robot1 = Inbox()
         robot1.subscribe(KEYS.all_poses, seen_by_robot1)  # reading the others is not for robots either
 
@@ -139,12 +142,16 @@ def test_a_robot_cannot_write_another_robots_keys_or_the_fused_map(fleet):
         robot1.put(KEYS.robot_pose("robot2"), b"forged pose")
         robot1.delete(KEYS.robot_map("robot2"))
         robot1.put(KEYS.fused, b"forged fused")
+        robot1.put(KEYS.robot_free("robot2"), b"forged free")
+        robot1.put(KEYS.fused_free, b"forged fused free")
         robot1.declare_alive(KEYS.robot_alive("robot1"))
         assert keep_putting(robot1, KEYS.robot_map("robot1"), b"robot1 map", maps)
         assert keep_putting(robot1, KEYS.robot_pose("robot1"), b"robot1 pose", poses)
         # robot2 writes its own keys; the server writes the fused map
         assert keep_putting(robot2, KEYS.robot_pose("robot2"), b"robot2 pose", poses)
         assert keep_putting(server, KEYS.fused, b"fused v1", fused)
+        assert keep_putting(robot1, KEYS.robot_free("robot1"), b"robot1 free", frees)
+        assert keep_putting(server, KEYS.fused_free, b"free v1", fused_free)  # anyone reads it
         assert wait_for(lambda: alive.has((KEYS.robot_alive("robot1"), True)), DELIVERY_S)
         time.sleep(GRACE_S)
 
@@ -152,6 +159,8 @@ def test_a_robot_cannot_write_another_robots_keys_or_the_fused_map(fleet):
         assert (KEYS.robot_pose("robot2"), b"forged pose") not in poses.snapshot()
         assert alive.snapshot() == [(KEYS.robot_alive("robot1"), True)]  # no token for robot2
         assert (KEYS.fused, b"forged fused") not in fused.snapshot()
+        assert keys_seen(frees) == {KEYS.robot_free("robot1")}
+        assert (KEYS.fused_free, b"forged fused free") not in fused_free.snapshot()
         # (a session hears its own puts locally, forged ones included: only robot2's real pose counts)
         assert (KEYS.robot_pose("robot2"), b"robot2 pose") not in seen_by_robot1.snapshot()
 
