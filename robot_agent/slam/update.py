@@ -205,7 +205,8 @@ def _redundant_pairs(maps: SegmentMaps, cfg: CleaningConfig, recent: np.ndarray)
     _, perp = project_to_line(mid[:, None, :, :], a_x, r_x)  # r's midpoint on x's line
     t_x, _ = project_to_line(maps.seg[:, :, None, :, :], a_x[..., None], r_x[..., None])
     t_r, _ = project_to_line(sr[:, None, :, :, :], a_x[..., None], r_x[..., None])
-    overlap = np.minimum(t_x.max(-1), t_r.max(-1)) - np.maximum(t_x.min(-1), t_r.min(-1))
+    hi = np.minimum(np.maximum(t_x[..., 0], t_x[..., 1]), np.maximum(t_r[..., 0], t_r[..., 1]))
+    overlap = hi - np.maximum(np.minimum(t_x[..., 0], t_x[..., 1]), np.minimum(t_r[..., 0], t_r[..., 1]))
     distinct = np.arange(maps.capacity)[:, None] != recent[None, :]
     return (
         maps.valid[:, :, None]
