@@ -22,7 +22,7 @@ import shapely
 from shapely import affinity
 
 from shared.messages import FreeSpace, FusedFree
-from shared.occupancy import to_rings, unexplained, union, view_rings, view_walls
+from shared.occupancy import to_rings, unexplained, union, view_vertices, view_walls
 
 
 @dataclass(frozen=True)
@@ -76,7 +76,9 @@ class FreeSpaces:
         m = self.latest[key]
         cached = self._own_cache.get(key)
         if cached is None or cached[0] != m.seq:
-            cached = (m.seq, union(view_rings(m)), view_walls(m))
+            v = view_vertices(m)  # placed once, for the rings and their wall edges
+            rings = np.split(v, m.ring_offsets[1:-1])
+            cached = (m.seq, union(rings), view_walls(m, vertices=v))
             self._own_cache[key] = cached
         return cached[1], cached[2]
 

@@ -30,7 +30,7 @@ from robot_agent.sources.base import Scan
 from shared import codec
 from shared.keys import Keys
 from shared.memory import Trimmer
-from shared.messages import FreeSpace, PoseUpdate, RobotMap
+from shared.messages import FreeSpace, PoseUpdate, RobotMap, ring_subset
 
 log = logging.getLogger("fleet_slam.agent")
 
@@ -244,11 +244,8 @@ class AgentCore:
         view_pose, offsets, ring_view, vertices, wall = self.free.arrays(poses)
         whole = FreeSpace(self.robot, self.session, self.free_seq, self._last_stamp_s, view_pose, offsets,
                           ring_view, vertices, wall)  # fmt: skip
-        new = np.nonzero(ring_view >= self._free_sent)[0]
-        take = np.concatenate([np.arange(offsets[i], offsets[i + 1]) for i in new]) if len(new) else []
-        take = np.asarray(take, dtype=int)
-        lengths = np.diff(offsets)[new]
-        new_offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+        new = ring_view >= self._free_sent  # the rings of views not sent before
+        take, new_offsets = ring_subset(offsets, new)
         msg = FreeSpace(
             self.robot, self.session, self.free_seq, self._last_stamp_s, view_pose, new_offsets,
             ring_view[new], vertices[take], wall[take], rings_from=self._free_sent,

@@ -32,6 +32,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
+from shared.geometry import point_segment_distance, sample_segments
 from shared.messages import MAX_VERTICES, MAX_VIEW_REACH_M, MAX_VIEWS
 from shared.occupancy import place, polygons
 
@@ -108,12 +109,9 @@ def _wall_edges(ring: np.ndarray, ends: np.ndarray, same: np.ndarray, angles: np
     is star-shaped from the laser: a point's bearing tells which beams' segment it may lie on."""
     if not same.any():
         return np.zeros(len(ring), bool)
-    nxt = np.roll(ring, -1, axis=0)
-    n = np.maximum(np.ceil(np.linalg.norm(nxt - ring, axis=1) / step_m), 1).astype(int)
-    starts = np.concatenate([[0], np.cumsum(n + 1)[:-1]])
-    owner = np.repeat(np.arange(len(ring)), n + 1)
-    t = (np.arange(len(owner)) - np.repeat(starts, n + 1)) / n[owner]
-    pts = ring[owner] + t[:, None] * (nxt[owner] - ring[owner])
+    edges = np.stack([ring, np.roll(ring, -1, axis=0)], axis=1)
+    pts, owner, _ = sample_segments(edges, step_m, ends=True)
+    starts = np.searchsorted(owner, np.arange(len(ring)))  # each edge's first point
     ox, oy, oth = laser
     bearing = np.arctan2(pts[:, 1] - oy, pts[:, 0] - ox) - oth
     bearing = angles[0] + (bearing - angles[0]) % (2 * np.pi)
@@ -121,10 +119,7 @@ def _wall_edges(ring: np.ndarray, ends: np.ndarray, same: np.ndarray, angles: np
     best = np.full(len(pts), np.inf)
     for dk in (-1, 0, 1):
         kk = np.clip(k + dk, 0, len(ends) - 2)
-        p0, p1 = ends[kk], ends[kk + 1]
-        d = p1 - p0
-        u = np.clip(np.sum((pts - p0) * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-12), 0.0, 1.0)
-        dist = np.linalg.norm(pts - (p0 + u[:, None] * d), axis=1)
+        dist = point_segment_distance(pts, np.stack([ends[kk], ends[kk + 1]], axis=1))
         best = np.where(same[kk], np.minimum(best, dist), best)
     return np.logical_and.reduceat(best <= within_m, starts)
 
@@ -204,10 +199,12 @@ class FreeSpaceViews:
         """The views' poses taken from the path as published now (``path (S,3)``: trajectory
         index ``first_scan + i`` is ``path[i]``); a view older than the path keeps its last pose.
         Returns the poses ``(V,3)``."""
-        for i, s in enumerate(self.scan):
-            if first_scan <= s < first_scan + len(path):
-                self.pose[i] = np.asarray(path[s - first_scan], float).copy()
-        return self.poses()
+        poses = self.poses()
+        at = np.asarray(self.scan, dtype=int) - first_scan
+        inside = (at >= 0) & (at < len(path))
+        poses[inside] = np.asarray(path, float)[at[inside]]
+        self.pose = list(poses)
+        return poses
 
     def poses(self) -> np.ndarray:
         return np.array(self.pose, float).reshape(-1, 3)

@@ -105,18 +105,22 @@ def segment_directions(segments: np.ndarray) -> np.ndarray:
     return np.arctan2(d[..., 1], d[..., 0])
 
 
-def sample_segments(segments: np.ndarray, step_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def sample_segments(
+    segments: np.ndarray, step_m: float, ends: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points every ``step_m`` along segments ``(N,2,2)`` → ``points (K,2)``, owner ``(K,)``,
-    the length each point stands for ``(K,)``: each segment cut into equal pieces no longer than
-    ``step_m`` (at least one), a point at the middle of each piece."""
+    the length each piece stands for ``(K,)``: each segment cut into equal pieces no longer than
+    ``step_m`` (at least one), a point at the middle of each piece — or, with ``ends``, at the
+    ends of the pieces (both endpoints included: one point more a segment)."""
     seg = np.asarray(segments, dtype=float).reshape(-1, 2, 2)
     d = seg[:, 1] - seg[:, 0]
     length = np.hypot(d[:, 0], d[:, 1])
     counts = np.maximum(np.ceil(length / step_m).astype(int), 1)
-    owner = np.repeat(np.arange(len(seg)), counts)
-    start = np.cumsum(counts) - counts
-    k = np.arange(counts.sum()) - start[owner]
-    t = (k + 0.5) / counts[owner]
+    per = counts + 1 if ends else counts
+    owner = np.repeat(np.arange(len(seg)), per)
+    start = np.cumsum(per) - per
+    k = np.arange(per.sum()) - start[owner]
+    t = k / counts[owner] if ends else (k + 0.5) / counts[owner]
     pts = seg[owner, 0] + t[:, None] * d[owner]
     return pts, owner, (length / counts)[owner]
 

@@ -346,6 +346,16 @@ class FusedMap:
         return next((r for r in self.robots if r.robot == robot_id), None)
 
 
+def ring_subset(offsets: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rings ``keep (R,)`` (a mask) of rings laid out by ``offsets (R+1,)``: the indices of
+    their vertices and their own offsets."""
+    lengths = np.diff(offsets)[keep]
+    starts = np.asarray(offsets)[:-1][keep]
+    new = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+    take = np.repeat(starts - new[:-1], lengths) + np.arange(new[-1])
+    return take, new
+
+
 def _rings(name: str, offsets: object, n_vertices: int) -> np.ndarray:
     """Ring offsets ``(R+1,)`` into ``n_vertices`` vertices: from 0 to all, each ring ≥ 3 vertices."""
     off = check_array(name, offsets, (None,), "i", 0, n_vertices)
@@ -417,13 +427,11 @@ class FreeSpace:
             return None
         if before.rings_from != 0 or len(before.view_pose) < self.rings_from:
             return None
-        o = before.ring_offsets
-        keep = np.nonzero(before.ring_view < self.rings_from)[0]
-        lengths = np.concatenate([np.diff(o)[keep], np.diff(self.ring_offsets)])
-        take = np.concatenate([np.arange(o[i], o[i + 1]) for i in keep]) if len(keep) else np.zeros(0, int)
+        keep = before.ring_view < self.rings_from
+        take, offsets = ring_subset(before.ring_offsets, keep)
         return FreeSpace(
             self.robot, self.session, self.seq, self.stamp_s, self.view_pose,
-            np.concatenate([[0], np.cumsum(lengths)]),
+            np.concatenate([offsets, offsets[-1] + self.ring_offsets[1:]]),
             np.concatenate([before.ring_view[keep], self.ring_view]),
             np.concatenate([before.vertices[take], self.vertices]),
             np.concatenate([before.wall[take], self.wall]),

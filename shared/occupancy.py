@@ -15,7 +15,7 @@ import numpy as np
 import shapely
 from shapely.geometry import MultiPolygon, Polygon
 
-from shared.geometry import compose
+from shared.geometry import compose, sample_segments
 from shared.messages import MAX_VERTICES, FreeSpace, FusedFree
 
 FREE, UNKNOWN, OCCUPIED = 0, -1, 100  # cell values, as in a ROS OccupancyGrid
@@ -28,34 +28,39 @@ def place(rings: list[np.ndarray], pose: np.ndarray) -> list[np.ndarray]:
             for v in rings]  # fmt: skip
 
 
-def view_rings(msg: FreeSpace, transform: np.ndarray | None = None) -> list[np.ndarray]:
-    """Every ring of a robot's free space in its map frame, or in the frame ``transform (3,)``
-    maps its map frame into (the global frame)."""
+def view_vertices(msg: FreeSpace, transform: np.ndarray | None = None) -> np.ndarray:
+    """Every vertex ``(P,2)`` of a robot's free space in its map frame, or in the frame
+    ``transform (3,)`` maps its map frame into (the global frame): each moved by its view's pose."""
     poses = msg.view_pose if transform is None else compose(np.asarray(transform, float), msg.view_pose)
-    return [place([v], poses[view])[0] for view, v, _ in msg.rings()]
+    pose = poses[np.repeat(msg.ring_view, np.diff(msg.ring_offsets))]  # (P,3): each vertex's view
+    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+    v = msg.vertices
+    return np.column_stack([c * v[:, 0] - s * v[:, 1] + pose[:, 0], s * v[:, 0] + c * v[:, 1] + pose[:, 1]])
 
 
-def view_walls(msg: FreeSpace, transform: np.ndarray | None = None) -> np.ndarray:
+def view_rings(msg: FreeSpace, transform: np.ndarray | None = None) -> list[np.ndarray]:
+    """Every ring of a robot's free space, placed as :func:`view_vertices` places them."""
+    return np.split(view_vertices(msg, transform), msg.ring_offsets[1:-1])
+
+
+def view_walls(
+    msg: FreeSpace, transform: np.ndarray | None = None, vertices: np.ndarray | None = None
+) -> np.ndarray:
     """The wall edges of a robot's views (the edges that run along hits) as segments ``(E,2,2)``,
-    in its map frame or the frame ``transform (3,)`` maps it into."""
-    out = []
-    for ring, (*_, wall) in zip(view_rings(msg, transform), msg.rings(), strict=True):
-        if wall.any():
-            out.append(np.stack([ring[wall], np.roll(ring, -1, axis=0)[wall]], axis=1))
-    return np.concatenate(out) if out else np.zeros((0, 2, 2))
+    placed as :func:`view_vertices` places them (or given ``vertices`` so placed)."""
+    v = view_vertices(msg, transform) if vertices is None else vertices
+    o = msg.ring_offsets
+    nxt = np.arange(len(v)) + 1  # the next vertex of its ring: the first after the last
+    nxt[o[1:] - 1] = o[:-1]
+    return np.stack([v[msg.wall], v[nxt[msg.wall]]], axis=1)
 
 
 def unexplained(walls: np.ndarray, known, spacing_m: float = 0.05) -> np.ndarray:
     """The parts of wall segments ``(E,2,2)`` outside ``known`` (a shapely geometry: the segment
     map widened, and the free space): runs of samples ``spacing_m`` apart, as segments."""
-    walls = np.asarray(walls, float).reshape(-1, 2, 2)
-    if not len(walls):
+    pts, owner, _ = sample_segments(walls, spacing_m, ends=True)
+    if not len(pts):
         return np.zeros((0, 2, 2))
-    n = np.maximum(np.ceil(np.linalg.norm(walls[:, 1] - walls[:, 0], axis=1) / spacing_m), 1).astype(np.int64)
-    starts = np.concatenate([[0], np.cumsum(n + 1)[:-1]])
-    owner = np.repeat(np.arange(len(walls)), n + 1)
-    t = (np.arange(len(owner)) - np.repeat(starts, n + 1)) / n[owner]
-    pts = walls[owner, 0] + t[:, None] * (walls[owner, 1] - walls[owner, 0])
     out = np.ones(len(pts), bool)
     if known is not None and not known.is_empty:
         out = ~shapely.contains_xy(known, pts[:, 0], pts[:, 1])
@@ -154,18 +159,6 @@ class Grid:
         return row, col
 
 
-def segment_points(seg: np.ndarray, spacing_m: float) -> np.ndarray:
-    """Points along segments ``(M,2,2)`` at most ``spacing_m`` apart, ends included: ``(K,2)``."""
-    seg = np.asarray(seg, float).reshape(-1, 2, 2)
-    if not len(seg):
-        return np.zeros((0, 2))
-    n = np.maximum(np.ceil(np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1) / spacing_m), 1).astype(np.int64)
-    owner = np.repeat(np.arange(len(seg)), n + 1)
-    t = np.arange(len(owner)) - np.repeat(np.concatenate([[0], np.cumsum(n + 1)[:-1]]), n + 1)
-    t = t / n[owner]
-    return seg[owner, 0] + t[:, None] * (seg[owner, 1] - seg[owner, 0])
-
-
 def occupancy_grid(
     seg: np.ndarray, free, resolution_m: float = 0.05, margin_m: float = 0.5
 ) -> Grid:
@@ -198,7 +191,7 @@ def occupancy_grid(
             yy, xx = np.meshgrid(ys[r0 : r0 + 256], xs, indexing="ij")
             inside = shapely.contains_xy(free, xx, yy)
             grid.cells[r0 : r0 + 256][inside] = FREE
-    pts = segment_points(seg, resolution_m / 4)
+    pts = sample_segments(seg, resolution_m / 4, ends=True)[0]
     row, col = grid.index(pts)
     ok = (row >= 0) & (row < h) & (col >= 0) & (col < w)
     grid.cells[row[ok], col[ok]] = OCCUPIED
@@ -250,7 +243,7 @@ def grid_quality(grid: Grid, true_walls: np.ndarray, origins: np.ndarray, ends: 
     res = grid.resolution_m
     shape = grid.cells.shape
     walls = np.zeros(shape, bool)
-    _mark(grid, segment_points(true_walls, res / 4), walls)
+    _mark(grid, sample_segments(true_walls, res / 4, ends=True)[0], walls)
     seen = np.zeros(shape, bool)
     _mark(grid, np.asarray(ends)[np.asarray(hit, bool)], seen)
     seen_walls = walls & _grow(seen)
@@ -258,14 +251,9 @@ def grid_quality(grid: Grid, true_walls: np.ndarray, origins: np.ndarray, ends: 
     origins, ends = np.asarray(origins, float), np.asarray(ends, float)
     length = np.linalg.norm(ends - origins, axis=1)
     reach = np.maximum(length - res, 0.0)
-    for a in range(0, len(origins), 2000):  # beams in blocks: bounded memory
-        o, r = origins[a : a + 2000], reach[a : a + 2000]
-        d = (ends[a : a + 2000] - o) / np.maximum(length[a : a + 2000], 1e-12)[:, None]
-        n = np.ceil(r / (res / 2)).astype(np.int64) + 1
-        owner = np.repeat(np.arange(len(o)), n)
-        t = (np.arange(len(owner)) - np.repeat(np.concatenate([[0], np.cumsum(n)[:-1]]), n)) * (res / 2)
-        t = np.minimum(t, r[owner])
-        _mark(grid, o[owner] + t[:, None] * d[owner], covered)
+    rays = np.stack([origins, origins + (ends - origins) * (reach / np.maximum(length, 1e-12))[:, None]], 1)
+    for a in range(0, len(rays), 2000):  # beams in blocks: bounded memory
+        _mark(grid, sample_segments(rays[a : a + 2000], res / 2, ends=True)[0], covered)
     covered &= ~walls
     occupied = grid.cells == OCCUPIED
     free = grid.cells == FREE

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robot_agent.slam.lines import fit_lines, project_to_line, transform_moments
+from robot_agent.slam.lines import fit_lines, interval_overlap, project_to_line, transform_moments
 from robot_agent.slam.particles import SegmentMaps
 from shared.geometry import apply_segments, wrap_angle
 
@@ -112,11 +112,7 @@ def pair_terms(obs: Observations, maps: SegmentMaps) -> tuple[np.ndarray, np.nda
     _, d_perp = project_to_line(c[:, :, None, :], a, r)
     t_obs, _ = project_to_line(obs.ends[:, :, None, :, :], a[..., None], r[..., None])  # (P,O,C,2)
     t_map, _ = project_to_line(maps.seg[:, None, :, :, :], a[..., None], r[..., None])  # (P,1,C,2)
-    # (two ends: elementwise minimum and maximum, not a reduction over an axis of 2 — the same
-    # values, a third of the time)
-    lo = np.maximum(np.minimum(t_obs[..., 0], t_obs[..., 1]), np.minimum(t_map[..., 0], t_map[..., 1]))
-    hi = np.minimum(np.maximum(t_obs[..., 0], t_obs[..., 1]), np.maximum(t_map[..., 0], t_map[..., 1]))
-    gap = np.maximum(lo - hi, 0.0)
+    gap = np.maximum(-interval_overlap(t_obs, t_map), 0.0)
     return d_angle, d_perp, gap
 
 

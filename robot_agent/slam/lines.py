@@ -167,6 +167,15 @@ def transform_lines(
     return a_out, r_out, out.reshape((*out.shape[:-1], 2, 2))
 
 
+def interval_overlap(t_a: np.ndarray, t_b: np.ndarray) -> np.ndarray:
+    """How far intervals given by their two ends ``(..., 2)`` (in any order) overlap; negative:
+    the gap between them. (Elementwise over the two ends: a reduction over an axis of two costs
+    many times more, and this runs for every particle x observation x element.)"""
+    lo = np.maximum(np.minimum(t_a[..., 0], t_a[..., 1]), np.minimum(t_b[..., 0], t_b[..., 1]))
+    hi = np.minimum(np.maximum(t_a[..., 0], t_a[..., 1]), np.maximum(t_b[..., 0], t_b[..., 1]))
+    return hi - lo
+
+
 def project_to_line(points: np.ndarray, alpha: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Coordinates of points ``(..., 2)`` relative to lines ``(...)``: ``(t, dist)``, each ``(...)``.
 

@@ -141,24 +141,21 @@ def relocalize(
     if step % cfg.every or len(gm) == 0:
         return None
     pose = ps.poses[ps.best()]
-    reliable = (gm.hits >= cfg.min_hits) & (gm.trust >= cfg.min_trust)
-    near = reliable & (point_segment_distance(pose[:2], gm.seg) <= cfg.search_radius_m)
+    near = _reliable(gm, cfg) & (point_segment_distance(pose[:2], gm.seg) <= cfg.search_radius_m)
     old = near & (step - gm.born >= cfg.old_age_steps)
     if old.sum() < cfg.min_old_elements:
         return None
     mc = cfg.matching
     # the loop closes against the OLD part of the map: recent elements were mapped with the
     # drifted pose and would let the current estimate explain the scan as well as the truth
-    map_ends, map_facing = gm.seg[old], gm.facing[old]
-    hyp = pose_hypotheses(segs.endpoints, facing, map_ends, map_facing, mc)
-    if len(hyp) == 0:
+    # every hypothesis is scored: implausible ones still count as rivals (aliases)
+    scored = _scored(pose, segs, facing, gm.seg[old], gm.facing[old], mc)
+    if scored is None:
         return None
+    hyp, scores, current = scored
     d = relative(pose, hyp)
     dist, dang = np.hypot(d[:, 0], d[:, 1]), np.abs(d[:, 2])
     far_enough = (dist >= cfg.min_jump_m) | (dang >= cfg.min_jump_rad)
-    # every hypothesis is scored: implausible ones still count as rivals (aliases)
-    scores = overlap_scores(np.vstack([pose, hyp]), segs.endpoints, facing, map_ends, map_facing, mc)
-    current, scores = float(scores[0]), scores[1:]
     max_jump = cfg.max_jump_m
     if current >= cfg.anchored_m:  # the estimate fits the old map: only drift-sized jumps
         max_jump = min(max_jump, cfg.jump_base_m + cfg.jump_per_m * traveled_m)
@@ -284,18 +281,16 @@ def relocalize_global(
     given ``rays``, its beams through no more reliable elements than the estimate's; or None.
     Map pairs of segments up to ``pair_gap_m`` apart fix hypotheses; the best must explain
     ``min_share`` of the scan's segment length (the place it is in, not an alike corridor of it)."""
-    reliable = (gm.hits >= cfg.min_hits) & (gm.trust >= cfg.min_trust)
+    reliable = _reliable(gm, cfg)
     if reliable.sum() < cfg.min_old_elements or len(segs) == 0:
         return None
     # the whole map: its long walls' corners too, where one ends on another's middle, and walls
     # across a door from each other (``pair_gap_m``)
     mc = dataclasses.replace(cfg.matching, gap_to_segment=True, max_pair_gap_m=pair_gap_m)
-    map_ends, map_facing = gm.seg[reliable], gm.facing[reliable]
-    hyp = pose_hypotheses(segs.endpoints, facing, map_ends, map_facing, mc)
-    if len(hyp) == 0:
+    scored = _scored(pose, segs, facing, gm.seg[reliable], gm.facing[reliable], mc)
+    if scored is None:
         return None
-    scores = overlap_scores(np.vstack([pose, hyp]), segs.endpoints, facing, map_ends, map_facing, mc)
-    current, scores = float(scores[0]), scores[1:]
+    hyp, scores, current = scored
     d = relative(pose, hyp)
     far = (np.hypot(d[:, 0], d[:, 1]) > far_m) | (np.abs(d[:, 2]) > far_rad)
     length = float(segment_lengths(segs.endpoints).sum())
@@ -303,6 +298,24 @@ def relocalize_global(
     if not np.any(good):
         return None
     return _pick(pose, hyp, scores, current, good, cfg, rays, gm, reliable)
+
+
+def _reliable(gm: GlobalMap, cfg: RelocalizationConfig) -> np.ndarray:
+    """The map's elements seen often enough and trusted enough to relocalize against."""
+    return (gm.hits >= cfg.min_hits) & (gm.trust >= cfg.min_trust)
+
+
+def _scored(
+    pose: np.ndarray, segs: ScanSegments, facing: np.ndarray, map_ends: np.ndarray,
+    map_facing: np.ndarray, mc: MatchingConfig,
+) -> tuple[np.ndarray, np.ndarray, float] | None:  # fmt: skip
+    """The scan's pose hypotheses against the map elements ``map_ends``, their overlap scores and
+    the estimate ``pose``'s; None without a hypothesis."""
+    hyp = pose_hypotheses(segs.endpoints, facing, map_ends, map_facing, mc)
+    if len(hyp) == 0:
+        return None
+    scores = overlap_scores(np.vstack([pose, hyp]), segs.endpoints, facing, map_ends, map_facing, mc)
+    return hyp, scores[1:], float(scores[0])
 
 
 def _pick(

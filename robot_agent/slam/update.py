@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from robot_agent.slam.association import Association, Observations
-from robot_agent.slam.lines import project_to_line
+from robot_agent.slam.lines import interval_overlap, project_to_line
 from robot_agent.slam.particles import SegmentMaps
 from shared.geometry import wrap_angle
 
@@ -205,8 +205,7 @@ def _redundant_pairs(maps: SegmentMaps, cfg: CleaningConfig, recent: np.ndarray)
     _, perp = project_to_line(mid[:, None, :, :], a_x, r_x)  # r's midpoint on x's line
     t_x, _ = project_to_line(maps.seg[:, :, None, :, :], a_x[..., None], r_x[..., None])
     t_r, _ = project_to_line(sr[:, None, :, :, :], a_x[..., None], r_x[..., None])
-    hi = np.minimum(np.maximum(t_x[..., 0], t_x[..., 1]), np.maximum(t_r[..., 0], t_r[..., 1]))
-    overlap = hi - np.maximum(np.minimum(t_x[..., 0], t_x[..., 1]), np.minimum(t_r[..., 0], t_r[..., 1]))
+    overlap = interval_overlap(t_x, t_r)
     distinct = np.arange(maps.capacity)[:, None] != recent[None, :]
     return (
         maps.valid[:, :, None]

@@ -201,8 +201,8 @@ def test_the_exported_grid_against_the_worlds_walls_cell_by_cell(demo):
     marked free; the grid's own figures in metrics.json agree."""
     from robot_agent.sim import LidarConfig, builtin_world
     from robot_agent.sim.lidar import beam_angles, cast_rays
+    from shared.geometry import sample_segments
     from shared.metrics import read_poses
-    from shared.occupancy import segment_points
 
     out, _, m, *_ = demo
     meta, cells, at = _read_nav2(out / "map.yaml")
@@ -219,7 +219,7 @@ def test_the_exported_grid_against_the_worlds_walls_cell_by_cell(demo):
         hit = r < lidar.range_max_m
         ends.append(np.stack([poses[:, :1] + r * np.cos(dirs), poses[:, 1:2] + r * np.sin(dirs)], -1)[hit])
     ends = np.concatenate(ends)
-    wall_pts = segment_points(world.walls, 0.02)
+    wall_pts = sample_segments(world.walls, 0.02, ends=True)[0]
     from scipy.spatial import cKDTree
 
     seen = cKDTree(ends).query(wall_pts, distance_upper_bound=0.05)[0] < np.inf  # a beam ended there

@@ -45,32 +45,15 @@ def test_row1_an_odometry_jump_in_a_robots_log_is_reported_and_the_fused_map_sta
     fused map is more than 5 m from the building (the map of the unedited scans). Before: 32 of
     78 segments ~1 km away, and not a word."""
 
-    from fleet_slam.watch import FusedWatcher
-    from shared.bus import Bus, BusConfig
     from shared.geometry import point_segment_distance
-    from shared.keys import Keys
     from tests.slam.test_odometry_jump import SCANS, _edited, reference_map
 
     log = _edited(tmp_path, persistent=False)
     building = reference_map()
-    endpoint = loopback_endpoint()
-    with ProcGroup(tmp_path / "logs") as group:
-        router = group.start("router", python_module("shared.bus", "router", "--listen", endpoint))
-        assert router.wait_for("listening", STARTUP_S), router.output()
-        server = group.start("server", python_module("map_server", "--connect", endpoint))
-        assert server.wait_for("running", STARTUP_S), server.output()
-        argv = ["--robot", "robot1", "--log", log, "--to", SCANS, "--particles", 10, "--speed", 0]
-        agent = group.start("robot1", python_module("robot_agent", *argv, "--connect", endpoint))
-        code = agent.popen.wait(timeout=300)
-        out = agent.output()
-        assert code == 0, out[-3000:]
-        assert "warning: odometry jumped 100" in out, out[-3000:]
-        with Bus(BusConfig(connect=(endpoint,))) as bus:
-            fused = FusedWatcher(bus, Keys()).fetch(timeout_s=10.0)
-        assert fused is not None and len(fused.seg) > 20
-        ends = fused.seg.astype(float).reshape(-1, 2)
-        far = point_segment_distance(ends[:, None, :], building[None, :, :, :]).min(axis=1)
-        assert far.max() < 5.0, f"{int((far > 5).sum())} segment ends more than 5 m from the building"
+    out, _, ends = _agent_on_log(tmp_path, log, "--to", SCANS)
+    assert "warning: odometry jumped 100" in out, out[-3000:]
+    far = point_segment_distance(ends[:, None, :], building[None, :, :, :]).min(axis=1)
+    assert far.max() < 5.0, f"{int((far > 5).sum())} segment ends more than 5 m from the building"
 
 
 def _agent_on_log(tmp_path, log, *extra) -> tuple[str, object, np.ndarray]:

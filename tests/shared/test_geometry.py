@@ -108,3 +108,8 @@ def test_sample_segments_hand_computed():
     np.testing.assert_array_equal(owner, [0, 0, 0, 0, 1])
     np.testing.assert_allclose(length, [0.25, 0.25, 0.25, 0.25, 0.0])
     assert all(len(a) == 0 for a in g.sample_segments(np.zeros((0, 2, 2)), 0.3))
+    # the pieces' ends instead: both endpoints and every cut
+    pts, owner, length = g.sample_segments(seg, 0.3, ends=True)
+    np.testing.assert_allclose(pts, [[0, 0], [0.25, 0], [0.5, 0], [0.75, 0], [1, 0], [2, 2], [2, 2]])
+    np.testing.assert_array_equal(owner, [0, 0, 0, 0, 0, 1, 1])
+    assert all(len(a) == 0 for a in g.sample_segments(np.zeros((0, 2, 2)), 0.3, ends=True))
