@@ -274,6 +274,8 @@ def aggregate(runs: list[dict]) -> dict:
     )
     out["wall_time_s"] = _mean([m["wall_time_s"] for m in ok])
     out["real_time_factor_min"] = min(rtf, default=None)
+    cpu = [m["real_time_factor_cpu"] for m in ok if m.get("real_time_factor_cpu") is not None]
+    out["real_time_factor_cpu_min"] = min(cpu, default=None)
     out["peak_rss_mb_max"] = max((m["peak_rss_mb"] for m in ok), default=None)
     out["backend_s"] = _mean([m["backend_s"] for m in ok if m.get("backend_s") is not None])
     return out
@@ -318,8 +320,8 @@ def print_table(rows: list[tuple[str, dict]], title: str) -> None:
         "log", "seeds", "relations", "trans. error m\nmean ± std", "worst\nseed m",
         "rot. error °\nmean ± std", "worst\nseed °", "filter\nalone m", "worst live\nsnapshot m",
         "online at\nend m", "live ÷ end\n(worst)", "online ÷\noffline", "online\nCPU %", "wall s\n(mean)",
-        "× real time\n(worst)", "peak MB\n(max)", "GMapping m\n(50 particles)", "graph\nmapping m",
-        "Cartographer\nm, °",
+        "× real time\n(worst)", "× on CPU\n(worst)", "peak MB\n(max)", "GMapping m\n(50 particles)",
+        "graph\nmapping m", "Cartographer\nm, °",
     ):  # fmt: skip
         table.add_column(header, justify="left" if header == "log" else "right")
     for name, a in rows:
@@ -333,7 +335,8 @@ def print_table(rows: list[tuple[str, dict]], title: str) -> None:
             _num(a.get("online_over_offline_worst"), ".3f"),
             _num(_percent(a.get("online_backend_share_max")), ".1f"),
             _num(a["wall_time_s"], ".1f"),
-            _num(a["real_time_factor_min"], ".1f"), _num(a["peak_rss_mb_max"], ".0f"),
+            _num(a["real_time_factor_min"], ".1f"), _num(a.get("real_time_factor_cpu_min"), ".1f"),
+            _num(a["peak_rss_mb_max"], ".0f"),
             *published_cells(name),
         )  # fmt: skip
     console.print(table)
@@ -363,6 +366,8 @@ def run_line(run: dict, name_width: int = 0) -> str:
             f"({m['online_backend_s']:.1f} s of updates)"
         )
     parts.append(f"wall {m['wall_time_s']:.1f} s ({m['real_time_factor']:.1f}× real time)")
+    if m.get("real_time_factor_cpu") is not None:
+        parts.append(f"CPU {m['cpu_time_s']:.1f} s ({m['real_time_factor_cpu']:.1f}× on CPU time)")
     if m.get("backend_s") is not None:
         parts.append(f"back end {m['backend_s']:.1f} s")
     parts.append(f"peak {m['peak_rss_mb']:.0f} MB")

@@ -103,6 +103,10 @@ def replay_to_dir(
         # the filter and the back end at the end; the online back end (--live) runs on its own
         # core in an agent: its time is online_backend_s, not counted here
         "real_time_factor": duration / filter_wall if filter_wall > 0 else None,
+        # the same on the process's CPU time: what one free core would take (a loaded machine's
+        # wall time is longer); with --live the online back end's thread is in it
+        "cpu_time_s": res.cpu_s,
+        "real_time_factor_cpu": duration / res.cpu_s if res.cpu_s > 0 and not live else None,
         "peak_rss_mb": res.peak_rss_bytes / 2**20,
         "map_segments": int(keep.sum()),
         "filter": dict(slam.stats),

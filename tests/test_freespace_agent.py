@@ -40,7 +40,7 @@ def wall_distance(geom, walls) -> float:
 
 
 def test_a_room_seen_from_inside_is_free_up_to_its_walls_and_says_which_edges_are_walls():
-    (ring, wall), = scan_region(scan(ROOM), ANGLES, np.zeros(3), 30.0)
+    ((ring, wall),) = scan_region(scan(ROOM), ANGLES, np.zeros(3), 30.0)
     g = Polygon(ring)
     seen = Polygon([[0, -3], [5, -3], [5, 3], [0, 3]])  # the half in front of the laser
     assert g.area == pytest.approx(seen.area, rel=0.02)
@@ -71,7 +71,7 @@ def test_no_return_counts_only_so_far_and_an_unusable_reading_not_at_all():
     r = np.full(181, 30.0)  # nothing hit at all: open space, or glass
     g = region(r)
     assert g.bounds[2] <= CFG.no_return_m and 0.97 < g.area / (np.pi * CFG.no_return_m**2 / 2) < 1.0
-    (_, wall), = scan_region(r, ANGLES, np.zeros(3), 30.0)
+    ((_, wall),) = scan_region(r, ANGLES, np.zeros(3), 30.0)
     assert not wall.any()  # nothing hit: no wall
     r = scan(ROOM)
     blind = r.copy()

@@ -229,7 +229,9 @@ class FastSLAM:
                 still = u
                 # odometry stands: the scans are followed from where the last bridged one was
                 start = self._bridged if self._odometry_stood and self._bridged is not None else u
-                if cfg.filter.refine_bridged and cfg.proposal.enabled:
+                if pose is not None:  # the pose is known (a rebuilt map): no scan to align
+                    u = relative(ps.poses[best], np.asarray(pose, dtype=float))
+                elif cfg.filter.refine_bridged and cfg.proposal.enabled:
                     u = self._refine_bridged(best, start, ranges_m, angles_rad, laser_offset, range_max_m)
                     self._bridged = u
                 scan = (ranges_m, angles_rad, laser_offset, range_max_m)
@@ -383,20 +385,24 @@ class FastSLAM:
         start[:, 2] = wrap_angle(start[:, 2] + offset)
         return start
 
-    def _local_columns(self, poses: np.ndarray, radius_m: float) -> np.ndarray:
+    def _local_columns(
+        self, poses: np.ndarray, radius_m: float, rows: np.ndarray | None = None
+    ) -> np.ndarray:
         """Columns with an element within ``radius_m`` of the particles (cheap bound: distance to
-        the segment's midpoint minus its half length)."""
+        the segment's midpoint minus its half length); of the particles ``rows`` only when given
+        (their maps alone are used: columns valid in none of them would be carried for nothing)."""
         maps = self.particles.maps
-        used = maps.used_columns()
+        valid = maps.valid if rows is None else maps.valid[rows]
+        used = np.flatnonzero(valid.any(axis=0))
         if len(used) == 0:
             return used
-        seg = maps.seg[:, used]
+        seg = maps.seg[:, used] if rows is None else maps.seg[rows][:, used]
         mid = 0.5 * (seg[:, :, 0] + seg[:, :, 1])
         half = 0.5 * np.hypot(*(seg[:, :, 1] - seg[:, :, 0]).transpose(2, 0, 1))
         centre = poses[:, :2].mean(axis=0)
         spread = np.max(np.hypot(*(poses[:, :2] - centre).T))
         d = np.hypot(*(mid - centre).transpose(2, 0, 1)) - half
-        near = np.any(maps.valid[:, used] & (d < radius_m + spread), axis=0)
+        near = np.any(valid[:, used] & (d < radius_m + spread), axis=0)
         return used[near]
 
     def _refine_bridged(
@@ -420,7 +426,7 @@ class FastSLAM:
         f = cfg.filter
         cov = cov + np.diag([f.bridge_sigma_xy_m**2, f.bridge_sigma_xy_m**2, f.bridge_sigma_theta_rad**2])
         reach = float(np.max(np.hypot(pts[:, 0], pts[:, 1])))
-        cols = self._local_columns(mean, reach + cfg.filter.local_margin_m)
+        cols = self._local_columns(mean, reach + cfg.filter.local_margin_m, one)
         if len(cols) == 0:
             return u
         local = ps.maps.take(one).columns(cols)

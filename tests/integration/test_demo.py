@@ -73,6 +73,7 @@ def _browse(url: str, endpoint: str, out: Path) -> dict:
 
     arrived: dict[int, float] = {}
     with Bus(BusConfig(connect=(endpoint,))) as bus:
+
         def on_update(u) -> None:
             arrived.setdefault(u.fused.version, time.time() * 1e3)
 
@@ -265,8 +266,10 @@ def test_the_live_view_shows_the_fleet_and_its_changes(demo):
     assert dark > 500 and blue > 30
     delays = np.array(browsed["delays_ms"])
     assert len(delays) >= 3
-    print(f"view: {len(delays)} versions, shown {np.median(delays):.0f} ms after arrival (median), "
-          f"{delays.max():.0f} ms at most")  # reported, not asserted: wall-clock times
+    print(
+        f"view: {len(delays)} versions, shown {np.median(delays):.0f} ms after arrival (median), "
+        f"{delays.max():.0f} ms at most"
+    )  # reported, not asserted: wall-clock times
 
 
 def test_export_and_subscribe_write_the_running_servers_grid(demo):

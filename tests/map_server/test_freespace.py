@@ -96,9 +96,9 @@ def test_the_server_publishes_persists_and_restores_the_free_space(tmp_path):
     assert len(puts) == 1 and isinstance(puts[0], FusedFree) and puts[0].session == server.session
     kept = Polygon(SQUARE + 1.0).buffer(-M, join_style="mitre")
     assert fused_geometry(puts[0]).symmetric_difference(kept).area < 1e-3
-    (_, answer), = server.answer_free(KEYS.fused_free)
+    ((_, answer),) = server.answer_free(KEYS.fused_free)
     assert codec.decode(answer).version == puts[0].version
     again = MapServer(PullBus([]), KEYS, store=Store(tmp_path))  # a restart: nothing lost
     assert again.free.latest[("robot1", "s1")].seq == 3
-    (_, answer), = again.answer_free(KEYS.fused_free)
+    ((_, answer),) = again.answer_free(KEYS.fused_free)
     assert fused_geometry(codec.decode(answer)).area == pytest.approx(SIDE**2, abs=0.01)

@@ -55,7 +55,7 @@ def test_free_space_round_trips_in_centimetres_and_old_schemas_do_not_have_it():
     back = codec.decode(codec.encode(f), expect=FusedFree)
     assert back.version == 3 and back.map_version == 7 and back.ring_hole.tolist() == [0, 1]
     assert back.walls.shape == (1, 2, 2)
-    (outer, holes), = back.polygons()
+    ((outer, holes),) = back.polygons()
     assert Polygon(outer, holes).area == pytest.approx(36.0 - 4.0)
 
 

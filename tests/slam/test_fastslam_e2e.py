@@ -136,8 +136,10 @@ def test_remap_builds_the_map_along_the_given_poses(intel_head, default_run):
     assert a.particles.n == 1 and a.stats["relocalizations"] == 0
     stamps, traj = a.best_trajectory()
     np.testing.assert_array_equal(stamps, log.stamps_s[first : first + n])
-    exact = np.all(np.abs(traj - poses) < 1e-12, axis=1)
-    assert exact.sum() == a.step_index  # every processed scan at its given pose (the rest bridged)
+    assert 0 < a.step_index < n  # some scans bridged ...
+    d = traj - poses
+    d[:, 2] = (d[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    assert np.abs(d).max() < 1e-9  # ... and every scan at its given pose, the bridged ones too
     # the map is drawn along the poses: moved rigidly, they give the same map moved rigidly
     moved = np.array([2.0, -1.0, 0.5])
     b = remap(log, first, compose(np.broadcast_to(moved, poses.shape), poses), cfg)
