@@ -17,7 +17,7 @@
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -87,6 +87,9 @@ class FilterConfig:
     # its pose then comes from the scan, not from odometry whose timing may lag the laser's
     bridge_sigma_xy_m: float = 0.05  # extra prior std of a bridged scan's pose: odometry and
     bridge_sigma_theta_rad: float = np.radians(2.0)  # laser clocks disagree while turning fast
+    bridge_iterations: int = 0  # Gauss-Newton iterations of a bridged scan's alignment (associated
+    # again after the first when more than 2; 0: the proposal's): it starts a few cm from its answer
+    bridge_points: int = 0  # scan points it uses (evenly thinned beyond; 0: the proposal's)
     max_open_steps: int = 4000  # every particle's own history kept this many steps back at most
     # (beyond, when the particles have not coalesced there, the best one's: trajectory.py)
     history_scans: int = 0  # the path kept for the newest this many scans (0: the whole run's);
@@ -430,7 +433,13 @@ class FastSLAM:
         if len(cols) == 0:
             return u
         local = ps.maps.take(one).columns(cols)
-        prop = align_points(mean, cov, pts, local, cfg.proposal)
+        p = cfg.proposal
+        if f.bridge_iterations or f.bridge_points:
+            iterations = f.bridge_iterations or p.iterations
+            p = replace(p, iterations=iterations, max_points=f.bridge_points or p.max_points)
+            if iterations <= 2:
+                p = replace(p, reassociate_after=iterations)
+        prop = align_points(mean, cov, pts, local, p)
         return relative(ps.poses[best], prop.mean[0])
 
     def _maybe_relocalize(
