@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -357,12 +358,19 @@ class Fleet:
         around = _Around(placed + pieces, self.cfg.refine_margin_m)
         pieces_m = sum(p.layer.length_m for p in pieces)
         keys: dict[int, tuple[float, _Key]] = {}
+        placed_total = sum(p.layer.length_m for p in placed)
+        placed_ids = {id(p) for p in placed}
 
         def key_of(r: RobotState) -> tuple[float, _Key]:
             if id(r) not in keys:
-                others = [p for p in placed if p is not r]
-                placed_m = sum(p.layer.length_m for p in others) + pieces_m
-                keys[id(r)] = placed_m, _Key(r, others + pieces, around, self._entries)
+                if id(r) in placed_ids:
+                    placed_m = placed_total - r.layer.length_m + pieces_m
+                else:
+                    placed_m = placed_total + pieces_m
+                keys[id(r)] = (
+                    placed_m,
+                    _Key(r, lambda: [p for p in placed if p is not r] + pieces, around, self._entries),
+                )
             return keys[id(r)]
 
         turn = None if urgent else self._turns(placed, key_of, now_s)
@@ -370,13 +378,13 @@ class Fleet:
             if r.layer is None or r.alignment.status == "reference":
                 continue
             prior = r.map.prior if self.frame == "prior" else None
-            others = [p for p in placed if p is not r]
             placed_m, key = key_of(r)
             if not r.due(self.cfg, placed_m, key, now_s, urgent):
                 continue
             if turn is not None and r.alignment.placed and id(r) not in turn:
                 continue  # a refinement whose turn comes in a later fusion
             key = key()
+            others = [p for p in placed if p is not r]
             if prior is None and not r.alignment.placed and not self._mature([r, *others], now_s):
                 if r.alignment.score_m == 0.0:  # no candidate to report yet: say why
                     r.alignment = Alignment("unaligned", np.zeros(3), np.zeros(3), reason=self._waiting)
@@ -399,6 +407,8 @@ class Fleet:
             if a.placed and not was_placed:
                 r.mark_placed(now_s - self.epoch_s)
                 placed = self._placed()
+                placed_total = sum(p.layer.length_m for p in placed)
+                placed_ids = {id(p) for p in placed}
         if not fresh:
             return False
         for f in fresh:
@@ -614,7 +624,7 @@ class _Key:
     and places; for a placed robot only those near it (:class:`_Around`): a map far away does not
     change where the robot fits."""
 
-    def __init__(self, r: RobotState, against: list, around: _Around, entries: dict):
+    def __init__(self, r: RobotState, against: Callable[[], list], around: _Around, entries: dict):
         self.r, self.against, self.around, self.entries = r, against, around, entries
         self._text: str | None = None
 
@@ -623,7 +633,7 @@ class _Key:
             near = self.around.near(self.r) if self.r.alignment.placed else None
             if near is not None:  # the maps near it at the start of the round but itself
                 near = [p for p in near if p is not self.r]
-            self._text = _placed_key(self.against if near is None else near, self.entries)
+            self._text = _placed_key(self.against() if near is None else near, self.entries)
         return self._text
 
 
