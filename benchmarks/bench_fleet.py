@@ -2,6 +2,7 @@
 bytes per robot per second against a 5 cm occupancy grid of the same area.
 
     .venv/bin/python benchmarks/bench_fleet.py [--only fusion|latency|bytes] [--quick]
+        [--robots 1 2 4 8 16 32 100] [--sizes 100 300 1000] [--reps 12] [--no-priors-max 16]
         [--agents 1 4 8 16] [--seconds 40] [--min-gap 0.05] [--profile] [--cache DIR] [--refresh]
         [--workdir DIR] [--out FILE]
 
@@ -15,9 +16,12 @@ fusion   ``Fleet.fuse`` in this process. A robot map of S segments is a row of r
          by side (:func:`tiles_for`); robot i starts its row at the i-th recorded map, so the
          robots' maps overlap like robots sharing one building. With start priors: the first
          fusion (places every robot, refining its prior), the steady state (one robot's new map:
-         its cross-particle fusion + the merge of all robots) and the periodic round that
-         re-refines every prior. Without priors: the fusion in which every robot but the
-         reference gets an alignment attempt, and each attempt alone.
+         its cross-particle fusion + the merge of what it changed) and the fusions that re-refine
+         priors (Fleet refines a few due robots per fusion: ``refine_budget_segments``); "all" is
+         every fusion after one robot's new map, both kinds. ``--robots``/``--sizes`` pick cases
+         (e.g. ``--robots 100 --sizes 1000``). Without priors (up to ``--no-priors-max`` robots):
+         the fusion in which every robot but the reference gets an alignment attempt, and each
+         attempt alone.
 latency  Real processes on loopback: a router, the map server (``--state`` in ``--workdir``), N
          load agents (one process each: ``robot_agent.agent.Publisher`` replaying a recording)
          publishing maps at 1 Hz and poses at 5 Hz with start priors, and this process subscribed
@@ -423,9 +427,9 @@ def print_fusion(rows: list) -> None:
     table(
         "Fleet.fuse wall time (ms); seg = rows as sent (K = 5), elements = distinct per robot, seg in = "
         "after cross-particle fusion, all robots. With priors: first = places every robot (each prior "
-        "refined); steady = after one robot's new map (p50, max); re-refine round = the fusion that "
-        "re-refines every prior (each retry_interval_s), one refinement = one robot's; all = every fusion "
-        "after one robot's new map, re-refine rounds included (p95, max). Without priors: "
+        "refined); steady = after one robot's new map, no refinement in it (p50, p95, max); re-refine "
+        "round = a fusion that re-refines priors (how many: re-refine rounds; p50), one refinement = one "
+        "robot's; all = every fusion after one robot's new map, both kinds (p95, max). Without priors: "
         "the fusion that makes one alignment attempt per non-reference robot (p50, max; matched/attempts), "
         "one attempt (p50, max)",
         out,
