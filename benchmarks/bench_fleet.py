@@ -2,6 +2,7 @@
 bytes per robot per second against a 5 cm occupancy grid of the same area.
 
     .venv/bin/python benchmarks/bench_fleet.py [--only fusion|latency|bytes] [--quick]
+        [--robots 1 2 4 8 16 32 100] [--sizes 100 300 1000] [--reps 12] [--no-priors-max 16]
         [--agents 1 4 8 16] [--seconds 40] [--min-gap 0.05] [--profile] [--cache DIR] [--refresh]
         [--workdir DIR] [--out FILE]
 
@@ -15,9 +16,12 @@ fusion   ``Fleet.fuse`` in this process. A robot map of S segments is a row of r
          by side (:func:`tiles_for`); robot i starts its row at the i-th recorded map, so the
          robots' maps overlap like robots sharing one building. With start priors: the first
          fusion (places every robot, refining its prior), the steady state (one robot's new map:
-         its cross-particle fusion + the merge of all robots) and the periodic round that
-         re-refines every prior. Without priors: the fusion in which every robot but the
-         reference gets an alignment attempt, and each attempt alone.
+         its cross-particle fusion + the merge of what it changed) and the fusions that re-refine
+         priors (Fleet refines a few due robots per fusion: ``refine_budget_segments``); "all" is
+         every fusion after one robot's new map, both kinds. ``--robots``/``--sizes`` pick cases
+         (e.g. ``--robots 100 --sizes 1000``). Without priors (up to ``--no-priors-max`` robots):
+         the fusion in which every robot but the reference gets an alignment attempt, and each
+         attempt alone.
 latency  Real processes on loopback: a router, the map server (``--state`` in ``--workdir``), N
          load agents (one process each: ``robot_agent.agent.Publisher`` replaying a recording)
          publishing maps at 1 Hz and poses at 5 Hz with start priors, and this process subscribed
@@ -326,7 +330,7 @@ def fusion_with_priors(maps: list[RobotMap], reps: int) -> dict:
     if unplaced:
         raise RuntimeError(f"robots not placed by their priors: {unplaced}")
     seqs = [m.seq for m in maps]
-    plain, rounds, refinements = [], [], []
+    plain, rounds, refinements, all_ms = [], [], [], []
     for j in range(reps):
         i = j % len(maps)
         seqs[i] += 1
@@ -334,6 +338,7 @@ def fusion_with_priors(maps: list[RobotMap], reps: int) -> dict:
         with timed_alignments() as calls:
             dt, out = _fuse_timed(fleet, 1.0 + j)
         (rounds if calls else plain).append(dt * 1e3)
+        all_ms.append(dt * 1e3)
         refinements += [c[0] * 1e3 for c in calls]
     return {
         "segments_in": int(fused.extra.get("segments_in", -1)),
@@ -343,6 +348,7 @@ def fusion_with_priors(maps: list[RobotMap], reps: int) -> dict:
         "steady_ms": plain,
         "refine_round_ms": rounds,
         "refinement_ms": refinements,
+        "all_ms": all_ms,
     }
 
 
@@ -375,7 +381,11 @@ def fusion_without_priors(maps: list[RobotMap], reps: int) -> dict:
     }
 
 
-def bench_fusion(recs: list[Recording], robots: tuple, sizes: tuple, reps: int, align_reps: int) -> list:
+def bench_fusion(
+    recs: list[Recording], robots: tuple, sizes: tuple, reps: int, align_reps: int, no_priors_max: int = 16
+) -> list:
+    """Every ``robots`` × ``sizes`` case with priors; without priors only up to ``no_priors_max``
+    robots (every non-reference robot's attempt is a full search: minutes at 100 robots)."""
     rows = []
     for size in sizes:
         for n in robots:
@@ -384,7 +394,8 @@ def bench_fusion(recs: list[Recording], robots: tuple, sizes: tuple, reps: int, 
             elements = float(np.mean([len(np.unique(m.element)) for m in maps]))
             row = {"robots": n, "segments_per_robot": size, "elements_per_robot": elements}
             row["priors"] = fusion_with_priors(maps, reps)
-            row["no_priors"] = fusion_without_priors(maps, align_reps) if n > 1 else None
+            no_priors = 1 < n <= no_priors_max and align_reps > 0
+            row["no_priors"] = fusion_without_priors(maps, align_reps) if no_priors else None
             rows.append(row)
             print(f"  fusion: {n} robots x {size} segments done", flush=True)
     return rows
@@ -402,7 +413,10 @@ def print_fusion(rows: list) -> None:
             "robots": r["robots"], "seg/robot": r["segments_per_robot"], "elements": r["elements_per_robot"],
             "seg in (all)": p["segments_in"],
             "fused seg": p["fused_segments"], "first": p["first_ms"], "steady p50": _p(p["steady_ms"], 50),
-            "steady max": max(p["steady_ms"], default=None),
+            "steady p95": _p(p["steady_ms"], 95), "steady max": max(p["steady_ms"], default=None),
+            "all p95": _p(p["steady_ms"] + p["refine_round_ms"], 95),
+            "all max": max(p["steady_ms"] + p["refine_round_ms"], default=None),
+            "re-refine rounds": len(p["refine_round_ms"]),
             "re-refine round": _p(p["refine_round_ms"], 50), "one refinement": _p(p["refinement_ms"], 50),
             "no-prior fusion": _p(a.get("fuse_with_attempts_ms", []), 50),
             "no-prior max": max(a.get("fuse_with_attempts_ms", []), default=None),
@@ -413,8 +427,9 @@ def print_fusion(rows: list) -> None:
     table(
         "Fleet.fuse wall time (ms); seg = rows as sent (K = 5), elements = distinct per robot, seg in = "
         "after cross-particle fusion, all robots. With priors: first = places every robot (each prior "
-        "refined); steady = after one robot's new map (p50, max); re-refine round = the fusion that "
-        "re-refines every prior (each retry_interval_s), one refinement = one robot's. Without priors: "
+        "refined); steady = after one robot's new map, no refinement in it (p50, p95, max); re-refine "
+        "round = a fusion that re-refines priors (how many: re-refine rounds; p50), one refinement = one "
+        "robot's; all = every fusion after one robot's new map, both kinds (p95, max). Without priors: "
         "the fusion that makes one alignment attempt per non-reference robot (p50, max; matched/attempts), "
         "one attempt (p50, max)",
         out,
@@ -1006,6 +1021,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", type=float, default=5.0, help="latency: seconds after every robot is placed")
     ap.add_argument("--min-gap", type=float, default=0.05, help="the server's --min-gap (s between fusions)")
     ap.add_argument("--profile", action="store_true", help="latency: sample the server with py-spy")
+    ap.add_argument("--robots", type=int, nargs="+", default=None, help="fusion: robot counts (1 2 4 8 16)")
+    ap.add_argument(
+        "--sizes", type=int, nargs="+", default=None, help="fusion: segments per robot (100 300 1000)"
+    )
+    ap.add_argument("--reps", type=int, default=None, help="fusion: fusions after one robot's new map (12)")
+    ap.add_argument("--no-priors-max", type=int, default=16, help="fusion: most robots run without priors")
     ap.add_argument("--cache", type=Path, default=ROOT / "benchmarks" / "results" / "bench_fleet_maps")
     ap.add_argument("--refresh", action="store_true", help="record the simulated agents again")
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/bench_fleet"), help="logs and server state")
@@ -1027,8 +1048,12 @@ def main(argv: list[str] | None = None) -> int:
         ],
     }  # fmt: skip
     if "fusion" in sections:
-        robots, sizes = ((1, 4), (100, 300)) if q else ((1, 2, 4, 8, 16), (100, 300, 1000))
-        results["fusion"] = bench_fusion(recs, robots, sizes, reps=4 if q else 12, align_reps=1 if q else 2)
+        robots, sizes = ((1, 4), (100, 300)) if q else ((1, 2, 4, 8, 16, 32, 100), (100, 300, 1000))
+        robots, sizes = tuple(args.robots or robots), tuple(args.sizes or sizes)
+        reps = args.reps or (4 if q else 12)
+        results["fusion"] = bench_fusion(
+            recs, robots, sizes, reps=reps, align_reps=1 if q else 2, no_priors_max=args.no_priors_max
+        )
         print_fusion(results["fusion"])
     if "latency" in sections:
         rows = []

@@ -171,16 +171,22 @@ def estimate_alignment(
     prior_sigma: np.ndarray | None = None,
     current: Alignment | None = None,
     search: bool = True,
+    index: MapIndex | None = None,
+    robot_samples: tuple[Samples, Samples] | None = None,
 ) -> Alignment:
     """The robot's map frame in the global frame, from its directed segments ``robot_seg (N,2,2)``
     (its map frame) and the placed robots' fused map ``placed_seg (M,2,2)`` (global frame).
     ``search=False`` with a ``current`` alignment only refines it where it is (no candidate
-    search, so no revision to a distinct place): the maps changed shape, not size."""
+    search, so no revision to a distinct place): the maps changed shape, not size. ``index``: the
+    placed map's index when the caller has one (a crop, registration.MapIndex; without a search
+    only the index is used); ``robot_samples``: ``robot_seg``'s samples at ``cfg.sample_step_m``
+    and ``cfg.coarse_step_m`` when the caller keeps them."""
     robot_seg = np.asarray(robot_seg, float).reshape(-1, 2, 2)
     placed_seg = np.asarray(placed_seg, float).reshape(-1, 2, 2)
-    robot = Samples.of(robot_seg, cfg.sample_step_m)
-    coarse = Samples.of(robot_seg, cfg.coarse_step_m)
-    index = MapIndex(placed_seg, cfg.sample_step_m)
+    if robot_samples is None:
+        robot_samples = Samples.of(robot_seg, cfg.sample_step_m), Samples.of(robot_seg, cfg.coarse_step_m)
+    robot, coarse = robot_samples
+    index = MapIndex(placed_seg, cfg.sample_step_m) if index is None else index
     total = float(robot.length.sum())
     if prior is not None:
         sigma = np.zeros(3) if prior_sigma is None else np.asarray(prior_sigma, float)
@@ -236,6 +242,14 @@ def _revise(current: Alignment, cur: Scored, cands, robot_seg, index, robot, tot
             current.rival_ratio, "kept (not re-verified: " + "; ".join(cur_problems) + ")",
         )  # fmt: skip
     return _verdict("aligned", cur, total, ratio, f"kept and refined: overlap {cur.matched_m:.1f} m")
+
+
+def query_reach(cfg: AlignmentConfig) -> float:
+    """How far from a robot sample an attempt looks into the placed map, at most (registration's
+    gates, plus the along-line slack of the coarsest samples)."""
+    gates = [g for g, _ in cfg.refine_stages]
+    perps = (cfg.prescore_perp_m, cfg.score_perp_m, cfg.conflict_m, cfg.opposed_perp_m)
+    return max(*gates, *perps) + cfg.coarse_step_m
 
 
 def floored_prior_sigma(prior_sigma: np.ndarray, cfg: AlignmentConfig) -> np.ndarray:

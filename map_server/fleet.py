@@ -39,12 +39,24 @@ placed like any robot — by its prior, or by matching against the fused map, wh
 old piece: a robot that re-maps the same place aligns to it. At most ``max_retired`` pieces are
 kept per robot, the oldest dropped (logged); an old session that was never placed had nothing in
 the fused map and is dropped (logged).
+
+Cost: a fusion does what changed, not the whole fleet again (benchmarks/bench_fleet.py --only
+fusion; README, "Operating it"). The merge across robots is kept per connected component
+(incremental.py): a robot's new map or new transform re-merges the components its old and new
+segments touch, a common motion of a prior frame moves the merged segments. A refinement looks
+at the placed map near the robot only: the merge of the others is the fused map with the robot's
+own components re-merged without it, cropped to the robot map's box (registration.MapIndex answers
+exactly inside it; an attempt that strays out is done again on the whole map). Placed robots are
+refined a few at a time (``refine_budget_segments``), not all at once every ``retry_interval_s``;
+a robot is due again when its map or a placed map near it changed. Statuses and the change key's
+parts are made again only for robots whose map, pose or alignment changed.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,11 +67,14 @@ from map_server.alignment import (
     estimate_alignment,
     floored_prior_sigma,
     prior_gauge,
+    query_reach,
 )
 from map_server.candidates import mean_displacement
-from map_server.fusion import FusionConfig, fuse_particles, merge_segments
+from map_server.fusion import FusionConfig, fuse_particles
+from map_server.incremental import MergedMap, Source
+from map_server.registration import MapIndex, OutsideIndex, Samples
 from map_server.state import RetiredPiece, RobotState
-from shared.geometry import apply_segments, compose, wrap_angle
+from shared.geometry import compose, wrap_angle
 from shared.messages import FusedMap, PoseUpdate, RobotMap, RobotStatus
 
 log = logging.getLogger("fleet_slam.fleet")
@@ -88,6 +103,16 @@ class FleetConfig:
     settle_rounds: int = 8
     settle_m: float = 1e-3
     settle_rad: float = 1e-4
+    # a placed robot is refined against the placed map near it (module docstring: "Cost"): the
+    # crop reaches this much beyond the robot map's box at its starting pose (plus the gates)
+    refine_margin_m: float = 2.0
+    # refinements of placed robots (not urgent) are spread over the fusions: a fusion refines
+    # due robots, the first in arrival order whose turn it is, until they add up to this many
+    # layer segments (the first one always: its cost grows with its map); the others wait for the
+    # next fusion (each waits ``retry_interval_s`` after its own last attempt, so every due robot
+    # gets its turn). 100 robots x 1,000 rows: one refinement (~450 segments) per fusion instead
+    # of a round of 100 every ``retry_interval_s``; office-sized maps: several
+    refine_budget_segments: int = 600
 
 
 class Fleet:
@@ -103,6 +128,11 @@ class Fleet:
         self._content: tuple | None = None
         self._arrivals = 0
         self._left = False  # a robot left since the last fusion: settle (not persisted)
+        self._merged = MergedMap(cfg.fusion)  # the merge of the placed layers, kept up to date
+        self._budget = cfg.refine_budget_segments  # layer segments left to refine in this fusion
+        self._statuses: dict[str, tuple] = {}  # robot -> (what its status is made of, status, key)
+        self._entries: dict[tuple, tuple] = {}  # parts of _placed_key, per robot or retired piece
+        self._samples: dict[str, tuple] = {}  # robot -> (layer, its samples for alignment attempts)
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -173,6 +203,7 @@ class Fleet:
         """Recompute alignments where warranted, then the fused map; ``None`` if nothing changed."""
         if self.epoch_s is None:
             self.epoch_s = now_s
+        self._budget = self.cfg.refine_budget_segments
         for r in self.robots.values():
             if r.map is not None and r.layer is None:
                 r.layer = fuse_particles(r.map, self.cfg.fusion)
@@ -237,20 +268,80 @@ class Fleet:
         first.alignment = Alignment("reference", np.zeros(3), np.zeros(3), reason="first non-empty map")
         first.mark_placed(now_s - self.epoch_s)
 
-    def _global_segments(self, exclude: str) -> np.ndarray:
-        """The fused map of the placed robots except ``exclude``, with every retired piece (its
-        own too): what a robot is aligned to."""
-        seg, w, owner = self._stack([r for r in self._placed() if r.robot != exclude] + self._pieces())
-        return merge_segments(seg, w, owner, self.cfg.fusion)[0]
+    def _sources(self) -> list[Source]:
+        """What the fused map merges, in the order of the merge: the placed robots by name, then
+        the retired pieces."""
+        robots = sorted(self._placed(), key=lambda r: r.robot)
+        out = [Source(("robot", r.robot), r.robot, r.layer, r.alignment.transform) for r in robots]
+        pieces = self._pieces()
+        return out + [
+            Source(("piece", p.robot, p.session), p.robot, p.layer, p.alignment.transform) for p in pieces
+        ]
 
-    def _stack(self, placed: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Placed robots' (or retired pieces') layers in the global frame, weights, owner index."""
-        seg = [apply_segments(r.alignment.transform, r.layer.seg) for r in placed]
-        w = [r.layer.weight for r in placed]
-        owner = [np.full(len(r.layer), i) for i, r in enumerate(placed)]
-        if not seg:
-            return np.zeros((0, 2, 2)), np.zeros(0), np.zeros(0, np.int64)
-        return np.concatenate(seg), np.concatenate(w), np.concatenate(owner)
+    def _synced(self, hold: str | None = None) -> MergedMap:
+        """The merge brought up to date (but for robot ``hold``'s own layer: see _global_segments)."""
+        self._merged.update(self._sources(), hold=None if hold is None else ("robot", hold))
+        return self._merged
+
+    def _turns(self, placed: list[RobotState], key_of, now_s: float) -> set[int]:
+        """Which placed robots due for a refinement get it in this fusion: first those waiting
+        twice ``retry_interval_s`` or more, then those whose own map changed, the newest map first
+        (a robot whose map just came: its new layer and its new place are merged in one go), then
+        in arrival order; until their layers add up to ``refine_budget_segments`` (the first
+        always)."""
+        due = [r for r in placed if r.alignment.status != "reference" and r.due(self.cfg, *key_of(r), now_s)]
+        overdue = 2.0 * self.cfg.retry_interval_s
+
+        def rank(r: RobotState) -> tuple:
+            newest = -r.lengths[-1][0] if r.lengths else 0.0
+            return now_s - r.attempt_s < overdue, r.map.seq == r.attempt_seq, newest, r.order
+
+        turn: set[int] = set()
+        for r in sorted(due, key=rank):
+            spent = self._budget < self.cfg.refine_budget_segments  # in this round or an earlier one
+            if spent and len(r.layer) > self._budget:
+                continue
+            turn.add(id(r))
+            self._budget -= len(r.layer)
+        return turn
+
+    def _global_segments(self, exclude: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None):
+        """The fused map of the placed robots except ``exclude``, with every retired piece (its
+        own too): what a robot is aligned to (only the segments whose box meets ``lo``-``hi``
+        when given)."""
+        # the robot's own changes need not be merged for this: the next merge takes them with its
+        # new place at once
+        return self._synced(hold=exclude).without(("robot", exclude), lo, hi)
+
+    def _estimate(self, r: RobotState, prior, sigma, current: Alignment | None, search: bool) -> Alignment:
+        """An alignment attempt. A refinement where the robot is (from its prior, or from its
+        current place without a search) looks at the placed map near the robot map only: every
+        query stays within ``query_reach`` of the robot map's samples, and the index is a crop
+        that answers exactly there (registration.MapIndex); one that strays out of it is done again
+        against the whole map."""
+        c = self.cfg.alignment
+        start = prior if prior is not None else (None if search or current is None else current.transform)
+        samples = self._samples.get(r.robot)
+        if samples is None or samples[0] is not r.layer:
+            fine, coarse = Samples.of(r.layer.seg, c.sample_step_m), Samples.of(r.layer.seg, c.coarse_step_m)
+            samples = self._samples[r.robot] = (r.layer, (fine, coarse))
+        kw = {"robot_samples": samples[1]}
+        if start is not None and len(r.layer):
+            box = _global_box(r.layer.bounds[None], np.asarray(start, float)[None])[0]
+            reach = query_reach(c)
+            lo, hi = box[:2] - self.cfg.refine_margin_m, box[2:] + self.cfg.refine_margin_m
+            near = self._global_segments(r.robot, lo - reach, hi + reach)
+            if len(near):
+                index = MapIndex(near, c.sample_step_m, inner=(lo, hi))
+                try:
+                    return estimate_alignment(
+                        r.layer.seg, near, c, prior, sigma, current, search, index=index, **kw
+                    )
+                except OutsideIndex:
+                    log.debug("%s: refinement left its crop; done against the whole placed map", r.robot)
+        return estimate_alignment(
+            r.layer.seg, self._global_segments(r.robot), c, prior, sigma, current, search, **kw
+        )
 
     def _align_round(self, now_s: float, urgent: bool = False) -> bool:
         """One pass over the robots that deserve an attempt; True if a robot got placed.
@@ -259,26 +350,48 @@ class Fleet:
         is taken this round; the others are tried again against the grown placed map — a robot
         matched against more of the fleet has fewer mirror images to fall for."""
         fresh: list[tuple[RobotState, Alignment, float, str]] = []
+        pieces = self._pieces()
+        if len(self._entries) > 2 * (len(self.robots) + len(pieces)) + 16:  # forget replaced pieces
+            self._entries = {(r.robot, None): self._entries[(r.robot, None)] for r in self.robots.values()
+                             if (r.robot, None) in self._entries}  # fmt: skip
+        placed = self._placed()
+        around = _Around(placed + pieces, self.cfg.refine_margin_m)
+        pieces_m = sum(p.layer.length_m for p in pieces)
+        keys: dict[int, tuple[float, _Key]] = {}
+        placed_total = sum(p.layer.length_m for p in placed)
+        placed_ids = {id(p) for p in placed}
+
+        def key_of(r: RobotState) -> tuple[float, _Key]:
+            if id(r) not in keys:
+                if id(r) in placed_ids:
+                    placed_m = placed_total - r.layer.length_m + pieces_m
+                else:
+                    placed_m = placed_total + pieces_m
+                keys[id(r)] = (
+                    placed_m,
+                    _Key(r, lambda: [p for p in placed if p is not r] + pieces, around, self._entries),
+                )
+            return keys[id(r)]
+
+        turn = None if urgent else self._turns(placed, key_of, now_s)
         for r in self._ordered():
             if r.layer is None or r.alignment.status == "reference":
                 continue
             prior = r.map.prior if self.frame == "prior" else None
-            others = [p for p in self._placed() if p.robot != r.robot]
-            against = others + self._pieces()
-            placed_m = sum(p.layer.length_m for p in against)
-            key = _placed_key(against)
+            placed_m, key = key_of(r)
             if not r.due(self.cfg, placed_m, key, now_s, urgent):
                 continue
+            if turn is not None and r.alignment.placed and id(r) not in turn:
+                continue  # a refinement whose turn comes in a later fusion
+            key = key()
+            others = [p for p in placed if p is not r]
             if prior is None and not r.alignment.placed and not self._mature([r, *others], now_s):
                 if r.alignment.score_m == 0.0:  # no candidate to report yet: say why
                     r.alignment = Alignment("unaligned", np.zeros(3), np.zeros(3), reason=self._waiting)
                 continue  # not even attempted: a young map's match is not evidence yet
             current = r.alignment if r.alignment.status == "aligned" else None
             sigma = r.map.prior_sigma if prior is not None else None
-            a = estimate_alignment(
-                r.layer.seg, self._global_segments(r.robot), self.cfg.alignment, prior, sigma, current,
-                search=current is None or r.grew(self.cfg),
-            )  # fmt: skip
+            a = self._estimate(r, prior, sigma, current, search=current is None or r.grew(self.cfg))
             if not r.alignment.placed or a.status != r.alignment.status:  # why a robot is (not) placed
                 log.info("%s: attempt at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
             if a.status == "aligned" and not r.alignment.placed:
@@ -293,6 +406,9 @@ class Fleet:
             r.alignment = a
             if a.placed and not was_placed:
                 r.mark_placed(now_s - self.epoch_s)
+                placed = self._placed()
+                placed_total = sum(p.layer.length_m for p in placed)
+                placed_ids = {id(p) for p in placed}
         if not fresh:
             return False
         for f in fresh:
@@ -321,6 +437,7 @@ class Fleet:
         moved = np.linalg.norm(compose(g, t)[:, :2] - t[:, :2], axis=1).max()
         if moved < 1e-3 and abs(g[2]) < 1e-4:
             return
+        self._synced()
         for r in placed:
             a = dataclasses.replace(r.alignment, transform=compose(g, r.alignment.transform))
             if isinstance(r, RetiredPiece):
@@ -328,6 +445,7 @@ class Fleet:
                 pieces[pieces.index(r)] = dataclasses.replace(r, alignment=a)
             else:
                 r.alignment = a
+        self._merged.moved(g, self._sources())
 
     @property
     def _waiting(self) -> str:
@@ -378,26 +496,32 @@ class Fleet:
             len(r.layer) if r.layer is not None else 0, transform, sigma, pose, stamp, r.aligned_at_s,
         )  # fmt: skip
 
+    def _status_row(self, r: RobotState) -> tuple[RobotStatus | None, tuple]:
+        """The robot's status and its part of the content key, made again only when what they are
+        made of changed (those objects are replaced on a change, never modified)."""
+        made_of = (r.map, r.pose, r.alignment, r.layer, r.online, r.aligned_at_s)
+        cached = self._statuses.get(r.robot)
+        if cached is not None and all(a is b for a, b in zip(cached[0], made_of, strict=True)):
+            return cached[1], cached[2]
+        s = self._status(r)
+        key = () if s is None else (
+            s.robot, s.status, s.online, s.session, s.map_seq, s.n_elements, s.transform.tobytes(),
+            s.sigma.tobytes(), s.aligned_at_s,
+        )  # fmt: skip
+        self._statuses[r.robot] = (made_of, s, key)
+        return s, key
+
     def _build(self) -> tuple[tuple, tuple, dict]:
         """The fused content: robot table, merged arrays, and the key that says if it changed."""
-        table = [s for s in (self._status(r) for _, r in sorted(self.robots.items())) if s is not None]
+        rows = [self._status_row(r) for _, r in sorted(self.robots.items())]
+        table = [s for s, _ in rows if s is not None]
         row = {s.robot: i for i, s in enumerate(table)}
-        robots, pieces = sorted(self._placed(), key=lambda r: r.robot), self._pieces()
-        placed = robots + pieces
-        seg, w, owner = self._stack(placed)
-        to_row = np.array([row[r.robot] for r in placed], np.int64)
-        fseg, support, off, prov = merge_segments(
-            seg, w, to_row[owner] if len(owner) else owner, self.cfg.fusion
-        )
-        arrays = (fseg, support, off, prov)
-        key = tuple(a.tobytes() for a in arrays) + tuple(
-            (s.robot, s.status, s.online, s.session, s.map_seq, s.n_elements, s.transform.tobytes(),
-             s.sigma.tobytes(), s.aligned_at_s)
-            for s in table
-        )  # fmt: skip
+        merged = self._synced()
+        arrays = merged.result(row)
+        key = tuple(a.tobytes() for a in arrays) + tuple(k for s, k in rows if s is not None)
         extra = {
-            "robots_merged": float(len(robots)), "segments_in": float(len(seg)),
-            "retired_pieces": float(len(pieces)),
+            "robots_merged": float(len(self._placed())), "segments_in": float(len(merged)),
+            "retired_pieces": float(len(self._pieces())),
         }  # fmt: skip
         return tuple(table), arrays, {"key": key, "extra": extra}
 
@@ -460,10 +584,71 @@ class Fleet:
         return f
 
 
-def _placed_key(placed: list[RobotState]) -> str:
-    """Which robots are placed, how long their maps are and where: changes when the map a robot
-    is aligned against changes."""
-    return ";".join(
-        f"{r.robot}:{r.layer.length_m:.3f}:" + ":".join(f"{v:.5f}" for v in r.alignment.transform)
-        for r in placed
-    )
+def _global_box(bounds: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+    """Boxes ``(N,4)`` (x0, y0, x1, y1) in the global frame around map-frame boxes ``bounds (N,4)``
+    moved by ``transforms (N,3)``."""
+    corners = bounds[:, [[0, 1], [2, 1], [2, 3], [0, 3]]]  # (N,4,2)
+    c, s = np.cos(transforms[:, 2])[:, None], np.sin(transforms[:, 2])[:, None]
+    x = c * corners[..., 0] - s * corners[..., 1] + transforms[:, 0, None]
+    y = s * corners[..., 0] + c * corners[..., 1] + transforms[:, 1, None]
+    return np.column_stack([x.min(axis=1), y.min(axis=1), x.max(axis=1), y.max(axis=1)])
+
+
+class _Around:
+    """Which placed maps (robots and retired pieces) are near which, from their global boxes at the
+    start of a round (computed once, when first needed): a box grown by ``margin_m`` meets the
+    other's box."""
+
+    def __init__(self, items: list, margin_m: float):
+        self.items, self.margin_m = items, margin_m
+        self._row = {id(x): i for i, x in enumerate(items)}
+        self._meet: np.ndarray | None = None
+
+    def near(self, r: RobotState) -> list | None:
+        """The maps near placed robot ``r`` (itself included), or None if it is not one of them."""
+        i = self._row.get(id(r))
+        if i is None:
+            return None
+        if self._meet is None:
+            bounds = np.array([x.layer.bounds for x in self.items])
+            box = _global_box(bounds, np.array([x.alignment.transform for x in self.items]))
+            grown = box + np.array([-1.0, -1.0, 1.0, 1.0]) * self.margin_m
+            self._meet = (grown[:, None, 0] <= box[None, :, 2]) & (grown[:, None, 2] >= box[None, :, 0])
+            self._meet &= (grown[:, None, 1] <= box[None, :, 3]) & (grown[:, None, 3] >= box[None, :, 1])
+        return [self.items[j] for j in np.flatnonzero(self._meet[i])]
+
+
+class _Key:
+    """What robot ``r`` is aligned against, as a string that changes when that changes (lazily:
+    most checks do not need it): the placed maps — robots and retired pieces — with their lengths
+    and places; for a placed robot only those near it (:class:`_Around`): a map far away does not
+    change where the robot fits."""
+
+    def __init__(self, r: RobotState, against: Callable[[], list], around: _Around, entries: dict):
+        self.r, self.against, self.around, self.entries = r, against, around, entries
+        self._text: str | None = None
+
+    def __call__(self) -> str:
+        if self._text is None:
+            near = self.around.near(self.r) if self.r.alignment.placed else None
+            if near is not None:  # the maps near it at the start of the round but itself
+                near = [p for p in near if p is not self.r]
+            self._text = _placed_key(self.against() if near is None else near, self.entries)
+        return self._text
+
+
+def _placed_key(placed: list, entries: dict | None = None) -> str:
+    """Which maps are placed, how long they are and where. ``entries``: a cache of each map's
+    part, per robot or retired piece (its layer and alignment are replaced on a change, never
+    modified, so the part is formatted again only then)."""
+    out = []
+    for r in placed:
+        k = (r.robot, getattr(r, "session", None))
+        hit = entries.get(k) if entries is not None else None
+        if hit is None or hit[0] is not r.layer or hit[1] is not r.alignment:
+            text = f"{r.robot}:{r.layer.length_m:.3f}:" + ":".join(f"{v:.5f}" for v in r.alignment.transform)
+            hit = (r.layer, r.alignment, text)
+            if entries is not None:
+                entries[k] = hit
+        out.append(hit[2])
+    return ";".join(out)

@@ -17,6 +17,7 @@ two faces of a thin wall never merge.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -64,9 +65,17 @@ class RobotLayer:
         z = np.zeros(0)
         return cls(np.zeros((0, 2, 2)), z, z, z, np.zeros(0, np.int64), np.zeros(0, np.int64))
 
-    @property
+    @cached_property
     def length_m(self) -> float:
         return float(segment_lengths(self.seg).sum())
+
+    @cached_property
+    def bounds(self) -> np.ndarray:
+        """``(4,)`` x0, y0, x1, y1 of the segments' bounding box in the map frame (zeros if none)."""
+        if len(self.seg) == 0:
+            return np.zeros(4)
+        pts = self.seg.reshape(-1, 2)
+        return np.r_[pts.min(axis=0), pts.max(axis=0)]
 
 
 def _bits(masks: np.ndarray, k: int) -> np.ndarray:
@@ -143,24 +152,65 @@ def _candidate_pairs(seg: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.n
     return i[idx], j[idx]
 
 
+def _ranges(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(row, k)`` for every ``k`` in ``[start[row], end[row])``."""
+    cnt = np.maximum(end - start, 0)
+    row = np.repeat(np.arange(len(start)), cnt)
+    k = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt) + np.repeat(start, cnt)
+    return row, k
+
+
+def box_pairs(a_box: np.ndarray, b_box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs ``(ia, jb)`` of boxes ``(x0, y0, x1, y1)`` of two sets that meet (edges included): one
+    sweep per side — ``b`` starts (in x) within ``a``, or ``a`` starts strictly after ``b`` does and
+    within it."""
+    ob = np.argsort(b_box[:, 0], kind="stable")
+    bx = b_box[ob, 0]
+    ia1, k = _ranges(np.searchsorted(bx, a_box[:, 0], "left"), np.searchsorted(bx, a_box[:, 2], "right"))
+    jb1 = ob[k]
+    oa = np.argsort(a_box[:, 0], kind="stable")
+    ax = a_box[oa, 0]
+    jb2, k = _ranges(np.searchsorted(ax, b_box[:, 0], "right"), np.searchsorted(ax, b_box[:, 2], "right"))
+    ia2 = oa[k]
+    ia, jb = np.concatenate([ia1, ia2]), np.concatenate([jb1, jb2])
+    ok = (a_box[ia, 1] <= b_box[jb, 3]) & (b_box[jb, 1] <= a_box[ia, 3])
+    return ia[ok], jb[ok]
+
+
 def collinear_pairs(seg: np.ndarray, cfg: FusionConfig) -> tuple[np.ndarray, np.ndarray]:
     """Pairs ``(i, j)`` of directed segments that are one wall (see :class:`FusionConfig`)."""
-    i, j = _candidate_pairs(seg, cfg.merge_gap_m + cfg.merge_perp_m)
-    length = segment_lengths(seg)
-    swap = length[j] > length[i]  # a = the longer one, b = the shorter
+    i, j = _candidate_pairs(seg, pair_margin(cfg))
+    ok = collinear(seg, i, j, cfg)
+    return i[ok], j[ok]
+
+
+def pair_margin(cfg: FusionConfig) -> float:
+    """Two segments that are one wall have bounding boxes that meet once grown by this much."""
+    return cfg.merge_gap_m + cfg.merge_perp_m
+
+
+def collinear(seg: np.ndarray, i: np.ndarray, j: np.ndarray, cfg: FusionConfig) -> np.ndarray:
+    """Mask ``(K,)``: whether segments ``i (K,)`` and ``j (K,)`` of ``seg`` are one wall."""
+    length = segment_lengths(seg[i]), segment_lengths(seg[j])
+    swap = length[1] > length[0]  # a = the longer one, b = the shorter ...
+    tie = np.flatnonzero(length[1] == length[0])  # ... of equal ones the first by coordinates,
+    if len(tie):  # so that the test does not depend on which one comes first
+        d = (seg[j[tie]] - seg[i[tie]]).reshape(-1, 4)
+        swap[tie] = d[np.arange(len(tie)), np.argmax(d != 0, axis=1)] < 0
     a, b = np.where(swap, j, i), np.where(swap, i, j)
+    la_raw, lb = np.where(swap, length[1], length[0]), np.where(swap, length[0], length[1])
     da = seg[a, 1] - seg[a, 0]
-    la = np.maximum(length[a], 1e-12)
+    la = np.maximum(la_raw, 1e-12)
     u = da / la[:, None]  # unit direction of the longer segment
     rel = seg[b] - seg[a, None, 0]  # (K,2,2) the shorter one's endpoints from a's start
     t = np.sum(rel * u[:, None, :], axis=-1)  # along a
     perp = u[:, None, 0] * rel[..., 1] - u[:, None, 1] * rel[..., 0]  # left of a
     db = seg[b, 1] - seg[b, 0]
-    cos_ab = np.sum(u * db, axis=-1) / np.maximum(length[b], 1e-12)
+    cos_ab = np.sum(u * db, axis=-1) / np.maximum(lb, 1e-12)
     gap = np.maximum(t.min(axis=1) - la, -t.max(axis=1))  # < 0: they overlap
     ok = (cos_ab >= np.cos(cfg.merge_angle_rad)) & (np.abs(perp).max(axis=1) <= cfg.merge_perp_m)
     ok &= gap <= cfg.merge_gap_m
-    return i[ok], j[ok]
+    return ok
 
 
 def _group_lines(seg: np.ndarray, weight: np.ndarray, group: np.ndarray, n_groups: int) -> tuple:
@@ -202,17 +252,43 @@ def merge_segments(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Merge directed global-frame segments ``seg (N,2,2)`` (evidence ``weight (N,)``, owner
     ``robot (N,)``) into ``seg (M,2,2)``, ``support (M,)`` members per segment, and provenance
-    as CSR: ``prov_offsets (M+1,)``, ``prov_robot (L,)`` sorted unique robots per segment."""
+    as CSR: ``prov_offsets (M+1,)``, ``prov_robot (L,)`` sorted unique robots per segment. The
+    merged segments come in the order of their first member."""
     seg = np.asarray(seg, float).reshape(-1, 2, 2)
     n = len(seg)
     if n == 0:
         return np.zeros((0, 2, 2)), np.zeros(0, np.int64), np.zeros(1, np.int64), np.zeros(0, np.int64)
     i, j = collinear_pairs(seg, cfg)
+    n_comp, comp = components(n, i, j)
+    group, out = merge_groups(seg, weight, comp, n_comp, cfg)
+    support, offsets, prov = provenance(group, robot, len(out))
+    return out, support, offsets, prov
+
+
+def components(n: int, i: np.ndarray, j: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of ``n`` nodes joined by the pairs ``(i, j)``: count and labels."""
     graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
-    n_groups, group = connected_components(graph, directed=False)
-    centre, u = _group_lines(seg, weight, group, n_groups)
-    group = _split_outliers(seg, group, centre, u, cfg)
+    n_comp, comp = connected_components(graph, directed=False)
+    return int(n_comp), comp
+
+
+def merge_groups(
+    seg: np.ndarray, weight: np.ndarray, comp: np.ndarray, n_comp: int, cfg: FusionConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each connected component of collinear pairs (``comp (N,)`` labels) as one segment, refitted;
+    members too far from their component's line (:func:`_split_outliers`) on their own. Returns
+    every member's group ``(N,)`` and the groups' segments ``(G,2,2)``, groups numbered in the order
+    of their first member. A group depends only on its members and their order, not on the other
+    components (map_server/incremental.py merges components apart)."""
+    n = len(seg)
+    centre, u = _group_lines(seg, weight, comp, n_comp)
+    group = _split_outliers(seg, comp, centre, u, cfg)
     n_groups = int(group.max()) + 1
+    first = np.full(n_groups, n)
+    np.minimum.at(first, group, np.arange(n))
+    rank = np.empty(n_groups, np.int64)
+    rank[np.argsort(first)] = np.arange(n_groups)
+    group = rank[group]
     centre, u = _group_lines(seg, weight, group, n_groups)
     # extent: the union of the members' endpoint projections on the group's line
     t = np.sum((seg - centre[group][:, None, :]) * u[group][:, None, :], axis=-1)
@@ -220,8 +296,22 @@ def merge_segments(
     hi = np.full(n_groups, -np.inf)
     np.minimum.at(lo, group, t.min(axis=1))
     np.maximum.at(hi, group, t.max(axis=1))
-    out = np.stack([centre + lo[:, None] * u, centre + hi[:, None] * u], axis=1)
+    return group, np.stack([centre + lo[:, None] * u, centre + hi[:, None] * u], axis=1)
+
+
+def provenance(group: np.ndarray, robot: np.ndarray, n_groups: int) -> tuple:
+    """Members per group ``(G,)`` and the sorted unique robots per group as CSR."""
     support = np.bincount(group, minlength=n_groups).astype(np.int64)
-    pairs = np.unique(np.column_stack([group, np.asarray(robot, np.int64)]), axis=0)  # sorted
+    pairs = unique_pairs(group, np.asarray(robot, np.int64))  # sorted
     offsets = np.r_[0, np.cumsum(np.bincount(pairs[:, 0], minlength=n_groups))].astype(np.int64)
-    return out, support, offsets, pairs[:, 1].copy()
+    return support, offsets, pairs[:, 1].copy()
+
+
+def unique_pairs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The distinct pairs ``(a, b)`` of non-negative integers, sorted, as ``(P,2)``
+    (``np.unique(..., axis=0)`` on one integer key)."""
+    if len(a) == 0:
+        return np.zeros((0, 2), np.int64)
+    span = int(b.max()) + 1
+    key = np.unique(a.astype(np.int64) * span + b)
+    return np.column_stack([key // span, key % span])

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from map_server.fusion import box_pairs
 from shared.geometry import sample_segments, segment_directions, segment_lengths, transform_points, wrap_angle
 
 NEIGHBOURS = 8  # placed samples examined per robot sample (the nearest within the gate)
@@ -52,13 +53,55 @@ class Samples:
         return len(self.points)
 
 
-class MapIndex:
-    """The placed map's samples in a k-d tree, and its segments for the crossing test."""
+class OutsideIndex(Exception):
+    """A query reached beyond the region a cropped :class:`MapIndex` answers exactly for."""
 
-    def __init__(self, seg: np.ndarray, step_m: float):
+
+class MapIndex:
+    """The placed map's samples in a k-d tree, and its segments for the crossing test.
+
+    ``inner (lo (2,), hi (2,))``: the index holds a crop of the placed map — every segment whose
+    bounding box meets the inner box grown by ``reach`` — and answers like the whole map for query
+    points inside the inner box, as long as no query looks farther than ``reach``; a query point
+    outside raises :class:`OutsideIndex` (the caller asks the whole map instead)."""
+
+    def __init__(self, seg: np.ndarray, step_m: float, inner: tuple[np.ndarray, np.ndarray] | None = None):
         self.seg = np.asarray(seg, float).reshape(-1, 2, 2)
         self.samples = Samples.of(self.seg, step_m)
         self.tree = cKDTree(self.samples.points) if len(self.samples) else None
+        self.inner = inner
+        self.box = np.concatenate([self.seg.min(axis=1), self.seg.max(axis=1)], axis=1)  # (P,4)
+        ps = self.samples  # columns apart: gathers and products without (K, NEIGHBOURS, 2) temporaries
+        self._nx, self._ny = ps.normal[:, 0].copy(), ps.normal[:, 1].copy()
+        self._px, self._py = ps.points[:, 0].copy(), ps.points[:, 1].copy()
+        self._last: tuple | None = None  # the last _near() (robot, pose, bound, d, answer)
+
+    def _near(self, pose: np.ndarray, robot: Samples, q: np.ndarray, bound: float) -> tuple:
+        """The nearest placed samples (at most NEIGHBOURS) within ``bound`` of the query points
+        ``q`` (``robot``'s samples at ``pose``): ``valid (K,N)``, indices ``j (K,N)`` (0 where not
+        valid), facing difference ``dang (K,N)`` and distance to their lines ``perp (K,N)``. The
+        nearest within a smaller bound are the nearest within a larger one that lie within it, so
+        the last query (strict scoring, then the contradiction checks at the same pose) serves
+        the next ones with a bound no larger."""
+        last = self._last
+        if last is not None and last[0] is robot and bound <= last[2] and np.array_equal(last[1], pose):
+            valid, j, dang, perp = last[4]
+            return (valid if bound == last[2] else valid & (last[3] <= bound)), j, dang, perp
+        d, j = self.tree.query(q, k=NEIGHBOURS, distance_upper_bound=bound)
+        valid = j < len(self.samples)
+        j = np.where(valid, j, 0)
+        dang = np.abs(wrap_angle(robot.facing[:, None] + pose[2] - self.samples.facing[j]))
+        perp = np.abs(self._nx[j] * q[:, None, 0] + self._ny[j] * q[:, None, 1] - self.samples.offset[j])
+        answer = valid, j, dang, perp
+        self._last = (robot, np.array(pose, float), bound, d, answer)
+        return answer
+
+    def _inside(self, q: np.ndarray) -> None:
+        if self.inner is None or len(q) == 0:
+            return
+        lo, hi = self.inner
+        if (q.min(axis=0) < lo).any() or (q.max(axis=0) > hi).any():
+            raise OutsideIndex
 
     def match(
         self, pose: np.ndarray, robot: Samples, gate_m: float, angle_rad: float
@@ -70,6 +113,7 @@ class MapIndex:
         if self.tree is None or k == 0:
             return np.zeros(k, bool), np.zeros(k, int), np.zeros(k)
         q = transform_points(pose, robot.points)
+        self._inside(q)
         _, j = self.tree.query(q, k=NEIGHBOURS, distance_upper_bound=gate_m)
         valid = j < len(self.samples)
         j = np.where(valid, j, 0)
@@ -78,8 +122,8 @@ class MapIndex:
         good = valid & (dang <= angle_rad)
         first = np.argmax(good, axis=1)
         idx = j[np.arange(k), first]
-        perp = np.sum(ps.normal[idx] * q, axis=-1) - ps.offset[idx]
-        return good.any(axis=1), idx, perp
+        perp = self._nx[idx] * q[:, 0] + self._ny[idx] * q[:, 1] - ps.offset[idx]
+        return _any_row(good), idx, perp
 
     def overlap(self, pose: np.ndarray, robot: Samples, perp_m: float, angle_rad: float) -> float:
         """Robot-map length [m] lying on the placed map at ``pose``."""
@@ -96,16 +140,12 @@ class MapIndex:
         if self.tree is None or k == 0:
             return np.zeros(k, bool), np.zeros(k, bool)
         q = transform_points(pose, robot.points)
-        _, j = self.tree.query(q, k=NEIGHBOURS, distance_upper_bound=max(conflict_m, perp_m))
-        valid = j < len(self.samples)
-        j = np.where(valid, j, 0)
-        ps = self.samples
-        dang = np.abs(wrap_angle(robot.facing[:, None] + pose[2] - ps.facing[j]))
-        perp = np.abs(np.sum(ps.normal[j] * q[:, None, :], axis=-1) - ps.offset[j])
-        dist = np.hypot(*(q[:, None, :] - ps.points[j]).transpose(2, 0, 1))
+        self._inside(q)
+        valid, j, dang, perp = self._near(pose, robot, q, max(conflict_m, perp_m))
+        dist = np.hypot(q[:, None, 0] - self._px[j], q[:, None, 1] - self._py[j])
         gate = np.hypot(perp_m, robot_step(robot))
-        on = (valid & (dang <= angle_rad) & (perp <= perp_m) & (dist <= gate)).any(axis=1)
-        near = (valid & (dang < OTHER_FACE_RAD)).any(axis=1)
+        on = _any_row(valid & (dang <= angle_rad) & (perp <= perp_m) & (dist <= gate))
+        near = _any_row(valid & (dang < OTHER_FACE_RAD))
         return on, near | on
 
     def opposed(self, pose: np.ndarray, robot: Samples, perp_m: float) -> float:
@@ -114,13 +154,9 @@ class MapIndex:
         if self.tree is None or len(robot) == 0:
             return 0.0
         q = transform_points(pose, robot.points)
-        _, j = self.tree.query(q, k=NEIGHBOURS, distance_upper_bound=np.hypot(perp_m, robot_step(robot)))
-        valid = j < len(self.samples)
-        j = np.where(valid, j, 0)
-        ps = self.samples
-        dang = np.abs(wrap_angle(robot.facing[:, None] + pose[2] - ps.facing[j]))
-        perp = np.abs(np.sum(ps.normal[j] * q[:, None, :], axis=-1) - ps.offset[j])
-        bad = (valid & (dang >= OTHER_FACE_RAD) & (perp <= perp_m)).any(axis=1)
+        self._inside(q)
+        valid, _, dang, perp = self._near(pose, robot, q, float(np.hypot(perp_m, robot_step(robot))))
+        bad = _any_row(valid & (dang >= OTHER_FACE_RAD) & (perp <= perp_m))
         return float(robot.length[bad].sum())
 
     def crossings(self, moved: np.ndarray, margin_m: float, min_angle_rad: float) -> np.ndarray:
@@ -128,26 +164,35 @@ class MapIndex:
         segment: both cut more than ``margin_m`` from their ends at more than ``min_angle_rad``
         — two walls cannot pass through each other."""
         r, p = len(moved), len(self.seg)
+        self._inside(moved.reshape(-1, 2))
         out = np.zeros(r, bool)
         if r == 0 or p == 0:
             return out
-        rows = max(1, CROSS_CHUNK_PAIRS // p)
-        b0, e = self.seg[:, 0], self.seg[:, 1] - self.seg[:, 0]
-        lb = np.maximum(segment_lengths(self.seg), 1e-12)
-        for s in range(0, r, rows):
-            a0 = moved[s : s + rows, 0][:, None]
-            d = (moved[s : s + rows, 1] - moved[s : s + rows, 0])[:, None]
-            la = np.maximum(segment_lengths(moved[s : s + rows]), 1e-12)[:, None]
-            denom = d[..., 0] * e[None, :, 1] - d[..., 1] * e[None, :, 0]
-            w = b0[None] - a0
+        # only segments whose boxes meet can cross
+        ia, jb = box_pairs(np.concatenate([moved.min(axis=1), moved.max(axis=1)], axis=1), self.box)
+        for s in range(0, len(ia), CROSS_CHUNK_PAIRS):
+            a, b = ia[s : s + CROSS_CHUNK_PAIRS], jb[s : s + CROSS_CHUNK_PAIRS]
+            a0, d = moved[a, 0], moved[a, 1] - moved[a, 0]
+            b0, e = self.seg[b, 0], self.seg[b, 1] - self.seg[b, 0]
+            la = np.maximum(segment_lengths(moved[a]), 1e-12)
+            lb = np.maximum(segment_lengths(self.seg[b]), 1e-12)
+            denom = d[:, 0] * e[:, 1] - d[:, 1] * e[:, 0]
+            w = b0 - a0
             with np.errstate(divide="ignore", invalid="ignore"):
-                sa = (w[..., 0] * e[None, :, 1] - w[..., 1] * e[None, :, 0]) / denom  # along robot seg
-                sb = (w[..., 0] * d[..., 1] - w[..., 1] * d[..., 0]) / denom  # along placed seg
-            steep = np.abs(denom) >= np.sin(min_angle_rad) * la * lb[None]
+                sa = (w[:, 0] * e[:, 1] - w[:, 1] * e[:, 0]) / denom  # along robot seg
+                sb = (w[:, 0] * d[:, 1] - w[:, 1] * d[:, 0]) / denom  # along placed seg
+            steep = np.abs(denom) >= np.sin(min_angle_rad) * la * lb
             inside = (sa * la >= margin_m) & ((1 - sa) * la >= margin_m)
-            inside &= (sb * lb[None] >= margin_m) & ((1 - sb) * lb[None] >= margin_m)
-            out[s : s + rows] = np.any(steep & inside, axis=1)
+            inside &= (sb * lb >= margin_m) & ((1 - sb) * lb >= margin_m)
+            out[a[steep & inside]] = True
         return out
+
+
+def _any_row(mask: np.ndarray) -> np.ndarray:
+    """``mask.any(axis=1)`` for a boolean ``(K, 8)`` mask: each row read as one 64-bit word."""
+    if mask.ndim == 2 and mask.shape[1] == 8 and mask.dtype == bool:
+        return np.ascontiguousarray(mask).view(np.uint64)[:, 0] != 0
+    return mask.any(axis=1)
 
 
 def robot_step(robot: Samples) -> float:

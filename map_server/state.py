@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -68,7 +69,12 @@ class RobotState:
         return self.layer.length_m <= (1.0 + max_growth) * before[-1]
 
     def due(
-        self, cfg: FleetConfig, placed_m: float, placed_key: str, now_s: float, urgent: bool = False
+        self,
+        cfg: FleetConfig,
+        placed_m: float,
+        placed_key: str | Callable[[], str],
+        now_s: float,
+        urgent: bool = False,
     ) -> bool:
         """Whether an alignment attempt is worth it: never tried, the map changed length enough,
         or (while unaligned) the placed map grew enough, or its map or the placed map changed
@@ -79,7 +85,9 @@ class RobotState:
         waited = now_s - self.attempt_s >= cfg.retry_interval_s
         if self.pending is not None:
             return waited  # a candidate awaits confirmation (never hurried: same evidence)
-        changed = self.map.seq != self.attempt_seq or placed_key != self.attempt_placed_key
+        changed = self.map.seq != self.attempt_seq
+        if not changed and (waited or urgent):
+            changed = (placed_key() if callable(placed_key) else placed_key) != self.attempt_placed_key
         if self.alignment.placed:  # refined against the others while the maps change (a prior
             return (waited or urgent) and changed  # robot, or an aligned one: where it is)
         if placed_m - self.attempt_placed_m >= cfg.retry_placed_growth_m:

@@ -49,6 +49,7 @@ PURE = [
     "map_server.fleet",
     "map_server.freespace",
     "map_server.fusion",
+    "map_server.incremental",
     "map_server.registration",
     "map_server.state",
 ]
