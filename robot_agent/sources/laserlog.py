@@ -31,7 +31,8 @@ _LAYOUTS = (  # field, axes, dtype; a digit is a fixed size, a letter a size sha
 
 @dataclass(frozen=True, eq=False)
 class LaserLog:
-    """One laser's scans with odometry; arrays are read-only, SI units.
+    """One laser's scans with odometry; arrays are read-only, SI units. The log takes the arrays
+    it is given (no copy: :meth:`from_arrays` copies the caller's) and makes them read-only.
 
     ``S`` scans, ``G`` distinct beam geometries, ``B`` beams of the longest scan, ``M`` ODOM lines:
 
@@ -69,7 +70,11 @@ class LaserLog:
     def __post_init__(self) -> None:
         dims: dict[str, int] = {}
         for name, layout, dtype in _LAYOUTS:
-            array = np.array(getattr(self, name), dtype=dtype)
+            # taken as given when already an array of its type (a log's ranges are most of its
+            # memory: a copy doubled it), and made read-only below: the log owns it from now on
+            array = np.array(getattr(self, name), dtype=dtype, copy=None)
+            if not array.flags.writeable:  # another log's (dataclasses.replace): its padding is set
+                array = array.copy()
             expected = tuple(
                 int(d) if d.isdigit() else dims.setdefault(d, n)
                 for d, n in zip(layout, array.shape, strict=False)
@@ -119,7 +124,7 @@ class LaserLog:
         :func:`infer_range_max_m`; ``kind`` is FLASER when every geometry is what FLASER lines read
         as (:func:`flaser_compatible`, ``params`` may name the field of view), else ROBOTLASER1.
         """
-        ranges_m = np.asarray(ranges_m, dtype=float)
+        ranges_m = np.array(ranges_m, dtype=float)  # copies: the log takes what it is given
         if ranges_m.ndim != 2:
             raise ValueError(f"ranges_m has shape {ranges_m.shape}, expected (S, B)")
         s, b = ranges_m.shape
@@ -130,16 +135,16 @@ class LaserLog:
             )
         table, beams, index = geometry_table(angles_rad, counts, b)
         return cls(
-            stamps_s=stamps_s,
+            stamps_s=np.array(stamps_s, dtype=float),
             ranges_m=ranges_m,
             angle_table_rad=table,
             geometry_beams=beams,
             scan_geometry=index,
-            odometry=odometry,
-            laser_offset=laser_offset,
+            odometry=np.array(odometry, dtype=float),
+            laser_offset=np.array(laser_offset, dtype=float),
             range_max_m=infer_range_max_m(_real(ranges_m, counts)) if range_max_m is None else range_max_m,
-            odom_stamps_s=np.zeros(0) if odom_stamps_s is None else odom_stamps_s,
-            odom_poses=np.zeros((0, 3)) if odom_poses is None else odom_poses,
+            odom_stamps_s=np.zeros(0) if odom_stamps_s is None else np.array(odom_stamps_s, dtype=float),
+            odom_poses=np.zeros((0, 3)) if odom_poses is None else np.array(odom_poses, dtype=float),
             params=dict(params or {}),
             kind="FLASER" if flaser_compatible(table, beams, params or {}) else "ROBOTLASER1",
         )
