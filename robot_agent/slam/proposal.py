@@ -27,6 +27,7 @@ with ``q = R p`` (moments of the rotated points: ``N, s = Σq, S = Σqqᵀ``), `
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -36,6 +37,8 @@ from robot_agent.slam.association import AssociationConfig, associate, observe
 from robot_agent.slam.lines import transform_moments
 from robot_agent.slam.particles import SegmentMaps
 from shared.geometry import apply_points, wrap_angle
+
+ASSOCIATION_CHUNK = 1 << 18  # particle x (point, element) pairs evaluated at once (2 MB per array)
 
 
 @dataclass(frozen=True)
@@ -131,9 +134,26 @@ def associate_points(
     qx, qy = _rotate(poses, points)
     wx, wy = qx + poses[:, None, 0], qy + poses[:, None, 1]  # (P,N) map frame
     pt, col = _candidate_pairs(wx, wy, maps, float(np.max(gate_m)), margin_m)
-    n_pts = points.shape[0]
+    out = np.full((len(poses), points.shape[0]), -1)
     if len(pt) == 0:
-        return np.full((len(poses), n_pts), -1)
+        return out
+    # wide gates (an uncertain prediction) can pair every point with many elements: the pairs
+    # are taken in runs of whole points, at most ASSOCIATION_CHUNK particle x pair elements each
+    # (Intel: a 22 MB transient in one step, which the process's memory kept)
+    per = max(1, ASSOCIATION_CHUNK // max(len(poses), 1))
+    bounds = [0, len(pt)]
+    if len(pt) > per:
+        first_of_point = np.flatnonzero(np.r_[True, pt[1:] != pt[:-1]])
+        cuts = first_of_point[np.searchsorted(first_of_point, np.arange(per, len(pt), per), side="right") - 1]
+        bounds = sorted({0, len(pt), *cuts.tolist()})
+    for a, b in itertools.pairwise(bounds):
+        _nearest_elements(out, qx, qy, wx, wy, pt[a:b], col[a:b], maps, gate_m, margin_m)
+    return out
+
+
+def _nearest_elements(out, qx, qy, wx, wy, pt, col, maps, gate_m, margin_m) -> None:
+    """:func:`associate_points` for the candidate pairs ``(pt, col)`` (sorted, whole points),
+    written into ``out (P,N)``."""
     px, py = wx[:, pt], wy[:, pt]  # (P,K)
     nx, ny = np.cos(maps.alpha[:, col]), np.sin(maps.alpha[:, col])
     perp = np.abs(nx * px + ny * py - maps.rho[:, col])
@@ -155,9 +175,7 @@ def associate_points(
     first = np.maximum.reduceat(
         np.where(ok & (cost == np.repeat(low, counts, axis=1)), rank, 0), starts, axis=1
     )
-    out = np.full((len(poses), n_pts), -1)
     out[:, pt[starts]] = np.where(first > 0, col[len(pt) - np.maximum(first, 1)], -1)
-    return out
 
 
 def _candidate_pairs(

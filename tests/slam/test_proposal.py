@@ -220,3 +220,31 @@ def test_point_association_by_candidate_pairs_equals_every_pair(seed):
         dense = _associate_points_dense(poses, points, maps, gate, 0.2)
         np.testing.assert_array_equal(fast, dense)
         assert (fast >= 0).sum() > 50  # the case is not vacuous
+
+
+@pytest.mark.parametrize("chunk", [1, 7 * 5, 7 * 23])
+def test_point_association_in_chunks_of_pairs_is_the_same(monkeypatch, chunk):
+    """Wide gates make many (point, element) pairs: they are evaluated in runs of whole points
+    (bounded memory); any run length gives the result of one run — down to a point a run."""
+    import robot_agent.slam.proposal as proposal
+
+    rng = np.random.default_rng(11)
+    n_p, n_c = 7, 30
+    maps = SegmentMaps.empty(n_p, n_c)
+    for col in range(n_c):
+        a = rng.uniform(-4, 4, 2)
+        b = a + rng.uniform(0.3, 4.0) * np.array([np.cos(t := rng.uniform(0, np.pi)), np.sin(t)])
+        put_element(
+            maps,
+            col,
+            wall_points(a, b, POINTS_PER_M),
+            rng.uniform(-np.pi, np.pi),
+            rng.random(n_p) < 0.8,
+            ends=[a, b],
+        )
+    poses = rng.uniform(-1, 1, (n_p, 3)) * np.array([0.3, 0.3, 0.17])
+    points = rng.uniform(-5, 5, (200, 2))
+    whole = associate_points(poses, points, maps, 1.5, 0.2)  # wide: several elements a point
+    monkeypatch.setattr(proposal, "ASSOCIATION_CHUNK", chunk)
+    np.testing.assert_array_equal(associate_points(poses, points, maps, 1.5, 0.2), whole)
+    assert (whole >= 0).sum() > 100
