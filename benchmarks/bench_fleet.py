@@ -475,6 +475,12 @@ class ReplayCore:
         self.pose_seq += 1
         return PoseUpdate(self.robot, self.session, self.pose_seq, time.monotonic(), pose)
 
+    free_whole = None  # no free space: the load is the maps and poses (free space adds ~3 % of
+    # a robot's bytes: README, "Watching it, and a map for navigation")
+
+    def free_message(self, force: bool = False) -> None:
+        return None
+
     def map_messages(self, force: bool = False) -> list[RobotMap] | None:
         self.ticks += 1
         if not force and (self.ticks - 1) % self.map_every:
@@ -591,6 +597,10 @@ def run_latency(
             stop_profiler(spy)
             time.sleep(2.0)  # maps put just before t1 may still arrive
             updates = list(watcher.updates)
+            dead = [a for a in agents if not a.running]
+            if dead:  # a load agent that died makes the latencies meaningless
+                raise RuntimeError(f"{len(dead)} load agents exited during the run; {dead[0].name}:\n"
+                                   f"{dead[0].output()[-2000:]}")  # fmt: skip
             for a in agents:
                 a.stop()
         server.stop()

@@ -242,6 +242,16 @@ def _wait(proc, text: str) -> None:
         raise RuntimeError(f"{proc.name} did not start; see {proc.log_path}:\n{proc.output()[-2000:]}")
 
 
+def _check_alive(agents: list) -> None:
+    """A load agent that exited before it was stopped makes the run meaningless: say so."""
+    dead = [a for a in agents if not a.running]
+    if dead:
+        raise RuntimeError(
+            f"{len(dead)} of {len(agents)} load agents exited during the run; {dead[0].name} "
+            f"({dead[0].log_path}):\n{dead[0].output()[-2000:]}"
+        )
+
+
 def _stop_agents(agents: list) -> None:
     """SIGTERM to all at once (so the fleet stops together), then reap each."""
     for a in agents:
@@ -297,6 +307,7 @@ def run_load(recs, scenario: str, n: int, map_hz: float, seconds: float, warmup_
                     t1 = time.monotonic()
                     fleet.stop_profiler(spy, wait=t1 - t0 >= seconds)
                 t_stop = time.monotonic()
+                _check_alive(agents)
                 _stop_agents(agents)
                 _drain(log)
             finally:
