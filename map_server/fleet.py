@@ -103,6 +103,11 @@ class FleetConfig:
     settle_rounds: int = 8
     settle_m: float = 1e-3
     settle_rad: float = 1e-4
+    # a settle's refinements are spread over fusions too: at most this many layer segments a
+    # fusion (the first robot always), the sweeps going on where they stopped. A small fleet
+    # settles in the fusion after the departure; 64 robots leaving at once took one fusion of
+    # ~20 s before (every robot refined up to 8 times), in which no new map was fused
+    settle_budget_segments: int = 5000
     # a placed robot is refined against the placed map near it (module docstring: "Cost"): the
     # crop reaches this much beyond the robot map's box at its starting pose (plus the gates)
     refine_margin_m: float = 2.0
@@ -128,6 +133,9 @@ class Fleet:
         self._content: tuple | None = None
         self._arrivals = 0
         self._left = False  # a robot left since the last fusion: settle (not persisted)
+        # a settle under way (not persisted): sweeps begun, robots left to refine in this sweep,
+        # every placed robot's transform when it began
+        self._settling: tuple[int, list[str], dict[str, np.ndarray]] | None = None
         self._merged = MergedMap(cfg.fusion)  # the merge of the placed layers, kept up to date
         self._budget = cfg.refine_budget_segments  # layer segments left to refine in this fusion
         self._statuses: dict[str, tuple] = {}  # robot -> (what its status is made of, status, key)
@@ -213,27 +221,56 @@ class Fleet:
             pass
         if self._left:
             self._left = False
+            self._settling = (0, [], {})  # a settle begins (again, if one was under way)
+        if self._settling is not None:
             self._settle(now_s)
         if self.frame == "prior":
             self._hold_prior_gauge()
         return self._publish(now_s)
 
     def _settle(self, now_s: float) -> None:
-        """Refinement rounds of every placed robot against the others until the frames stop
-        moving (a robot left: the maps are final, and one round leaves each robot refined
-        against where the others were before theirs)."""
+        """Refinement sweeps of every placed robot against the others until the frames stop
+        moving (a robot left: the maps are final, and one sweep leaves each robot refined against
+        where the others were before theirs), at most ``settle_rounds``; this fusion's share of
+        it (``settle_budget_segments``), the rest in the next fusions."""
         c = self.cfg
-        for _ in range(c.settle_rounds):
-            placed = self._placed()
-            if not placed:
+        sweeps, todo, before = self._settling
+        budget = c.settle_budget_segments
+        while True:
+            if not todo:  # a sweep is done (or none begun yet)
+                if before and (sweeps >= c.settle_rounds or self._still(before)):
+                    self._settling = None
+                    return
+                placed = self._placed()
+                if sweeps >= c.settle_rounds or not placed:
+                    self._settling = None
+                    return
+                sweeps += 1
+                todo = [r.robot for r in placed]
+                before = {r.robot: r.alignment.transform.copy() for r in placed}
+            if budget <= 0:
+                self._settling = (sweeps, todo, before)
                 return
-            before = np.array([r.alignment.transform for r in placed])
-            while self._align_round(now_s, urgent=True):
-                pass
-            d = np.array([r.alignment.transform for r in placed]) - before
-            still_m = np.hypot(d[:, 0], d[:, 1]).max() <= c.settle_m
-            if still_m and np.abs(wrap_angle(d[:, 2])).max() <= c.settle_rad:
-                return
+            take: list[RobotState] = []
+            while todo and (not take or budget >= len(self.robots[todo[0]].layer or ())):
+                r = self.robots[todo.pop(0)]
+                if r.alignment.placed and r.layer is not None:
+                    take.append(r)
+                    budget -= len(r.layer)
+            if take:
+                only = {id(r) for r in take}
+                while self._align_round(now_s, urgent=True, only=only):
+                    pass
+
+    def _still(self, before: dict[str, np.ndarray]) -> bool:
+        """Whether no placed robot moved from ``before`` (robot -> transform) by more than the
+        settle thresholds."""
+        moved = [(r.alignment.transform, before[r.robot]) for r in self._placed() if r.robot in before]
+        if not moved:
+            return True
+        d = np.array([a - b for a, b in moved])
+        return bool(np.hypot(d[:, 0], d[:, 1]).max() <= self.cfg.settle_m
+                    and np.abs(wrap_angle(d[:, 2])).max() <= self.cfg.settle_rad)  # fmt: skip
 
     def latest(self) -> FusedMap | None:
         return self._latest
@@ -343,7 +380,7 @@ class Fleet:
             r.layer.seg, self._global_segments(r.robot), c, prior, sigma, current, search, **kw
         )
 
-    def _align_round(self, now_s: float, urgent: bool = False) -> bool:
+    def _align_round(self, now_s: float, urgent: bool = False, only: set[int] | None = None) -> bool:
         """One pass over the robots that deserve an attempt; True if a robot got placed.
 
         Of the unplaced robots that matched, only the most decisive one (highest rival ratio)
@@ -373,7 +410,9 @@ class Fleet:
                 )
             return keys[id(r)]
 
-        turn = None if urgent else self._turns(placed, key_of, now_s)
+        # which placed robots are refined: a settle's share (``only``), every due one (urgent), or
+        # those whose turn it is
+        turn = only if only is not None else (None if urgent else self._turns(placed, key_of, now_s))
         for r in self._ordered():
             if r.layer is None or r.alignment.status == "reference":
                 continue

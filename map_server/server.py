@@ -43,6 +43,7 @@ class ServerConfig:
     timing_window: int = 200  # fusion times kept for the status percentiles
     free: FreeFusionConfig = field(default_factory=FreeFusionConfig)  # the fleet's free space
 
+
 FREE_BLOB = "free~"  # a robot session's free space in a snapshot: free~<robot>~<session>
 
 
@@ -335,9 +336,11 @@ class MapServer:
         def pull() -> None:
             try:
                 for robot in robots:
-                    for key, payload in self.bus.get(
-                        self.keys.robot_map(robot), timeout_s=self.cfg.pull_timeout_s
-                    ) if maps else ():
+                    for key, payload in (
+                        self.bus.get(self.keys.robot_map(robot), timeout_s=self.cfg.pull_timeout_s)
+                        if maps
+                        else ()
+                    ):
                         self.on_map(key, payload, pulled=True)
                     for key, payload in self.bus.get(
                         self.keys.robot_free(robot), timeout_s=self.cfg.pull_timeout_s

@@ -255,3 +255,41 @@ def test_a_departure_settles_the_robots_against_each_other(runs, fused, rounds):
         assert left < 2e-3, left  # measured 0.12 mm
     else:
         assert left > 2e-3, left  # the test can tell: one sweep alone leaves 22 mm to move
+
+
+def test_a_settle_spread_over_fusions_ends_where_one_in_one_fusion_does(runs, fused):
+    """With a settle budget of one robot a fusion (``settle_budget_segments`` 1), a departure's
+    sweeps go on over the next fusions — each fusion refines one robot — and the frames end
+    where the settle done in one fusion puts them (the same sweeps, in the same order; the prior
+    gauge held between them moves the frames by micrometres), well within the settle's own
+    thresholds (a settle stopped after one sweep is 22 mm off: the test above)."""
+    results = []
+    for budget in (FleetConfig().settle_budget_segments, 1):
+        fleet = copy.deepcopy(fused)
+        fleet.cfg = dataclasses.replace(fleet.cfg, settle_budget_segments=budget)
+        for k in range(12):
+            fleet.fuse(200.0 + 10.0 * k)
+        delta = np.array([0.06, -0.04, np.radians(0.5)])
+        m = runs["r1"][0]
+        fleet.put_map(dataclasses.replace(m, seg=apply_segments(delta, m.seg), seq=m.seq + 200), 400.0)
+        fleet.set_online("r0", False)
+        calls = []
+        original = fleet._align_round
+        fleet._align_round = lambda *a, calls=calls, original=original, **k: (
+            calls.append(k.get("only")) or original(*a, **k)
+        )
+        fusions = 0
+        while True:
+            fleet.fuse(400.0 + 0.1 * fusions)
+            fusions += 1
+            if fleet._settling is None or fusions > 50:
+                break
+        settle_calls = [c for c in calls if c is not None]
+        results.append((fusions, {n: fleet.robots[n].alignment.transform.copy() for n in ROBOTS}))
+        if budget == 1:
+            assert all(len(c) == 1 for c in settle_calls)  # one robot a fusion
+    (one_fusion, at_once), (spread_fusions, spread) = results
+    assert one_fusion == 1 and spread_fusions > 2, (one_fusion, spread_fusions)
+    for n in ROBOTS:
+        err_m, err_deg = transform_error(spread[n], at_once[n])
+        assert err_m < 1e-4 and err_deg < 1e-3, (n, err_m, err_deg)  # measured 2 um
