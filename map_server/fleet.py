@@ -106,8 +106,10 @@ class FleetConfig:
     # a settle's refinements are spread over fusions too: at most this many layer segments a
     # fusion (the first robot always), the sweeps going on where they stopped. A small fleet
     # settles in the fusion after the departure; 64 robots leaving at once took one fusion of
-    # ~20 s before (every robot refined up to 8 times), in which no new map was fused
+    # ~20 s before (every robot refined up to 8 times), in which no new map was fused; a
+    # refinement costs ~20-45 ms whatever its size, so their count is bounded too
     settle_budget_segments: int = 5000
+    settle_refinements: int = 16
     # a placed robot is refined against the placed map near it (module docstring: "Cost"): the
     # crop reaches this much beyond the robot map's box at its starting pose (plus the gates)
     refine_margin_m: float = 2.0
@@ -232,10 +234,10 @@ class Fleet:
         """Refinement sweeps of every placed robot against the others until the frames stop
         moving (a robot left: the maps are final, and one sweep leaves each robot refined against
         where the others were before theirs), at most ``settle_rounds``; this fusion's share of
-        it (``settle_budget_segments``), the rest in the next fusions."""
+        it (``settle_budget_segments``, ``settle_refinements``), the rest in the next fusions."""
         c = self.cfg
         sweeps, todo, before = self._settling
-        budget = c.settle_budget_segments
+        budget, count = c.settle_budget_segments, c.settle_refinements
         while True:
             if not todo:  # a sweep is done (or none begun yet)
                 if before and (sweeps >= c.settle_rounds or self._still(before)):
@@ -248,15 +250,16 @@ class Fleet:
                 sweeps += 1
                 todo = [r.robot for r in placed]
                 before = {r.robot: r.alignment.transform.copy() for r in placed}
-            if budget <= 0:
+            if budget <= 0 or count <= 0:
                 self._settling = (sweeps, todo, before)
                 return
             take: list[RobotState] = []
-            while todo and (not take or budget >= len(self.robots[todo[0]].layer or ())):
+            while todo and (not take or (budget >= len(self.robots[todo[0]].layer or ()) and count > 0)):
                 r = self.robots[todo.pop(0)]
                 if r.alignment.placed and r.layer is not None:
                     take.append(r)
                     budget -= len(r.layer)
+                    count -= 1
             if take:
                 only = {id(r) for r in take}
                 while self._align_round(now_s, urgent=True, only=only):
