@@ -261,10 +261,20 @@ def _stop_agents(agents: list) -> None:
         a.stop()
 
 
-def _drain(log: FusedLog) -> None:
+def _drain(log: FusedLog, last_seqs: np.ndarray) -> None:
+    """Wait until a fused map shows every agent's last put (``last_seqs (N,)``, in the order of
+    ``log.robots``), at most ``DRAIN_TIMEOUT_S``; an agent that put nothing is not waited for. (A
+    quiet spell alone is no sign of it: the server may be busy with a long fusion, e.g. the
+    settle after every robot left at once.)"""
     end = time.monotonic() + DRAIN_TIMEOUT_S
-    while time.monotonic() < end and time.monotonic() - log.last_arrival() < QUIET_S:
+    while time.monotonic() < end:
+        with log._lock:
+            seqs = log.seqs[-1] if log.seqs else None
+        if seqs is not None and np.all(seqs >= last_seqs):
+            break
         time.sleep(0.1)
+    while time.monotonic() < end and time.monotonic() - log.last_arrival() < QUIET_S:
+        time.sleep(0.1)  # and the versions after it (the settle's) have come
 
 
 def run_load(recs, scenario: str, n: int, map_hz: float, seconds: float, warmup_s: float,
@@ -309,7 +319,8 @@ def run_load(recs, scenario: str, n: int, map_hz: float, seconds: float, warmup_
                 t_stop = time.monotonic()
                 _check_alive(agents)
                 _stop_agents(agents)
-                _drain(log)
+                last = [fleet._read_puts(run_dir / f"{r}.puts")[0] for r in robots]
+                _drain(log, np.array([s[-1] if len(s) else -1 for s in last], np.int64))
             finally:
                 samples = sampler.stop()
             final = log.latest
