@@ -597,10 +597,7 @@ def run_latency(
             stop_profiler(spy)
             time.sleep(2.0)  # maps put just before t1 may still arrive
             updates = list(watcher.updates)
-            dead = [a for a in agents if not a.running]
-            if dead:  # a load agent that died makes the latencies meaningless
-                raise RuntimeError(f"{len(dead)} load agents exited during the run; {dead[0].name}:\n"
-                                   f"{dead[0].output()[-2000:]}")  # fmt: skip
+            check_alive(agents)
             for a in agents:
                 a.stop()
         server.stop()
@@ -623,6 +620,16 @@ def _wait_placed(watcher, robots: list[str], timeout_s: float = STARTUP_TIMEOUT_
             return
         time.sleep(0.1)
     raise RuntimeError(f"not every robot was placed within {timeout_s:.0f} s")
+
+
+def check_alive(agents: list) -> None:
+    """A load agent that exited before it was stopped makes a run meaningless: say so."""
+    dead = [a for a in agents if not a.running]
+    if dead:
+        raise RuntimeError(
+            f"{len(dead)} of {len(agents)} load agents exited during the run; {dead[0].name} "
+            f"({dead[0].log_path}):\n{dead[0].output()[-2000:]}"
+        )
 
 
 def _read_puts(path: Path) -> tuple[np.ndarray, np.ndarray]:

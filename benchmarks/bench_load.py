@@ -126,6 +126,11 @@ class FusedLog:
         with self._lock:
             return len(self.arrival)
 
+    def last_seqs(self) -> np.ndarray | None:
+        """Each robot's map seq in the last fused map received (-1: not in it), or None."""
+        with self._lock:
+            return self.seqs[-1] if self.seqs else None
+
     def last_arrival(self) -> float:
         with self._lock:
             return self.arrival[-1] if self.arrival else 0.0
@@ -242,16 +247,6 @@ def _wait(proc, text: str) -> None:
         raise RuntimeError(f"{proc.name} did not start; see {proc.log_path}:\n{proc.output()[-2000:]}")
 
 
-def _check_alive(agents: list) -> None:
-    """A load agent that exited before it was stopped makes the run meaningless: say so."""
-    dead = [a for a in agents if not a.running]
-    if dead:
-        raise RuntimeError(
-            f"{len(dead)} of {len(agents)} load agents exited during the run; {dead[0].name} "
-            f"({dead[0].log_path}):\n{dead[0].output()[-2000:]}"
-        )
-
-
 def _stop_agents(agents: list) -> None:
     """SIGTERM to all at once (so the fleet stops together), then reap each."""
     for a in agents:
@@ -268,8 +263,7 @@ def _drain(log: FusedLog, last_seqs: np.ndarray) -> None:
     settle after every robot left at once.)"""
     end = time.monotonic() + DRAIN_TIMEOUT_S
     while time.monotonic() < end:
-        with log._lock:
-            seqs = log.seqs[-1] if log.seqs else None
+        seqs = log.last_seqs()
         if seqs is not None and np.all(seqs >= last_seqs):
             break
         time.sleep(0.1)
@@ -317,7 +311,7 @@ def run_load(recs, scenario: str, n: int, map_hz: float, seconds: float, warmup_
                     t1 = time.monotonic()
                     fleet.stop_profiler(spy, wait=t1 - t0 >= seconds)
                 t_stop = time.monotonic()
-                _check_alive(agents)
+                fleet.check_alive(agents)
                 _stop_agents(agents)
                 last = [fleet._read_puts(run_dir / f"{r}.puts")[0] for r in robots]
                 _drain(log, np.array([s[-1] if len(s) else -1 for s in last], np.int64))

@@ -240,11 +240,8 @@ class Fleet:
         budget, count = c.settle_budget_segments, c.settle_refinements
         while True:
             if not todo:  # a sweep is done (or none begun yet)
-                if before and (sweeps >= c.settle_rounds or self._still(before)):
-                    self._settling = None
-                    return
                 placed = self._placed()
-                if sweeps >= c.settle_rounds or not placed:
+                if sweeps >= c.settle_rounds or not placed or (before and self._still(before)):
                     self._settling = None
                     return
                 sweeps += 1
@@ -254,8 +251,11 @@ class Fleet:
                 self._settling = (sweeps, todo, before)
                 return
             take: list[RobotState] = []
-            while todo and (not take or (budget >= len(self.robots[todo[0]].layer or ()) and count > 0)):
-                r = self.robots[todo.pop(0)]
+            while todo and count > 0:
+                r = self.robots[todo[0]]
+                if take and len(r.layer or ()) > budget:
+                    break  # the first one is always taken
+                todo.pop(0)
                 if r.alignment.placed and r.layer is not None:
                     take.append(r)
                     budget -= len(r.layer)

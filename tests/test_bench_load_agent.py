@@ -2,8 +2,6 @@
 ``Publisher``: it must provide everything the Publisher takes from an agent core (issue 23's free
 space once broke every load agent at its first publish, and the load benchmark with it)."""
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,23 +10,14 @@ import pytest
 from robot_agent.agent import Publisher
 from shared import codec
 from shared.keys import Keys
+from tests.benchscripts import bench_script
 from tests.map_server.test_server import robot_map
-
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_fleet.py"
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_fleet", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.path.insert(0, str(SCRIPT.parent))  # its _results
-    sys.modules["bench_fleet"] = module  # dataclasses look their module up while the class is built
-    try:
-        spec.loader.exec_module(module)
+    with bench_script("bench_fleet") as module:
         yield module
-    finally:
-        sys.modules.pop("bench_fleet", None)
-        sys.path.remove(str(SCRIPT.parent))
 
 
 class FakeBus:

@@ -1,25 +1,19 @@
 """benchmarks/bench_logs.py without running SLAM: finding logs and relations, folding seeds."""
 
-import importlib.util
-import sys
 from argparse import Namespace
 from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_logs.py"
+from tests.benchscripts import BENCHMARKS, bench_script
+
+SCRIPT = BENCHMARKS / "bench_logs.py"
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_logs", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bench_logs"] = module  # dataclasses look their module up while the class is built
-    try:
-        spec.loader.exec_module(module)
+    with bench_script("bench_logs") as module:
         yield module
-    finally:
-        sys.modules.pop("bench_logs", None)
 
 
 def touch(path: Path) -> Path:

@@ -17,7 +17,7 @@
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -87,9 +87,6 @@ class FilterConfig:
     # its pose then comes from the scan, not from odometry whose timing may lag the laser's
     bridge_sigma_xy_m: float = 0.05  # extra prior std of a bridged scan's pose: odometry and
     bridge_sigma_theta_rad: float = np.radians(2.0)  # laser clocks disagree while turning fast
-    bridge_iterations: int = 0  # Gauss-Newton iterations of a bridged scan's alignment (associated
-    # again after the first when more than 2; 0: the proposal's): it starts a few cm from its answer
-    bridge_points: int = 0  # scan points it uses (evenly thinned beyond; 0: the proposal's)
     max_open_steps: int = 4000  # every particle's own history kept this many steps back at most
     # (beyond, when the particles have not coalesced there, the best one's: trajectory.py)
     history_scans: int = 0  # the path kept for the newest this many scans (0: the whole run's);
@@ -395,11 +392,12 @@ class FastSLAM:
         the segment's midpoint minus its half length); of the particles ``rows`` only when given
         (their maps alone are used: columns valid in none of them would be carried for nothing)."""
         maps = self.particles.maps
-        valid = maps.valid if rows is None else maps.valid[rows]
+        of = slice(None) if rows is None else rows
+        valid = maps.valid[of]
         used = np.flatnonzero(valid.any(axis=0))
         if len(used) == 0:
             return used
-        seg = maps.seg[:, used] if rows is None else maps.seg[rows][:, used]
+        seg = maps.seg[of][:, used]
         mid = 0.5 * (seg[:, :, 0] + seg[:, :, 1])
         half = 0.5 * np.hypot(*(seg[:, :, 1] - seg[:, :, 0]).transpose(2, 0, 1))
         centre = poses[:, :2].mean(axis=0)
@@ -433,13 +431,7 @@ class FastSLAM:
         if len(cols) == 0:
             return u
         local = ps.maps.take(one).columns(cols)
-        p = cfg.proposal
-        if f.bridge_iterations or f.bridge_points:
-            iterations = f.bridge_iterations or p.iterations
-            p = replace(p, iterations=iterations, max_points=f.bridge_points or p.max_points)
-            if iterations <= 2:
-                p = replace(p, reassociate_after=iterations)
-        prop = align_points(mean, cov, pts, local, p)
+        prop = align_points(mean, cov, pts, local, cfg.proposal)
         return relative(ps.poses[best], prop.mean[0])
 
     def _maybe_relocalize(

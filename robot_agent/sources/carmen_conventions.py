@@ -158,19 +158,12 @@ def beams_fit(n: int, fov_rad: float, res_rad: float) -> bool:
 
 def infer_range_max_m(ranges_m: np.ndarray) -> float:
     """Range limit of a FLASER log naming none: a recurring "no return" code, else 81 m."""
-    top, at_top, n_finite = -np.inf, 0, 0
-    for k in range(0, len(ranges_m), 4096):  # in blocks of rows: no copy of the whole log's ranges
-        finite = ranges_m[k : k + 4096][np.isfinite(ranges_m[k : k + 4096])]
-        if finite.size == 0:
-            continue
-        n_finite += finite.size
-        m = float(finite.max())
-        if m > top:
-            top, at_top = m, 0
-        if m == top:
-            at_top += int(np.count_nonzero(finite == top))
+    finite = np.isfinite(ranges_m)  # masks, not a copy of the log's ranges
+    n_finite = int(np.count_nonzero(finite))
     if n_finite == 0:
         return DEFAULT_RANGE_MAX_M
+    top = float(np.max(ranges_m, where=finite, initial=-np.inf))
+    at_top = int(np.count_nonzero(ranges_m == top))
     if at_top >= max(SENTINEL_MIN_COUNT, SENTINEL_MIN_FRACTION * n_finite):
         return min(top, DEFAULT_RANGE_MAX_M)
     return DEFAULT_RANGE_MAX_M

@@ -117,13 +117,20 @@ def test_the_incremental_merge_is_the_full_merge_bit_for_bit(seed):
     assert merges == 40  # walls did merge across robots: the comparison is not between trivial maps
 
 
-def test_a_change_the_merge_was_not_told_of_shows():
-    """The comparison can fail: a source changed behind the merge's back is not in its result."""
-    rng = np.random.default_rng(5)
-    _, layers, frames = random_fleet(rng, 3)
+def merged_fleet(rng: np.random.Generator, n: int) -> tuple:
+    """A random fleet of ``n`` robots (its layers and frames), one source each in name order, and
+    their merge."""
+    _, layers, frames = random_fleet(rng, n)
     sources = [Source(("robot", k), k, layers[k], frames[k]) for k in sorted(layers)]
     merged = MergedMap(CFG)
     merged.update(sources)
+    return layers, frames, sources, merged
+
+
+def test_a_change_the_merge_was_not_told_of_shows():
+    """The comparison can fail: a source changed behind the merge's back is not in its result."""
+    rng = np.random.default_rng(5)
+    layers, frames, sources, merged = merged_fleet(rng, 3)
     moved = [*sources[:-1], Source(sources[-1].key, "r2", layers["r2"], frames["r2"] + [0.5, 0.0, 0.0])]
     want, rows = full(moved)
     with pytest.raises(AssertionError):
@@ -134,10 +141,7 @@ def test_a_change_the_merge_was_not_told_of_shows():
 
 def test_a_common_rigid_motion_moves_the_merged_map():
     rng = np.random.default_rng(3)
-    _, layers, frames = random_fleet(rng, 5)
-    sources = [Source(("robot", k), k, layers[k], frames[k]) for k in sorted(layers)]
-    merged = MergedMap(CFG)
-    merged.update(sources)
+    layers, _, sources, merged = merged_fleet(rng, 5)
     g = np.array([0.004, -0.003, 0.0002])
     sources = [Source(s.key, s.robot, s.layer, compose(g, s.transform)) for s in sources]
     merged.moved(g, sources)
@@ -157,10 +161,7 @@ def rows_sorted(seg: np.ndarray) -> np.ndarray:
 
 def test_without_one_source_is_the_merge_of_the_others_and_crops_by_box():
     rng = np.random.default_rng(4)
-    _, layers, frames = random_fleet(rng, 5)
-    sources = [Source(("robot", k), k, layers[k], frames[k]) for k in sorted(layers)]
-    merged = MergedMap(CFG)
-    merged.update(sources)
+    _, _, sources, merged = merged_fleet(rng, 5)
     for s in sources:
         others = [o for o in sources if o is not s]
         want = full(others)[0][0]
