@@ -146,9 +146,10 @@ def replay_command(
     """``fleet-slam replay`` for one log and seed, with this interpreter; ``live``: with the
     online back end beside the filter as an agent runs it (``--live 10``: the trajectory it
     would publish at every tenth), which the filter continues from."""
-    cmd = [sys.executable, "-m", "fleet_slam.cli", "replay", str(entry.log)]
-    cmd += ["--relations", str(entry.relations), "--seed", str(seed), "--particles", str(args.particles)]
-    cmd += ["--out", str(out_dir)] + (["--live", "10"] if live else [])
+    cmd = [sys.executable, "-m", "fleet_slam.cli", "replay", str(entry.log.resolve())]
+    cmd += ["--relations", str(entry.relations.resolve()), "--seed", str(seed)]
+    cmd += ["--particles", str(args.particles)]
+    cmd += ["--out", str(out_dir.resolve())] + (["--live", "10"] if live else [])
     for override in args.set:
         cmd += ["--set", override]
     if args.limit is not None:
@@ -157,7 +158,8 @@ def replay_command(
 
 
 def child_env() -> dict[str, str]:
-    """One core per run, and this checkout's code first on the path (a worktree beats the venv)."""
+    """One core per run, and this checkout's code first on the path (a worktree beats the venv; the
+    run starts in this checkout too: ``python -m`` puts the working directory before the path)."""
     env = dict(os.environ) | ONE_CORE_ENV
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
     return env
@@ -190,7 +192,11 @@ def _run_once(entry: LogEntry, seed: int, args: argparse.Namespace, live: bool) 
         (out_dir / "metrics.json").unlink(missing_ok=True)  # a kept directory's earlier run
         t0 = time.perf_counter()
         proc = subprocess.run(
-            replay_command(entry, seed, out_dir, args, live), env=child_env(), capture_output=True, text=True
+            replay_command(entry, seed, out_dir, args, live),
+            env=child_env(),
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
         )
         run = {"log": entry.name, "seed": seed, "returncode": proc.returncode}
         run["process_wall_s"] = time.perf_counter() - t0  # with loading the log and the pictures

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robot_agent.slam import kernels
 from robot_agent.slam.lines import fit_lines, interval_overlap, project_to_line, transform_moments
 from robot_agent.slam.particles import SegmentMaps
 from shared.geometry import apply_segments, wrap_angle
@@ -34,6 +35,7 @@ class AssociationConfig:
     sigma_perp_m: float = 0.05  # element + pose offset std (added to the observation's)
     sigma_gap_m: float = 0.3  # scale of the extent gap in the distance
     point_sigma_m: float = 0.02  # laser point noise, for an observation's own line covariance
+    compiled: bool = True  # the compiled kernel (kernels.py) when it is built; the numpy code else
 
 
 @dataclass(frozen=True)
@@ -134,9 +136,28 @@ def associate(
         none = np.full((p, o), -1)
         inf = np.full((p, o), np.inf)
         return Association(none, inf, inf, inf)
-    d_angle, d_perp, gap = pair_terms(obs, maps)
     var_a = obs.var_angle[None, :, None] + cfg.sigma_angle_rad**2 + pose_var_angle
     var_p = obs.var_perp[None, :, None] + cfg.sigma_perp_m**2 + pose_var_perp
+    if cfg.compiled and kernels.AVAILABLE:  # the same gates and costs, compiled
+        return Association(
+            *kernels.associate_segments(
+                obs.facing,
+                obs.centroid,
+                obs.ends,
+                np.broadcast_to(var_a, (p, o, 1))[..., 0],
+                np.broadcast_to(var_p, (p, o, 1))[..., 0],
+                maps.alpha,
+                maps.rho,
+                maps.facing,
+                maps.seg,
+                maps.valid,
+                cfg.angle_gate_rad * gate_scale,
+                cfg.perp_gate_m * gate_scale,
+                cfg.gap_gate_m * gate_scale,
+                cfg.sigma_gap_m,
+            )
+        )
+    d_angle, d_perp, gap = pair_terms(obs, maps)
     cost = d_angle**2 / var_a + d_perp**2 / var_p + (gap / cfg.sigma_gap_m) ** 2
     ok = (
         maps.valid[:, None, :]

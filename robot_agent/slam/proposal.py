@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robot_agent.slam import kernels
 from robot_agent.slam.association import AssociationConfig, associate, observe
 from robot_agent.slam.lines import transform_moments
 from robot_agent.slam.particles import SegmentMaps
@@ -57,6 +58,7 @@ class ProposalConfig:
     max_points: int = 240  # scan points used by the point alignment (evenly thinned beyond)
     point_gate_m: float = 0.2  # a point is associated with an element closer than this ...
     extent_margin_m: float = 0.2  # ... whose extent (plus this margin) its projection falls in
+    compiled: bool = True  # the point alignment by the compiled kernel (kernels.py) when it is built
 
 
 def _normal_equations(
@@ -265,6 +267,12 @@ def _gauss_newton(
         step = np.linalg.solve(h + info_prior, rhs[..., None])[..., 0]
         x = x + step
         x[:, 2] = wrap_angle(x[:, 2])
+    return _result(x, h, info_prior, idx, cfg)
+
+
+def _result(x: np.ndarray, h: np.ndarray, info_prior: np.ndarray, idx: np.ndarray, cfg: ProposalConfig):
+    """The proposal at the refined poses ``x``: covariance from the last measurement information
+    ``h`` and the prior's, the observations matched by the last association ``idx``."""
     cov = np.linalg.inv(h + info_prior) * cfg.sample_scale
     cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
     return ProposalResult(x, cov, np.sum(idx >= 0, axis=1))
@@ -319,6 +327,27 @@ def align_points(
     # the first association's gate covers the prior's uncertainty at the points' mean range
     reach = float(np.mean(np.hypot(pts[:, 0], pts[:, 1]))) if len(pts) else 0.0
     spread = np.sqrt(prior_cov[:, 0, 0] + prior_cov[:, 1, 1] + (reach**2) * prior_cov[:, 2, 2])
+    if cfg.compiled and kernels.AVAILABLE:  # the same iterations, compiled
+        info_prior = np.linalg.inv(prior_cov)
+        x, h, idx = kernels.gn_points(
+            prior_mean if init is None else init,
+            prior_mean,
+            info_prior,
+            pts,
+            maps.alpha,
+            maps.rho,
+            maps.seg,
+            maps.facing,
+            maps.valid,
+            cfg.point_gate_m + cfg.gate_scale_predicted * spread,
+            cfg.iterations,
+            cfg.reassociate_after,
+            cfg.point_gate_m,
+            cfg.extent_margin_m,
+            cfg.robust_scale_m,
+            cfg.point_sigma_m,
+        )
+        return _result(x, h, info_prior, idx, cfg)
 
     def associate_at(x: np.ndarray, wide: bool) -> np.ndarray:
         gate = cfg.point_gate_m + (cfg.gate_scale_predicted * spread if wide else 0.0)

@@ -1,0 +1,167 @@
+"""The compiled kernels (robot_agent/slam/_kernels.c) against their numpy versions, which stay the
+reference and the fallback: the same association, element for element, and the same poses,
+covariances and counts to rounding, on random maps of many particles."""
+
+import dataclasses
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from robot_agent.slam import kernels
+from robot_agent.slam.association import AssociationConfig, associate, observe
+from robot_agent.slam.lines import fit_lines, moments_of
+from robot_agent.slam.particles import SegmentMaps
+from robot_agent.slam.proposal import ProposalConfig, align_points, associate_points
+from shared.geometry import apply_points, inverse, wrap_angle
+
+needs_kernels = pytest.mark.skipif(not kernels.AVAILABLE, reason="the compiled kernels are not built")
+
+
+def test_the_kernels_are_built_where_a_c_compiler_is():
+    """`pip install` builds the extension when a compiler is there (setup.py, optional): in CI it
+    must be, or every comparison below would skip and the numpy code run alone, unnoticed."""
+    if os.environ.get("CI") or shutil.which("cc") or shutil.which("gcc"):
+        assert kernels.AVAILABLE, "robot_agent/slam/_kernels.c was not built: reinstall (pip install -e .)"
+
+
+def random_world(rng, n_particles, n_walls, spread_m=0.05):
+    """Walls around the origin, one copy per particle moved by up to ``spread_m``, some columns
+    invalid in some particles; the scan points of the true walls seen from a pose near the origin."""
+    centre = rng.uniform(-6, 6, (n_walls, 2))
+    heading = rng.uniform(-np.pi, np.pi, n_walls)
+    half = rng.uniform(0.3, 3.0, n_walls)[:, None]
+    d = np.stack([np.cos(heading), np.sin(heading)], axis=1)
+    ends = np.stack([centre - half * d, centre + half * d], axis=1)  # (W,2,2)
+    maps = SegmentMaps.empty(n_particles, n_walls)
+    for p in range(n_particles):
+        moved = ends + rng.normal(0, spread_m, (n_walls, 1, 2))
+        for c in range(n_walls):
+            a, b = moved[c]
+            pts = a + np.linspace(0, 1, 20)[:, None] * (b - a)
+            alpha, rho, _ = fit_lines(moments_of(pts)[None])
+            maps.valid[p, c] = rng.random() > 0.1
+            maps.seg[p, c] = moved[c]
+            maps.alpha[p, c], maps.rho[p, c] = alpha[0], rho[0]
+            # the free side: toward the origin (where the robot is), sometimes the other
+            toward = -(a + b) / 2
+            n = np.array([np.cos(alpha[0]), np.sin(alpha[0])])
+            facing = alpha[0] if n @ toward > 0 else alpha[0] + np.pi
+            maps.facing[p, c] = wrap_angle(facing + (np.pi if rng.random() < 0.1 else 0.0))
+    true_pose = np.array([rng.normal(0, 0.3), rng.normal(0, 0.3), rng.uniform(-np.pi, np.pi)])
+    samples = ends[:, :1] + rng.random((n_walls, 15, 1)) * (ends[:, 1:] - ends[:, :1])
+    points = apply_points(inverse(true_pose), samples.reshape(-1, 2) + rng.normal(0, 0.01, (n_walls * 15, 2)))
+    rng.shuffle(points)
+    poses = true_pose + rng.normal(0, [0.1, 0.1, 0.05], (n_particles, 3))
+    return maps, points, poses
+
+
+def prior_cov(n, sigma_xy=0.1, sigma_th=0.05):
+    return np.tile(np.diag([sigma_xy**2, sigma_xy**2, sigma_th**2]), (n, 1, 1))
+
+
+@needs_kernels
+@pytest.mark.parametrize("seed", range(6))
+def test_the_association_is_the_numpy_one_element_for_element(seed):
+    rng = np.random.default_rng(seed)
+    maps, pts, poses = random_world(rng, 12, 40)
+    gate = rng.uniform(0.1, 0.6, len(poses))
+    expected = associate_points(poses, pts, maps, gate, 0.2)
+    # one iteration: the association at the start poses, with the wide gates
+    _, _, idx = kernels.gn_points(
+        poses, poses, np.linalg.inv(prior_cov(len(poses))), pts, maps.alpha, maps.rho, maps.seg,
+        maps.facing, maps.valid, gate, 1, 1, 0.2, 0.2, 0.1, 0.03,
+    )  # fmt: skip
+    assert (expected >= 0).sum() > 0.3 * expected.size  # a test of matches, not of -1s
+    np.testing.assert_array_equal(idx, expected)
+
+
+@needs_kernels
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize(
+    "changes",
+    [{}, {"iterations": 1}, {"iterations": 0}, {"reassociate_after": 9}, {"max_points": 50}],
+    ids=["defaults", "one-iteration", "no-iteration", "no-reassociation", "thinned"],
+)
+def test_the_alignment_is_the_numpy_one(seed, changes):
+    rng = np.random.default_rng(100 + seed)
+    maps, pts, poses = random_world(rng, 20, 30)
+    cov = prior_cov(len(poses))
+    init = poses + rng.normal(0, 0.02, poses.shape) if seed % 2 else None
+    cfg = dataclasses.replace(ProposalConfig(), **changes)
+    ref = align_points(poses, cov, pts, maps, dataclasses.replace(cfg, compiled=False), init)
+    got = align_points(poses, cov, pts, maps, cfg, init)
+    d = got.mean - ref.mean
+    d[:, 2] = wrap_angle(d[:, 2])
+    np.testing.assert_allclose(d, 0.0, atol=1e-9)
+    np.testing.assert_allclose(got.cov, ref.cov, rtol=1e-7, atol=1e-15)
+    np.testing.assert_array_equal(got.n_matched, ref.n_matched)
+    if changes.get("iterations") != 0:
+        assert np.all(ref.n_matched > 0)
+
+
+@needs_kernels
+def test_nothing_to_align_gives_the_prior():
+    """No valid element (the numpy code's callers skip a map of no columns and a scan of no points;
+    the kernel gives the prior for both)."""
+    rng = np.random.default_rng(7)
+    maps, pts, poses = random_world(rng, 5, 10)
+    cov = prior_cov(len(poses))
+    blank = dataclasses.replace(maps, valid=np.zeros_like(maps.valid))
+    ref = align_points(poses, cov, pts, blank, ProposalConfig(compiled=False))
+    got = align_points(poses, cov, pts, blank, ProposalConfig())
+    np.testing.assert_allclose(got.mean, ref.mean, atol=1e-12)
+    np.testing.assert_allclose(got.cov, ref.cov, rtol=1e-9)
+    np.testing.assert_array_equal(got.n_matched, 0)
+    for m, p in ((maps.columns(np.zeros(0, int)), pts), (maps, np.zeros((0, 2)))):
+        got = align_points(poses, cov, p, m, ProposalConfig())
+        np.testing.assert_allclose(got.mean, poses, atol=1e-12)
+        np.testing.assert_allclose(got.cov, cov, rtol=1e-9)
+        np.testing.assert_array_equal(got.n_matched, 0)
+
+
+def scan_segments(rng, maps, pose, n_obs):
+    """Robot-frame segments of particle 0's walls (noisy, some cut short) seen from ``pose``: moments,
+    ends, facing and line covariance, as extraction gives them."""
+    cols = rng.choice(np.flatnonzero(maps.valid[0]), n_obs, replace=False)
+    moments, ends, facing = [], [], []
+    for c in cols:
+        a, b = apply_points(inverse(pose), maps.seg[0, c] + rng.normal(0, 0.03, (2, 2)))
+        t = np.sort(rng.uniform(0, 1, 2))
+        pts = a + np.linspace(t[0], t[1], 12)[:, None] * (b - a) + rng.normal(0, 0.01, (12, 2))
+        moments.append(moments_of(pts))
+        ends.append(pts[[0, -1]])
+        facing.append(wrap_angle(maps.facing[0, c] - pose[2] + rng.normal(0, 0.05)))
+    cov = np.tile(np.diag([1e-4, 1e-4]), (n_obs, 1, 1))
+    return np.array(moments), np.array(ends), np.array(facing), cov
+
+
+@needs_kernels
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("wide", [False, True], ids=["normal", "widened"])
+def test_the_segment_association_is_the_numpy_one_bit_for_bit(seed, wide):
+    rng = np.random.default_rng(200 + seed)
+    maps, _, poses = random_world(rng, 15, 40, spread_m=0.1)
+    obs = observe(poses, *scan_segments(rng, maps, poses[0], 12), 0.02)
+    extra = {}
+    if wide:
+        extra = {"pose_var_angle": rng.uniform(0, 0.01, (15, 1, 1)), "pose_var_perp": 0.02, "gate_scale": 2.5}
+    ref = associate(obs, maps, AssociationConfig(compiled=False), **extra)
+    got = associate(obs, maps, AssociationConfig(), **extra)
+    assert ref.matched.sum() > 0.2 * ref.matched.size  # a test of matches, not of -1s
+    for name in ("index", "cost", "d_angle", "d_perp"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
+
+
+@needs_kernels
+def test_arrays_of_the_wrong_size_are_refused_by_name():
+    rng = np.random.default_rng(3)
+    maps, pts, poses = random_world(rng, 4, 6)
+    with pytest.raises(ValueError, match="argument 3 holds"):
+        kernels._kernels.gn_points(
+            poses.copy(), poses, np.zeros((4, 3, 3)), pts[:-1], np.cos(maps.alpha), np.sin(maps.alpha),
+            maps.rho, maps.seg, np.cos(maps.facing), np.sin(maps.facing), maps.valid.astype(np.uint8),
+            np.full(4, 0.2), np.zeros((4, 3, 3)), np.zeros((4, len(pts)), np.int64),
+            4, len(pts), 6, 4, 1, 0.2, 0.2, 0.1, 0.03,
+        )  # fmt: skip
