@@ -381,6 +381,390 @@ done:
     return result;
 }
 
+/* update.visibility: for every (particle, element) how many of its sample points the beams passed
+ * through, and whether it was wholly in view (see update.py). */
+static PyObject *visibility(PyObject *self, PyObject *args) {
+    Py_buffer b_seg, b_nc, b_ns, b_fc, b_fs, b_valid, b_lp, b_ranges, b_samples, b_through, b_view;
+    Py_ssize_t P, C, B;
+    double a0, da, usable, sin_min_inc, margin_m, margin_rel, min_span;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*y*w*w*nnnddddddd", &b_seg, &b_nc, &b_ns, &b_fc, &b_fs,
+                          &b_valid, &b_lp, &b_ranges, &b_samples, &b_through, &b_view, &P, &C, &B, &a0, &da,
+                          &usable, &sin_min_inc, &margin_m, &margin_rel, &min_span))
+        return NULL;
+    Py_buffer *all[] = {&b_seg, &b_nc, &b_ns, &b_fc, &b_fs, &b_valid, &b_lp, &b_ranges, &b_samples, &b_through, &b_view};
+    Py_ssize_t pc = P * C * 8;
+    Py_ssize_t need[] = {4 * pc, pc, pc, pc, pc, P * C, P * 3 * 8, B * 8, 3 * 8, pc, P * C};
+    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
+    PyObject *result = NULL;
+    for (int k = 0; k < n_buf; k++) {
+        if (all[k]->len != need[k]) {
+            PyErr_Format(PyExc_ValueError, "visibility: argument %d holds %zd bytes, expected %zd", k, all[k]->len,
+                         need[k]);
+            goto done;
+        }
+    }
+    const double *seg = b_seg.buf, *nc = b_nc.buf, *ns = b_ns.buf, *fc = b_fc.buf, *fs = b_fs.buf;
+    const double *lp = b_lp.buf, *ranges = b_ranges.buf, *ts = b_samples.buf;
+    const uint8_t *valid = b_valid.buf;
+    int64_t *through = b_through.buf;
+    uint8_t *view = b_view.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t p = 0; p < P; p++) {
+        double lx = lp[3 * p], ly = lp[3 * p + 1], lth = lp[3 * p + 2];
+        for (Py_ssize_t c = 0; c < C; c++) {
+            Py_ssize_t j = p * C + c;
+            through[j] = 0;
+            view[j] = 0;
+            if (!valid[j]) continue;
+            const double *e = seg + 4 * j;
+            int64_t n_through = 0;
+            int all_end = 1;
+            double bearing[3];
+            for (int k = 0; k < 3; k++) {
+                double t = ts[k], u = 1 - t;
+                double rx = (e[0] * u + e[2] * t) - lx, ry = (e[1] * u + e[3] * t) - ly;
+                double dist = hypot(rx, ry);
+                double b = wrap_angle(atan2(ry, rx) - lth);
+                bearing[k] = b;
+                double f = rint((b - a0) / da);
+                int inside = f >= 0 && f < (double)B && dist < usable && dist > 0.1;
+                Py_ssize_t beam = !(f >= 0) ? 0 : (f > (double)(B - 1) ? B - 1 : (Py_ssize_t)f);
+                double measured = ranges[beam];
+                int has_return = isfinite(measured) && measured < usable;
+                double cos_inc = fabs(nc[j] * rx + ns[j] * ry) / (dist > 1e-9 ? dist : 1e-9);
+                int steep = cos_inc > sin_min_inc;
+                double margin = margin_m + margin_rel * dist;
+                if (inside && steep && (measured > dist + margin || !has_return)) n_through++;
+                int front = fc[j] * rx + fs[j] * ry < 0;
+                if (!(inside && front && steep && has_return && fabs(measured - dist) <= margin)) all_end = 0;
+            }
+            double span = fabs(wrap_angle(bearing[2] - bearing[0])) / (ts[2] - ts[0]);
+            through[j] = n_through;
+            view[j] = (uint8_t)(all_end && span >= min_span);
+        }
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    for (int k = 0; k < n_buf; k++) PyBuffer_Release(all[k]);
+    return result;
+}
+
+typedef struct {
+    int64_t cx, cy;
+    Py_ssize_t i;
+} Cell;
+
+static int cell_order(const void *a, const void *b) {
+    const Cell *u = a, *v = b;
+    if (u->cx != v->cx) return u->cx < v->cx ? -1 : 1;
+    if (u->cy != v->cy) return u->cy < v->cy ? -1 : 1;
+    return u->i < v->i ? -1 : (u->i > v->i);
+}
+
+/* first index in cells[lo, hi) not ordered before (cx, cy) */
+static Py_ssize_t lower_bound(const Cell *cells, Py_ssize_t lo, Py_ssize_t hi, int64_t cx, int64_t cy) {
+    while (lo < hi) {
+        Py_ssize_t mid = lo + (hi - lo) / 2;
+        if (cells[mid].cx < cx || (cells[mid].cx == cx && cells[mid].cy < cy))
+            lo = mid + 1;
+        else
+            hi = mid;
+    }
+    return lo;
+}
+
+/* Distance from each query point to the nearest sample point, if nearer than radius, else inf
+ * (a k-d tree's query with distance_upper_bound): the samples sorted by grid cell of the radius'
+ * size, each query looking in the 3 x 3 cells around its own. */
+static PyObject *nearest_within(PyObject *self, PyObject *args) {
+    Py_buffer b_s, b_q, b_d;
+    Py_ssize_t S, Q;
+    double radius;
+    if (!PyArg_ParseTuple(args, "y*y*w*nnd", &b_s, &b_q, &b_d, &S, &Q, &radius)) return NULL;
+    Py_buffer *all[] = {&b_s, &b_q, &b_d};
+    Py_ssize_t need[] = {S * 2 * 8, Q * 2 * 8, Q * 8};
+    PyObject *result = NULL;
+    for (int k = 0; k < 3; k++) {
+        if (all[k]->len != need[k]) {
+            PyErr_Format(PyExc_ValueError, "nearest_within: argument %d holds %zd bytes, expected %zd", k,
+                         all[k]->len, need[k]);
+            goto done;
+        }
+    }
+    if (!(radius > 0.0) || !isfinite(radius)) {
+        PyErr_Format(PyExc_ValueError, "nearest_within: radius must be finite and > 0, got %g", radius);
+        goto done;
+    }
+    const double *sp = b_s.buf, *qp = b_q.buf;
+    double *d = b_d.buf;
+    Cell *cells = malloc(sizeof(Cell) * (size_t)(S > 0 ? S : 1));
+    if (!cells) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    Py_ssize_t n = 0;
+    for (Py_ssize_t i = 0; i < S; i++) {
+        double fx = floor(sp[2 * i] / radius), fy = floor(sp[2 * i + 1] / radius);
+        if (!(fabs(fx) < 4e18 && fabs(fy) < 4e18)) continue; /* not finite: never nearest */
+        cells[n].cx = (int64_t)fx;
+        cells[n].cy = (int64_t)fy;
+        cells[n].i = i;
+        n++;
+    }
+    qsort(cells, (size_t)n, sizeof(Cell), cell_order);
+    for (Py_ssize_t q = 0; q < Q; q++) {
+        double x = qp[2 * q], y = qp[2 * q + 1];
+        double best = INFINITY;
+        double fx = floor(x / radius), fy = floor(y / radius);
+        if (fabs(fx) < 4e18 && fabs(fy) < 4e18) {
+            int64_t cx = (int64_t)fx, cy = (int64_t)fy;
+            for (int64_t gx = cx - 1; gx <= cx + 1; gx++) {
+                Py_ssize_t k = lower_bound(cells, 0, n, gx, cy - 1);
+                for (; k < n && cells[k].cx == gx && cells[k].cy <= cy + 1; k++) {
+                    Py_ssize_t i = cells[k].i;
+                    double dx = sp[2 * i] - x, dy = sp[2 * i + 1] - y;
+                    double dd = sqrt(dx * dx + dy * dy);
+                    if (dd < best) best = dd;
+                }
+            }
+        }
+        d[q] = best < radius ? best : INFINITY;
+    }
+    Py_END_ALLOW_THREADS
+    free(cells);
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    for (int k = 0; k < 3; k++) PyBuffer_Release(all[k]);
+    return result;
+}
+
+/* ---- extraction (extraction.py): the split and merge rounds ---------------------------------- */
+
+/* extraction._split: iterative end-point fit. Splitting every piece once per round, as the numpy
+ * code does, ends where splitting each piece to the end does: pieces never interact. */
+static PyObject *split_pieces(PyObject *self, PyObject *args) {
+    Py_buffer b_pts, b_thr, b_starts, b_out;
+    Py_ssize_t K, S;
+    long min_points;
+    if (!PyArg_ParseTuple(args, "y*y*y*w*nnl", &b_pts, &b_thr, &b_starts, &b_out, &K, &S, &min_points))
+        return NULL;
+    Py_buffer *all[] = {&b_pts, &b_thr, &b_starts, &b_out};
+    Py_ssize_t need[] = {K * 2 * 8, K * 8, S * 8, K * 8};
+    PyObject *result = NULL;
+    for (int k = 0; k < 4; k++) {
+        if (all[k]->len != need[k]) {
+            PyErr_Format(PyExc_ValueError, "split_pieces: argument %d holds %zd bytes, expected %zd", k,
+                         all[k]->len, need[k]);
+            goto done;
+        }
+    }
+    const double *pts = b_pts.buf, *thr = b_thr.buf;
+    const int64_t *starts = b_starts.buf;
+    int64_t *out = b_out.buf; /* at most K starts */
+    for (Py_ssize_t j = 0; j < S; j++) {
+        if (starts[j] < 0 || starts[j] >= K || (j > 0 && starts[j] <= starts[j - 1])) {
+            PyErr_Format(PyExc_ValueError, "split_pieces: starts must rise within [0, %zd)", K);
+            goto done;
+        }
+    }
+    int64_t *stack = malloc(sizeof(int64_t) * 2 * (size_t)(K + 1));
+    if (!stack) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    Py_ssize_t n_out = 0;
+    Py_BEGIN_ALLOW_THREADS
+    /* depth first, right half pushed first: the starts come out in order */
+    for (Py_ssize_t j = 0; j < S; j++) {
+        Py_ssize_t top = 0;
+        stack[top++] = starts[j];
+        stack[top++] = j + 1 < S ? starts[j + 1] : K;
+        while (top) {
+            int64_t e = stack[--top], a = stack[--top];
+            int64_t split = -1;
+            if (e - a >= min_points) {
+                double ax = pts[2 * a], ay = pts[2 * a + 1];
+                double cx = pts[2 * (e - 1)] - ax, cy = pts[2 * (e - 1) + 1] - ay;
+                double length = hypot(cx, cy);
+                double far = -INFINITY;
+                int beyond = 0;
+                for (int64_t i = a; i < e; i++) {
+                    double rx = pts[2 * i] - ax, ry = pts[2 * i + 1] - ay;
+                    double d = length > 0 ? fabs(cx * ry - cy * rx) / length : hypot(rx, ry);
+                    if (d > thr[i]) beyond = 1;
+                    if (d > far) {
+                        far = d;
+                        split = i;
+                    }
+                }
+                if (!beyond) split = -1;
+            }
+            if (split > a) {
+                stack[top++] = split;
+                stack[top++] = e;
+                stack[top++] = a;
+                stack[top++] = split;
+            } else {
+                out[n_out++] = a;
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    free(stack);
+    result = PyLong_FromSsize_t(n_out);
+done:
+    for (int k = 0; k < 4; k++) PyBuffer_Release(all[k]);
+    return result;
+}
+
+/* lines.fit_lines for one set of moments */
+static void fit_line(const double *m, double *alpha_out, double *rho_out, double *sigma2_out) {
+    double n = m[0];
+    double xc = m[1] / n, yc = m[2] / n;
+    double sxx = m[3] - n * xc * xc, sxy = m[4] - n * xc * yc, syy = m[5] - n * yc * yc;
+    double alpha = 0.5 * atan2(-2.0 * sxy, syy - sxx);
+    double rho = xc * cos(alpha) + yc * sin(alpha);
+    if (rho < 0.0) alpha = alpha + M_PI;
+    alpha = wrap_angle(alpha);
+    rho = fabs(rho);
+    double lam = 0.5 * (sxx + syy) - hypot(0.5 * (sxx - syy), sxy);
+    double sigma2 = (lam < 0.0 ? 0.0 : lam) / n;
+    if (!(n >= 2)) alpha = rho = sigma2 = NAN;
+    *alpha_out = alpha;
+    *rho_out = rho;
+    *sigma2_out = sigma2;
+}
+
+/* var(alpha) of lines.line_covariance, with the point variance floored as extraction does */
+static double alpha_variance(const double *m, double alpha, double sigma2, double floor2) {
+    double n = m[0];
+    double xc = m[1] / n, yc = m[2] / n;
+    double sxx = m[3] - n * xc * xc, sxy = m[4] - n * xc * yc, syy = m[5] - n * yc * yc;
+    double c = cos(alpha), s = sin(alpha);
+    double s_perp = s * s * sxx - 2.0 * c * s * sxy + c * c * syy;
+    double v = sigma2 > floor2 || isnan(sigma2) ? sigma2 : floor2;
+    return v / s_perp;
+}
+
+/* extraction._merge: adjacent collinear pieces of one cluster merged, in rounds. */
+static PyObject *merge_pieces(PyObject *self, PyObject *args) {
+    Py_buffer b_pts, b_thr, b_starts, b_cluster;
+    Py_ssize_t K, S;
+    double max_rms, range_sigma, merge_angle, n_sigma;
+    if (!PyArg_ParseTuple(args, "y*y*w*w*nndddd", &b_pts, &b_thr, &b_starts, &b_cluster, &K, &S, &max_rms,
+                          &range_sigma, &merge_angle, &n_sigma))
+        return NULL;
+    Py_buffer *all[] = {&b_pts, &b_thr, &b_starts, &b_cluster};
+    Py_ssize_t need[] = {K * 2 * 8, K * 8, S * 8, S * 8};
+    PyObject *result = NULL;
+    for (int k = 0; k < 4; k++) {
+        if (all[k]->len != need[k]) {
+            PyErr_Format(PyExc_ValueError, "merge_pieces: argument %d holds %zd bytes, expected %zd", k,
+                         all[k]->len, need[k]);
+            goto done;
+        }
+    }
+    const double *pts = b_pts.buf, *thr = b_thr.buf;
+    int64_t *starts = b_starts.buf, *cluster = b_cluster.buf;
+    for (Py_ssize_t j = 0; j < S; j++) {
+        if (starts[j] < 0 || starts[j] >= K || (j > 0 && starts[j] <= starts[j - 1])) {
+            PyErr_Format(PyExc_ValueError, "merge_pieces: starts must rise within [0, %zd)", K);
+            goto done;
+        }
+    }
+    size_t s1 = (size_t)(S > 0 ? S : 1);
+    double *mom = malloc(sizeof(double) * 6 * s1);
+    double *alpha = malloc(sizeof(double) * 4 * s1), *var_a = alpha + s1, *cost = alpha + 2 * s1;
+    double *mm = malloc(sizeof(double) * 6 * s1), *m_alpha = malloc(sizeof(double) * 3 * s1);
+    double *m_rho = m_alpha + s1, *m_sigma2 = m_alpha + 2 * s1;
+    uint8_t *ok = malloc(s1), *keep = malloc(s1);
+    if (!mom || !alpha || !mm || !m_alpha || !ok || !keep) {
+        free(mom), free(alpha), free(mm), free(m_alpha), free(ok), free(keep);
+        PyErr_NoMemory();
+        goto done;
+    }
+    Py_ssize_t n = S;
+    Py_BEGIN_ALLOW_THREADS
+    int any_pair = 0;
+    for (Py_ssize_t j = 0; j + 1 < n; j++) any_pair |= cluster[j] == cluster[j + 1];
+    /* the pieces' moments, summed in point order (as numpy's bincount) */
+    for (Py_ssize_t j = 0; any_pair && j < n; j++) {
+        double *m = mom + 6 * j;
+        m[0] = m[1] = m[2] = m[3] = m[4] = m[5] = 0.0;
+        int64_t e = j + 1 < n ? starts[j + 1] : K;
+        for (int64_t i = starts[j]; i < e; i++) {
+            double x = pts[2 * i], y = pts[2 * i + 1];
+            m[0] += 1.0;
+            m[1] += x;
+            m[2] += y;
+            m[3] += x * x;
+            m[4] += x * y;
+            m[5] += y * y;
+        }
+    }
+    while (any_pair && n > 1) {
+        int any_ok = 0;
+        for (Py_ssize_t j = 0; j + 1 < n; j++) {
+            for (int f = 0; f < 6; f++) mm[6 * j + f] = mom[6 * j + f] + mom[6 * (j + 1) + f];
+            fit_line(mm + 6 * j, m_alpha + j, m_rho + j, m_sigma2 + j);
+            ok[j] = cluster[j] == cluster[j + 1] && m_sigma2[j] <= max_rms * max_rms;
+            any_ok |= ok[j];
+        }
+        if (!any_ok) break;
+        for (Py_ssize_t j = 0; j < n; j++) {
+            double r, s2;
+            fit_line(mom + 6 * j, alpha + j, &r, &s2);
+            var_a[j] = alpha_variance(mom + 6 * j, alpha[j], s2, range_sigma * range_sigma);
+        }
+        any_ok = 0;
+        for (Py_ssize_t j = 0; j + 1 < n; j++) {
+            if (!ok[j]) continue;
+            /* every point of the pair within its split threshold of the merged line */
+            double c = cos(m_alpha[j]), s = sin(m_alpha[j]);
+            int64_t e = j + 2 < n ? starts[j + 2] : K;
+            double worst = 0.0;
+            for (int64_t i = starts[j]; i < e; i++) {
+                double r = fabs(c * pts[2 * i] + s * pts[2 * i + 1] - m_rho[j]) / thr[i];
+                if (r > worst || isnan(r)) worst = r;
+            }
+            double gate = merge_angle + n_sigma * sqrt(var_a[j] + var_a[j + 1]);
+            double d = fabs(wrap_angle(alpha[j] - alpha[j + 1]));
+            d = d < M_PI - d ? d : M_PI - d;
+            ok[j] = !(d > gate) && worst <= 1.0;
+            any_ok |= ok[j];
+        }
+        if (!any_ok) break;
+        for (Py_ssize_t j = 0; j + 1 < n; j++) cost[j] = ok[j] ? m_sigma2[j] : INFINITY;
+        for (Py_ssize_t j = 0; j < n; j++) keep[j] = 1;
+        for (Py_ssize_t j = 0; j + 1 < n; j++) {
+            double before = j > 0 ? cost[j - 1] : INFINITY, after = j + 2 < n ? cost[j + 1] : INFINITY;
+            if (ok[j] && cost[j] < before && cost[j] <= after) {
+                for (int f = 0; f < 6; f++) mom[6 * j + f] += mom[6 * (j + 1) + f];
+                keep[j + 1] = 0;
+            }
+        }
+        Py_ssize_t w = 0;
+        for (Py_ssize_t j = 0; j < n; j++) {
+            if (!keep[j]) continue;
+            starts[w] = starts[j];
+            cluster[w] = cluster[j];
+            memmove(mom + 6 * w, mom + 6 * j, 6 * sizeof(double));
+            w++;
+        }
+        n = w;
+    }
+    Py_END_ALLOW_THREADS
+    free(mom), free(alpha), free(mm), free(m_alpha), free(ok), free(keep);
+    result = PyLong_FromSsize_t(n);
+done:
+    for (int k = 0; k < 4; k++) PyBuffer_Release(all[k]);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"gn_points", gn_points, METH_VARARGS,
      "gn_points(x, prior_mean, info_prior, pts, nx, ny, rho, seg, fx, fy, valid, gate_wide, h_out, idx_out, "
@@ -390,6 +774,18 @@ static PyMethodDef methods[] = {
      "associate_segments(obs_facing, cx, cy, obs_ends, var_a, var_p, cos_alpha, sin_alpha, rho, facing, seg, "
      "valid, idx_out, cost_out, d_angle_out, d_perp_out, P, O, C, angle_gate, perp_gate, gap_gate, sigma_gap): "
      "association.associate for all particles x observations x elements."},
+    {"visibility", visibility, METH_VARARGS,
+     "visibility(seg, cos_alpha, sin_alpha, cos_facing, sin_facing, valid, laser_poses, ranges, samples, "
+     "through_out, in_view_out, P, C, B, a0, da, usable, sin_min_incidence, margin_m, margin_rel, min_span): "
+     "update.visibility for all particles x elements."},
+    {"nearest_within", nearest_within, METH_VARARGS,
+     "nearest_within(samples, queries, d_out, S, Q, radius): distance to the nearest sample if < radius, "
+     "else inf."},
+    {"split_pieces", split_pieces, METH_VARARGS,
+     "split_pieces(pts, threshold, starts, out, K, S, min_points) -> count: extraction._split's starts in out."},
+    {"merge_pieces", merge_pieces, METH_VARARGS,
+     "merge_pieces(pts, threshold, starts, cluster, K, S, max_rms, range_sigma, merge_angle, n_sigma) -> count: "
+     "extraction._merge in place on starts and cluster (int64)."},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from robot_agent.slam import kernels
 from shared.geometry import sample_segments
 
 
@@ -36,6 +37,7 @@ class CoarseConfig:
     points: int = 90  # scan points scored (evenly thinned)
     sample_m: float = 0.05  # map segments sampled this densely (a point mid each piece)
     sigma_m: float = 0.1  # score kernel width: tolerant of the translation left to refine
+    compiled: bool = True  # the nearest-sample search by the compiled kernel (kernels.py) when built
 
 
 def heading_offset(
@@ -59,8 +61,11 @@ def heading_offset(
     world = np.stack(
         [c * pts[:, 0] - s * pts[:, 1] + pose[0], s * pts[:, 0] + c * pts[:, 1] + pose[1]], axis=-1
     )  # (A,N,2)
-    tree = cKDTree(sample_segments(segments, cfg.sample_m)[0])
-    d, _ = tree.query(world.reshape(-1, 2), distance_upper_bound=3.0 * cfg.sigma_m)
+    samples = sample_segments(segments, cfg.sample_m)[0]
+    if cfg.compiled and kernels.AVAILABLE:
+        d = kernels.nearest_within(samples, world.reshape(-1, 2), 3.0 * cfg.sigma_m)
+    else:
+        d, _ = cKDTree(samples).query(world.reshape(-1, 2), distance_upper_bound=3.0 * cfg.sigma_m)
     score = np.exp(-0.5 * (d.reshape(len(offsets), -1) / cfg.sigma_m) ** 2).sum(axis=1)  # inf -> 0
     best = int(np.argmax(score))
     return float(offsets[best]) if score[best] > score[n] else 0.0

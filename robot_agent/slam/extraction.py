@@ -22,6 +22,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from robot_agent.slam import kernels
 from robot_agent.slam.lines import (
     fit_lines,
     line_covariance,
@@ -71,6 +72,8 @@ class ExtractionConfig:
     min_points: fewest points a segment is fitted to.
     min_length_m: shortest segment kept.
     max_rms_m: largest RMS perpendicular residual of a kept segment (rejects noisy fits).
+    compiled: run the split and merge rounds in the compiled kernels when they are built (the
+        numpy code below is the reference and the fallback).
     """
 
     range_min_m: float = 0.05
@@ -86,6 +89,7 @@ class ExtractionConfig:
     min_points: int = 5
     min_length_m: float = 0.3
     max_rms_m: float = 0.03
+    compiled: bool = True  # the split and merge rounds by the compiled kernels (kernels.py) when built
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -252,6 +256,8 @@ def _split(pts: np.ndarray, threshold: np.ndarray, starts: np.ndarray, cfg: Extr
     Each round splits every piece that has a point farther than its ``threshold (K,)`` from
     the chord joining the piece's first and last points, at the farthest point.
     """
+    if cfg.compiled and kernels.AVAILABLE:
+        return kernels.split_pieces(pts, threshold, starts, cfg.min_points)
     n_points = pts.shape[0]
     while True:
         ends, piece = _piece_index(starts, n_points)
@@ -290,6 +296,11 @@ def _merge(
     n_points = pts.shape[0]
     if not np.any(cluster[1:] == cluster[:-1]):
         return starts, cluster
+    if cfg.compiled and kernels.AVAILABLE:
+        return kernels.merge_pieces(
+            pts, threshold, starts, cluster, cfg.max_rms_m, cfg.range_sigma_m, cfg.merge_angle_rad,
+            cfg.merge_angle_n_sigma,
+        )  # fmt: skip
     _, piece = _piece_index(starts, n_points)
     moments = moments_from_points(pts, piece, starts.size)
     while starts.size > 1:

@@ -126,3 +126,103 @@ def associate_segments(
         float(sigma_gap),
     )
     return idx, cost, d_angle, d_perp
+
+
+def visibility(
+    seg: np.ndarray,
+    alpha: np.ndarray,
+    facing: np.ndarray,
+    valid: np.ndarray,
+    laser_poses: np.ndarray,
+    ranges_m: np.ndarray,
+    samples: np.ndarray,
+    a0: float,
+    da: float,
+    usable_range_m: float,
+    sin_min_incidence: float,
+    margin_m: float,
+    margin_rel: float,
+    min_span_rad: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """update.visibility for elements ``(P,C)`` (``seg (P,C,2,2)``) seen from ``laser_poses (P,3)``
+    by beams ``a0 + i da`` of ``ranges_m (B,)``: ``through (P,C)`` int and ``in_view (P,C)`` bool."""
+    if _kernels is None:
+        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    p, c = alpha.shape
+    through = np.empty((p, c), dtype=np.int64)
+    in_view = np.empty((p, c), dtype=np.uint8)
+    _kernels.visibility(
+        _f64(seg),
+        _f64(np.cos(alpha)),
+        _f64(np.sin(alpha)),
+        _f64(np.cos(facing)),
+        _f64(np.sin(facing)),
+        np.ascontiguousarray(valid, dtype=np.uint8),
+        _f64(laser_poses),
+        _f64(ranges_m),
+        _f64(samples),
+        through,
+        in_view,
+        p,
+        c,
+        len(ranges_m),
+        float(a0),
+        float(da),
+        float(usable_range_m),
+        float(sin_min_incidence),
+        float(margin_m),
+        float(margin_rel),
+        float(min_span_rad),
+    )
+    return through, in_view.view(bool)
+
+
+def nearest_within(samples: np.ndarray, queries: np.ndarray, radius_m: float) -> np.ndarray:
+    """Distance ``(Q,)`` from each of ``queries (Q,2)`` to the nearest of ``samples (S,2)`` when
+    below ``radius_m``, else inf: ``cKDTree(samples).query(queries, distance_upper_bound=radius_m)[0]``."""
+    if _kernels is None:
+        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    samples, queries = _f64(samples).reshape(-1, 2), _f64(queries).reshape(-1, 2)
+    d = np.empty(len(queries))
+    _kernels.nearest_within(samples, queries, d, len(samples), len(queries), float(radius_m))
+    return d
+
+
+def split_pieces(pts: np.ndarray, threshold: np.ndarray, starts: np.ndarray, min_points: int) -> np.ndarray:
+    """extraction._split: the piece starts after iterative end-point fit of ``pts (K,2)``."""
+    if _kernels is None:
+        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    out = np.empty(len(pts), dtype=np.int64)
+    starts = np.ascontiguousarray(starts, dtype=np.int64)
+    n = _kernels.split_pieces(_f64(pts), _f64(threshold), starts, out, len(pts), len(starts), int(min_points))
+    return out[:n]
+
+
+def merge_pieces(
+    pts: np.ndarray,
+    threshold: np.ndarray,
+    starts: np.ndarray,
+    cluster: np.ndarray,
+    max_rms_m: float,
+    range_sigma_m: float,
+    merge_angle_rad: float,
+    merge_angle_n_sigma: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """extraction._merge: starts and cluster of the pieces after merging adjacent collinear ones."""
+    if _kernels is None:
+        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    starts = np.array(starts, dtype=np.int64)
+    cluster = np.array(cluster, dtype=np.int64)
+    n = _kernels.merge_pieces(
+        _f64(pts),
+        _f64(threshold),
+        starts,
+        cluster,
+        len(pts),
+        len(starts),
+        float(max_rms_m),
+        float(range_sigma_m),
+        float(merge_angle_rad),
+        float(merge_angle_n_sigma),
+    )
+    return starts[:n], cluster[:n]

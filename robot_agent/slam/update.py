@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robot_agent.slam import kernels
 from robot_agent.slam.association import Association, Observations
 from robot_agent.slam.lines import interval_overlap, project_to_line
 from robot_agent.slam.particles import SegmentMaps
@@ -29,6 +30,7 @@ class UpdateConfig:
     through_miss: float = 1.0  # misses added when seen through
     unmatched_miss: float = 0.25  # misses added when fully in view and unmatched
     min_view_beams: int = 8  # "in view" only if the element spans this many beams (and not grazing)
+    compiled: bool = True  # visibility() by the compiled kernel (kernels.py) when it is built
 
 
 def merge_matches(
@@ -105,12 +107,29 @@ def visibility(
     ending at the element (it was visible and unoccluded), the element spanning at least
     ``cfg.min_view_beams`` beams: a scan that could not have made a segment of it is no miss.
     """
+    a0, da = angles_rad[0], (angles_rad[-1] - angles_rad[0]) / max(len(angles_rad) - 1, 1)
+    if cfg.compiled and kernels.AVAILABLE:  # the same tests, compiled
+        return kernels.visibility(
+            maps.seg,
+            maps.alpha,
+            maps.facing,
+            maps.valid,
+            laser_poses,
+            np.asarray(ranges_m, dtype=float),
+            VISIBILITY_SAMPLES,
+            a0,
+            da,
+            usable_range_m,
+            np.sin(cfg.min_incidence_rad),
+            cfg.through_margin_m,
+            cfg.through_margin_rel,
+            cfg.min_view_beams * abs(da),
+        )
     t = VISIBILITY_SAMPLES[None, None, :, None]
     pts = maps.seg[:, :, None, 0, :] * (1 - t) + maps.seg[:, :, None, 1, :] * t  # (P,C,3,2)
     rel = pts - laser_poses[:, None, None, :2]
     dist = np.hypot(rel[..., 0], rel[..., 1])
     bearing = wrap_angle(np.arctan2(rel[..., 1], rel[..., 0]) - laser_poses[:, None, None, 2])
-    a0, da = angles_rad[0], (angles_rad[-1] - angles_rad[0]) / max(len(angles_rad) - 1, 1)
     beam = np.rint((bearing - a0) / da).astype(int)
     inside = (beam >= 0) & (beam < len(angles_rad)) & (dist < usable_range_m) & (dist > 0.1)
     measured = ranges_m[np.clip(beam, 0, len(angles_rad) - 1)]

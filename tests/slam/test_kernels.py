@@ -5,16 +5,24 @@ covariances and counts to rounding, on random maps of many particles."""
 import dataclasses
 import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from robot_agent.slam import kernels
 from robot_agent.slam.association import AssociationConfig, associate, observe
+from robot_agent.slam.coarse import CoarseConfig, heading_offset
+from robot_agent.slam.extraction import ExtractionConfig, extract_segments
 from robot_agent.slam.lines import fit_lines, moments_of
 from robot_agent.slam.particles import SegmentMaps
 from robot_agent.slam.proposal import ProposalConfig, align_points, associate_points
+from robot_agent.slam.update import UpdateConfig, visibility
+from robot_agent.sources import carmen
 from shared.geometry import apply_points, inverse, wrap_angle
+
+DATA = Path(__file__).resolve().parents[1] / "data"
 
 needs_kernels = pytest.mark.skipif(not kernels.AVAILABLE, reason="the compiled kernels are not built")
 
@@ -152,6 +160,121 @@ def test_the_segment_association_is_the_numpy_one_bit_for_bit(seed, wide):
     assert ref.matched.sum() > 0.2 * ref.matched.size  # a test of matches, not of -1s
     for name in ("index", "cost", "d_angle", "d_perp"):
         np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
+
+
+def ray_cast(walls: np.ndarray, pose: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Ranges ``(B,)`` from ``pose`` to the nearest of ``walls (W,2,2)`` along each beam (inf: none)."""
+    d = np.stack([np.cos(pose[2] + angles), np.sin(pose[2] + angles)], axis=1)  # (B,2)
+    a, e = walls[:, 0] - pose[:2], walls[:, 1] - walls[:, 0]  # (W,2)
+    den = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = (a[None, :, 0] * e[None, :, 1] - a[None, :, 1] * e[None, :, 0]) / den
+        u = (a[None, :, 0] * d[:, None, 1] - a[None, :, 1] * d[:, None, 0]) / den
+    r = np.where((r > 0) & (u >= 0) & (u <= 1), r, np.inf)
+    return r.min(axis=1)
+
+
+@needs_kernels
+@pytest.mark.parametrize("beams", [181, 361, 1081])
+def test_visibility_is_the_numpy_one_bit_for_bit(beams):
+    """Scans of two thirds of the walls (the rest are seen through), noisy, with blind beams."""
+    cfg = UpdateConfig()
+    seen_through = in_view = 0
+    for seed in range(8):
+        rng = np.random.default_rng(300 + seed)
+        maps, _, poses = random_world(rng, 10, 15, spread_m=0.05)
+        span = np.pi if beams < 1000 else np.radians(270.0)
+        angles = np.linspace(-span / 2, span / 2, beams)
+        there = rng.random(15) < 0.67
+        ranges = ray_cast(maps.seg[0, there], poses[0], angles) + rng.normal(0, 0.01, beams)
+        ranges[rng.random(beams) < 0.05] = np.nan  # blind beams
+        ref = visibility(maps, poses, ranges, angles, 8.0, dataclasses.replace(cfg, compiled=False))
+        got = visibility(maps, poses, ranges, angles, 8.0, cfg)
+        np.testing.assert_array_equal(got[0], ref[0])
+        np.testing.assert_array_equal(got[1], ref[1])
+        assert got[1].dtype == bool
+        seen_through += int((ref[0] >= 2).sum())
+        in_view += int(ref[1].sum())
+    assert seen_through > 10 and in_view > 10  # both outcomes are tested
+
+
+@needs_kernels
+@pytest.mark.parametrize("seed", range(5))
+def test_nearest_within_is_the_k_d_tree_query(seed):
+    rng = np.random.default_rng(400 + seed)
+    samples = rng.uniform(-5, 5, (rng.integers(1, 3000), 2))
+    samples[rng.random(len(samples)) < 0.1] += 1000.0  # far away, and negative cells too
+    queries = np.vstack([rng.uniform(-6, 6, (2000, 2)), samples[:50] + rng.normal(0, 0.05, (50, 2))])
+    for radius in (0.05, 0.3, 2.0):
+        expected = cKDTree(samples).query(queries, distance_upper_bound=radius)[0]
+        got = kernels.nearest_within(samples, queries, radius)
+        assert np.isfinite(expected).sum() > 10
+        np.testing.assert_array_equal(got, expected)
+
+
+@needs_kernels
+def test_nearest_within_edges():
+    assert np.all(np.isinf(kernels.nearest_within(np.zeros((0, 2)), np.ones((3, 2)), 0.3)))
+    assert kernels.nearest_within(np.ones((3, 2)), np.zeros((0, 2)), 0.3).shape == (0,)
+    got = kernels.nearest_within(
+        np.array([[0.0, 0.0], [np.nan, 0.0]]), np.array([[0.1, 0.0], [np.inf, 0]]), 0.3
+    )
+    np.testing.assert_array_equal(got, [0.1, np.inf])
+    with pytest.raises(ValueError, match="radius must be finite and > 0"):
+        kernels.nearest_within(np.ones((3, 2)), np.ones((3, 2)), 0.0)
+
+
+@needs_kernels
+@pytest.mark.parametrize("seed", range(8))
+def test_the_coarse_heading_is_the_numpy_one(seed):
+    rng = np.random.default_rng(500 + seed)
+    maps, pts, poses = random_world(rng, 1, 20)
+    turn = rng.uniform(-0.5, 0.5)
+    pose = poses[0] + [0, 0, rng.uniform(-0.2, 0.2)]  # the heading off by up to 11°
+    cfg = CoarseConfig()
+    ref = heading_offset(pose, pts, maps.seg[0], turn, dataclasses.replace(cfg, compiled=False))
+    assert heading_offset(pose, pts, maps.seg[0], turn, cfg) == ref
+
+
+@needs_kernels
+@pytest.mark.parametrize("name", ["intel_head", "aces_head", "mit_csail_head"])
+def test_the_extraction_is_the_numpy_one_on_real_scans(name):
+    """Every scan of the three excerpts (180 and 361 beams): the same pieces, point for point, the
+    same lines to rounding (the kernels' atan2 and hypot are the C library's, numpy's may be its own)."""
+    log = carmen.read_log(DATA / f"{name}.clf.gz")
+    cfg = ExtractionConfig()
+    segments = 0
+    for scan in log.scans():
+        args = (scan.ranges_m, scan.angles_rad)
+        ref = extract_segments(*args, dataclasses.replace(cfg, compiled=False), scan.range_max_m)
+        got = extract_segments(*args, cfg, scan.range_max_m)
+        np.testing.assert_array_equal(got.point_segment, ref.point_segment)
+        np.testing.assert_array_equal(got.n_points, ref.n_points)
+        for field in ("endpoints", "alpha", "rho", "cov", "moments", "rms_m"):
+            np.testing.assert_allclose(getattr(got, field), getattr(ref, field), rtol=1e-9, atol=1e-12)
+        segments += len(ref)
+    assert segments > 5 * len(log)
+
+
+@needs_kernels
+@pytest.mark.parametrize("seed", range(20))
+def test_the_extraction_is_the_numpy_one_on_random_rooms(seed):
+    """Noisy scans of random walls, with blind beams: short pieces, corners, collinear runs."""
+    rng = np.random.default_rng(600 + seed)
+    maps, _, poses = random_world(rng, 1, 12)
+    angles = (
+        np.linspace(-np.pi, np.pi, 720, endpoint=False)
+        if seed % 2
+        else np.linspace(-np.pi / 2, np.pi / 2, 181)
+    )
+    ranges = ray_cast(maps.seg[0], poses[0], angles) + rng.normal(0, 0.01, len(angles))
+    ranges[rng.random(len(angles)) < 0.03] = np.nan
+    cfg = ExtractionConfig()
+    ref = extract_segments(ranges, angles, dataclasses.replace(cfg, compiled=False))
+    got = extract_segments(ranges, angles, cfg)
+    np.testing.assert_array_equal(got.point_segment, ref.point_segment)
+    np.testing.assert_allclose(got.endpoints, ref.endpoints, rtol=1e-9, atol=1e-12)
+    assert len(ref) >= 2
 
 
 @needs_kernels
