@@ -8,6 +8,8 @@ All functions broadcast their batch axes with numpy rules and never loop in Pyth
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 TWO_PI = 2.0 * np.pi
@@ -46,6 +48,21 @@ def inverse(p: np.ndarray) -> np.ndarray:
 def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``inverse(a) ∘ b``: the motion from pose ``a`` to pose ``b`` in ``a``'s frame."""
     return compose(inverse(a), b)
+
+
+def relative_one(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """:func:`relative` of two single poses ``(3,)``, in Python floats: the same operations in the
+    same order (the same result), without numpy's cost per call on three numbers."""
+    a0, a1, a2 = (float(v) for v in a)
+    b0, b1, b2 = (float(v) for v in b)
+    c, s = math.cos(a2), math.sin(a2)
+    ix, iy = -(c * a0 + s * a1), -(-s * a0 + c * a1)  # inverse(a)
+    ith = (-a2 + math.pi) % TWO_PI - math.pi
+    c, s = math.cos(ith), math.sin(ith)
+    x = ix + c * b0 - s * b1
+    y = iy + s * b0 + c * b1
+    th = (ith + b2 + math.pi) % TWO_PI - math.pi
+    return np.array([x, y, th])
 
 
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -765,6 +765,98 @@ done:
     return result;
 }
 
+/* ---- scan matching (scanmatch.py) ------------------------------------------------------------ */
+
+/* scanmatch.window_scores' inner sums: out[a, t] = mean over n of values[cells[a, n] + (ox, oy)[t]],
+ * 0 outside the (W, H) grid. */
+static PyObject *window_sums(PyObject *self, PyObject *args) {
+    Py_buffer b_v, b_c, b_ox, b_oy, b_out;
+    Py_ssize_t W, H, A, N, T;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*w*nnnnn", &b_v, &b_c, &b_ox, &b_oy, &b_out, &W, &H, &A, &N, &T))
+        return NULL;
+    Py_buffer *all[] = {&b_v, &b_c, &b_ox, &b_oy, &b_out};
+    Py_ssize_t need[] = {W * H * 8, A * N * 2 * 8, T * 8, T * 8, A * T * 8};
+    PyObject *result = NULL;
+    for (int k = 0; k < 5; k++) {
+        if (all[k]->len != need[k]) {
+            PyErr_Format(PyExc_ValueError, "window_sums: argument %d holds %zd bytes, expected %zd", k,
+                         all[k]->len, need[k]);
+            goto done;
+        }
+    }
+    const double *v = b_v.buf;
+    const int64_t *cells = b_c.buf, *ox = b_ox.buf, *oy = b_oy.buf;
+    double *out = b_out.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t a = 0; a < A; a++) {
+        const int64_t *c = cells + 2 * N * a;
+        for (Py_ssize_t t = 0; t < T; t++) {
+            double sum = 0.0;
+            for (Py_ssize_t n = 0; n < N; n++) {
+                int64_t ix = c[2 * n] + ox[t], iy = c[2 * n + 1] + oy[t];
+                if (ix >= 0 && ix < W && iy >= 0 && iy < H) sum += v[ix * H + iy];
+            }
+            out[a * T + t] = N > 0 ? sum / (double)N : NAN;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    for (int k = 0; k < 5; k++) PyBuffer_Release(all[k]);
+    return result;
+}
+
+/* scanmatch.branch_and_bound's scores: out[m] = sum over n of level[flat[a[m], n] + off[m]] / N,
+ * level a padded float32 grid, flattened; an index off it is an error (the padding is wrong). */
+static PyObject *flat_sums(PyObject *self, PyObject *args) {
+    Py_buffer b_l, b_f, b_a, b_o, b_out;
+    Py_ssize_t L, A, N, M;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*w*nnnn", &b_l, &b_f, &b_a, &b_o, &b_out, &L, &A, &N, &M)) return NULL;
+    Py_buffer *all[] = {&b_l, &b_f, &b_a, &b_o, &b_out};
+    Py_ssize_t need[] = {L * 4, A * N * 8, M * 8, M * 8, M * 8};
+    PyObject *result = NULL;
+    for (int k = 0; k < 5; k++) {
+        if (all[k]->len != need[k]) {
+            PyErr_Format(PyExc_ValueError, "flat_sums: argument %d holds %zd bytes, expected %zd", k, all[k]->len,
+                         need[k]);
+            goto done;
+        }
+    }
+    const float *level = b_l.buf;
+    const int64_t *flat = b_f.buf, *am = b_a.buf, *off = b_o.buf;
+    double *out = b_out.buf;
+    int bad = 0;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t m = 0; m < M && !bad; m++) {
+        if (am[m] < 0 || am[m] >= A) {
+            bad = 1;
+            break;
+        }
+        const int64_t *f = flat + N * am[m];
+        double sum = 0.0;
+        for (Py_ssize_t n = 0; n < N; n++) {
+            int64_t i = f[n] + off[m];
+            if (i < 0 || i >= L) {
+                bad = 1;
+                break;
+            }
+            sum += level[i];
+        }
+        out[m] = sum / (double)(N > 0 ? N : 1);
+    }
+    Py_END_ALLOW_THREADS
+    if (bad) {
+        PyErr_SetString(PyExc_IndexError, "flat_sums: an index falls off the level");
+        goto done;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    for (int k = 0; k < 5; k++) PyBuffer_Release(all[k]);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"gn_points", gn_points, METH_VARARGS,
      "gn_points(x, prior_mean, info_prior, pts, nx, ny, rho, seg, fx, fy, valid, gate_wide, h_out, idx_out, "
@@ -786,6 +878,10 @@ static PyMethodDef methods[] = {
     {"merge_pieces", merge_pieces, METH_VARARGS,
      "merge_pieces(pts, threshold, starts, cluster, K, S, max_rms, range_sigma, merge_angle, n_sigma) -> count: "
      "extraction._merge in place on starts and cluster (int64)."},
+    {"window_sums", window_sums, METH_VARARGS,
+     "window_sums(values, cells, ox, oy, out, W, H, A, N, T): scanmatch.window_scores' mean likelihoods."},
+    {"flat_sums", flat_sums, METH_VARARGS,
+     "flat_sums(level, flat, a, off, out, L, A, N, M): scanmatch.branch_and_bound's scores of M blocks."},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

@@ -47,6 +47,7 @@ from shared.geometry import apply_points, compose, relative, wrap_angle
 @dataclass(frozen=True)
 class BackendConfig:
     enabled: bool = True
+    compiled: bool = True  # the scan matcher's sums by the compiled kernels (kernels.py) when built
     keyframe_m: float = 0.5  # a keyframe every this much travel ...
     keyframe_rad: float = np.radians(15.0)  # ... or this much turning
     cloud_neighbours: int = 4  # an old keyframe's cloud: its scan and this many on each side
@@ -185,8 +186,9 @@ def match_loop(
             return None
         guess = wide[0][0]  # the small window around the wide search's best
     scores, angles, offs = window_scores(
-        fld, query, guess, cfg.search_xy_m, cfg.search_theta_rad, cfg.search_step_m, cfg.search_step_rad
-    )
+        fld, query, guess, cfg.search_xy_m, cfg.search_theta_rad, cfg.search_step_m, cfg.search_step_rad,
+        compiled=cfg.compiled,
+    )  # fmt: skip
     best = float(scores.max())
     if best < cfg.min_score:
         return None
@@ -226,7 +228,16 @@ def _wide_search(
     step = max(cfg.min_wide_step_rad, np.arctan2(fld.res_m, reach))  # far points within a cell
     depth = int(np.clip(np.ceil(np.log2(half_xy / cfg.search_step_m)) - 1, 1, 6))
     poses, scores = branch_and_bound(
-        fld, few, guess, half_xy, half_th, step, cfg.min_score, cfg.wide_keep_ratio, depth
+        fld,
+        few,
+        guess,
+        half_xy,
+        half_th,
+        step,
+        cfg.min_score,
+        cfg.wide_keep_ratio,
+        depth,
+        compiled=cfg.compiled,
     )
     if len(poses) == 0:
         return None

@@ -226,3 +226,33 @@ def merge_pieces(
         float(merge_angle_n_sigma),
     )
     return starts[:n], cluster[:n]
+
+
+def window_sums(values: np.ndarray, cells: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
+    """Mean of ``values (W,H)`` (0 off the grid) over the cells ``(A,N,2)`` moved by each offset
+    ``(ox, oy) (T,)``: ``(A,T)`` — scanmatch.window_scores."""
+    if _kernels is None:
+        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    a, n = cells.shape[:2]
+    out = np.empty((a, len(ox)))
+    ints = np.ascontiguousarray
+    _kernels.window_sums(
+        _f64(values), ints(cells, dtype=np.int64), ints(ox, dtype=np.int64), ints(oy, dtype=np.int64), out,
+        values.shape[0], values.shape[1], a, n, len(ox),
+    )  # fmt: skip
+    return out
+
+
+def flat_sums(level: np.ndarray, flat: np.ndarray, a: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """``level.ravel()[flat[a] + off[:, None]].mean(axis=1)`` for a float32 ``level``, ``flat (A,N)``
+    and blocks ``a, off (M,)`` — scanmatch.branch_and_bound's scores."""
+    if _kernels is None:
+        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    lv = np.ascontiguousarray(level, dtype=np.float32).ravel()
+    out = np.empty(len(a))
+    ints = np.ascontiguousarray
+    _kernels.flat_sums(
+        lv, ints(flat, dtype=np.int64), ints(a, dtype=np.int64), ints(off, dtype=np.int64), out,
+        lv.size, flat.shape[0], flat.shape[1], len(a),
+    )  # fmt: skip
+    return out

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from robot_agent.slam import kernels
 from shared.geometry import apply_points, relative
 
 
@@ -34,6 +35,7 @@ class KidnapConfig:
     points: int = 100  # scan points compared, spread over the scan
     tol_m: float = 0.1  # a point lies on the other scan within this ...
     tol_per_m: float = 0.05  # ... plus this per metre of its range (odometry's heading lags)
+    compiled: bool = True  # the nearest-point search by the compiled kernel (kernels.py) when built
     min_overlap: float = 0.3  # a scan agrees with the reference when this share of it lies on it
     suspect_scans: int = 2  # this many scans in a row that disagree: doubt
     doubt_m: float = 3.0  # driving in doubt (odometry) before deciding without a relocalization ...
@@ -69,9 +71,13 @@ def overlap(
     if len(ref_points) < 10 or len(points) < 10:
         return 1.0
     q = apply_points(relative(ref_odometry, odometry), points)
-    d, _ = cKDTree(ref_points).query(q)
     r = np.hypot(points[:, 0], points[:, 1])
-    return float(np.mean(d < cfg.tol_m + cfg.tol_per_m * r))
+    tol = cfg.tol_m + cfg.tol_per_m * r
+    if cfg.compiled and kernels.AVAILABLE and tol.max() > 0:  # a point farther than every tolerance: inf
+        d = kernels.nearest_within(ref_points, q, float(tol.max()) * (1 + 1e-9))
+    else:
+        d, _ = cKDTree(ref_points).query(q)
+    return float(np.mean(d < tol))
 
 
 @dataclass

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.geometry import compose, relative
+from shared.geometry import compose, relative_one
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,7 @@ class MotionConfig:
 
 def odometry_increment(odo_prev: np.ndarray, odo_now: np.ndarray) -> np.ndarray:
     """The motion ``(3,)`` measured by odometry between two readings, in the robot frame."""
-    return relative(odo_prev, odo_now)
+    return relative_one(odo_prev, odo_now)
 
 
 def predict(

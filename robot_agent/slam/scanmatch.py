@@ -20,6 +20,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
+from robot_agent.slam import kernels
 from shared.geometry import apply_points, compose
 
 
@@ -79,15 +80,20 @@ def window_scores(
     half_theta_rad: float,
     step_m: float,
     step_rad: float,
+    compiled: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Scores ``(A,T)`` (mean likelihood of the query points ``(N,2)``) at every pose of the window
-    around ``guess (3,)``; the angles ``(A,)`` and translation offsets ``(T,2)`` [m] from it."""
+    around ``guess (3,)``; the angles ``(A,)`` and translation offsets ``(T,2)`` [m] from it
+    (``compiled``: the sums by the compiled kernel when it is built)."""
     n_xy = round(half_xy_m / step_m)
     n_th = round(half_theta_rad / step_rad)
     angles = guess[2] + step_rad * np.arange(-n_th, n_th + 1)
     o = round(step_m / fld.res_m) * np.arange(-n_xy, n_xy + 1)
     ox, oy = (g.ravel() for g in np.meshgrid(o, o, indexing="ij"))
     cells = _query_cells(fld, query, guess, angles)
+    if compiled and kernels.AVAILABLE:
+        scores = kernels.window_sums(fld.values, cells, ox, oy)
+        return scores, angles, np.column_stack([ox, oy]) * fld.res_m
     scores = np.empty((len(angles), len(ox)))
     for a in range(len(angles)):
         ix = cells[a, None, :, 0] + ox[:, None]
@@ -123,13 +129,14 @@ def branch_and_bound(
     depth: int,
     max_open: int = 1024,
     probes: int = 32,
+    compiled: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Poses ``(K,3)`` in the window around ``guess`` (translations on the field's cells, headings
     ``step_rad`` apart) scoring at least ``min_score`` and ``keep_ratio`` × the best, with their
     scores ``(K,)``, best first; empty when none reaches ``min_score``. Exact while at most
     ``max_open`` blocks stay open at a level (beyond, the lowest-bounded ones are dropped); at
     every level the exact score of the ``probes`` best-bounded blocks' first poses raises the
-    threshold."""
+    threshold. ``compiled``: the scores by the compiled kernel when it is built."""
     n_th = int(np.ceil(half_theta_rad / step_rad))
     angles = guess[2] + step_rad * np.arange(-n_th, n_th + 1)
     w = int(np.ceil(half_xy_m / fld.res_m))
@@ -147,6 +154,8 @@ def branch_and_bound(
     n_points = query.shape[0]
 
     def score(k: int, a: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
+        if compiled and kernels.AVAILABLE:
+            return kernels.flat_sums(levels[k], flat, a, ox * height + oy)
         return levels[k].ravel()[flat[a] + (ox * height + oy)[:, None]].sum(axis=1) / n_points
 
     starts = np.arange(-w, w + 1, top)

@@ -113,3 +113,15 @@ def test_sample_segments_hand_computed():
     np.testing.assert_allclose(pts, [[0, 0], [0.25, 0], [0.5, 0], [0.75, 0], [1, 0], [2, 2], [2, 2]])
     np.testing.assert_array_equal(owner, [0, 0, 0, 0, 0, 1, 1])
     assert all(len(a) == 0 for a in g.sample_segments(np.zeros((0, 2, 2)), 0.3, ends=True))
+
+
+def test_relative_one_is_relative_bit_for_bit():
+    """The scalar fast path of one pose pair: the same numbers, not only close ones (the filter's
+    odometry increments go through it, and a trajectory must not depend on which was used)."""
+    rng = np.random.default_rng(11)
+    for _ in range(2000):
+        a = rng.uniform([-50, -50, -4], [50, 50, 4])
+        b = a + rng.normal(0, [0.2, 0.2, 0.3])
+        np.testing.assert_array_equal(g.relative_one(a, b), g.relative(a, b))
+    turned = g.relative_one(np.zeros(3), np.array([1.0, 2.0, np.pi]))
+    np.testing.assert_array_equal(turned, [1.0, 2.0, -np.pi])

@@ -15,12 +15,14 @@ from robot_agent.slam import kernels
 from robot_agent.slam.association import AssociationConfig, associate, observe
 from robot_agent.slam.coarse import CoarseConfig, heading_offset
 from robot_agent.slam.extraction import ExtractionConfig, extract_segments
+from robot_agent.slam.kidnap import KidnapConfig, overlap
 from robot_agent.slam.lines import fit_lines, moments_of
 from robot_agent.slam.particles import SegmentMaps
 from robot_agent.slam.proposal import ProposalConfig, align_points, associate_points
+from robot_agent.slam.scanmatch import branch_and_bound, likelihood_field, window_scores
 from robot_agent.slam.update import UpdateConfig, visibility
 from robot_agent.sources import carmen
-from shared.geometry import apply_points, inverse, wrap_angle
+from shared.geometry import apply_points, inverse, relative, wrap_angle
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 
@@ -275,6 +277,64 @@ def test_the_extraction_is_the_numpy_one_on_random_rooms(seed):
     np.testing.assert_array_equal(got.point_segment, ref.point_segment)
     np.testing.assert_allclose(got.endpoints, ref.endpoints, rtol=1e-9, atol=1e-12)
     assert len(ref) >= 2
+
+
+def match_case(seed):
+    """A cloud of random walls, a query of the same walls seen from a pose up to 1 m and 10° off."""
+    rng = np.random.default_rng(700 + seed)
+    maps, _, _ = random_world(rng, 1, 15)
+    walls = maps.seg[0]
+    cloud = (walls[:, :1] + rng.random((15, 80, 1)) * (walls[:, 1:] - walls[:, :1])).reshape(-1, 2)
+    true = np.array([rng.normal(0, 0.5), rng.normal(0, 0.5), rng.normal(0, 0.1)])
+    query = apply_points(inverse(true), cloud[rng.choice(len(cloud), 150, replace=False)])
+    return likelihood_field(cloud, 0.05, 0.05, 0.2), query, true
+
+
+@needs_kernels
+@pytest.mark.parametrize("seed", range(5))
+def test_the_window_scores_are_the_numpy_ones(seed):
+    fld, query, true = match_case(seed)
+    guess = true + np.array([0.1, -0.1, 0.03])
+    ref = window_scores(fld, query, guess, 0.3, np.radians(6.0), 0.05, np.radians(1.0), compiled=False)
+    got = window_scores(fld, query, guess, 0.3, np.radians(6.0), 0.05, np.radians(1.0))
+    np.testing.assert_allclose(got[0], ref[0], rtol=1e-12, atol=1e-15)
+    assert np.argmax(got[0]) == np.argmax(ref[0]) and ref[0].max() > 0.5
+    for a, b in zip(got[1:], ref[1:], strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+@needs_kernels
+@pytest.mark.parametrize("seed", range(5))
+def test_branch_and_bound_finds_what_the_numpy_one_finds(seed):
+    """The same best pose, and scores equal to float32 rounding (the numpy code sums float32)."""
+    fld, query, true = match_case(seed)
+    guess = true + np.array([0.8, -0.6, 0.12])
+    args = (fld, query, guess, 1.2, np.radians(10.0), np.radians(1.0), 0.3, 0.9, 4)
+    ref_poses, ref_scores = branch_and_bound(*args, compiled=False)
+    poses, scores = branch_and_bound(*args)
+    assert len(ref_poses) > 0
+    np.testing.assert_allclose(poses[0], ref_poses[0], atol=1e-9)
+    np.testing.assert_allclose(scores[0], ref_scores[0], rtol=1e-5)
+    assert abs(len(poses) - len(ref_poses)) <= max(2, len(ref_poses) // 20)  # ties at the keep ratio
+
+
+@needs_kernels
+@pytest.mark.parametrize("seed", range(6))
+def test_the_kidnap_overlap_is_the_numpy_one(seed):
+    rng = np.random.default_rng(800 + seed)
+    ref = rng.uniform(-8, 8, (100, 2))
+    odo_ref, odo = np.zeros(3), np.array([0.3, 0.1, 0.05])
+    points = apply_points(relative(odo, odo_ref), ref) + rng.normal(0, 0.15 * (seed + 1), ref.shape)
+    cfg = KidnapConfig()
+    expected = overlap(ref, odo_ref, points, odo, dataclasses.replace(cfg, compiled=False))
+    assert 0.0 < expected < 1.0
+    assert overlap(ref, odo_ref, points, odo, cfg) == expected
+
+
+@needs_kernels
+def test_a_level_index_off_the_grid_is_refused():
+    with pytest.raises(IndexError, match="falls off the level"):
+        kernels.flat_sums(np.zeros((4, 4), np.float32), np.array([[0, 15]]), np.array([0]), np.array([1]))
 
 
 @needs_kernels
