@@ -117,10 +117,12 @@ static int associate(Assoc *s, const double *x, const double *gate, int64_t *idx
         ref_x[i] = mx / (double)P;
         ref_y[i] = my / (double)P;
         for (Py_ssize_t p = 0; p < P; p++) {
-            double d = hypot(s->wx[p * N + i] - ref_x[i], s->wy[p * N + i] - ref_y[i]);
-            if (d > spread) spread = d;
+            double dx = s->wx[p * N + i] - ref_x[i], dy = s->wy[p * N + i] - ref_y[i];
+            double d2 = dx * dx + dy * dy;
+            if (d2 > spread) spread = d2;
         }
     }
+    spread = sqrt(spread); /* (squared above) */
     double reach = hypot(gmax, s->margin) + spread;
     /* inflate by a relative epsilon: the mean above is summed in another order than numpy's */
     reach += 1e-9 * (1.0 + reach);
@@ -254,25 +256,33 @@ static PyObject *gn_points(PyObject *self, PyObject *args) {
         }
         rotate(&s, x);
         for (Py_ssize_t p = 0; p < P; p++) {
-            double hh[9] = {0}, g[3] = {0};
+            /* the symmetric 3x3 information and the gradient, in registers */
+            double h00 = 0, h01 = 0, h02 = 0, h11 = 0, h12 = 0, h22 = 0, g0 = 0, g1 = 0, g2 = 0;
             double tx = x[3 * p], ty = x[3 * p + 1];
+            const int64_t *assoc = idx + p * N;
+            const double *qxp = s.qx + p * N, *qyp = s.qy + p * N;
+            const double *nxp = s.nx + p * C, *nyp = s.ny + p * C, *rp = s.rho + p * C;
             for (Py_ssize_t i = 0; i < N; i++) {
-                int64_t c = idx[p * N + i];
+                int64_t c = assoc[i];
                 if (c < 0) continue;
-                Py_ssize_t pc = p * C + c;
-                double nx = s.nx[pc], ny = s.ny[pc];
-                double qx = s.qx[p * N + i], qy = s.qy[p * N + i];
-                double r = nx * (qx + tx) + ny * (qy + ty) - s.rho[pc];
+                double nx = nxp[c], ny = nyp[c];
+                double qx = qxp[i], qy = qyp[i];
+                double r = nx * (qx + tx) + ny * (qy + ty) - rp[c];
                 double jt = ny * qx - nx * qy;
                 double u = r / robust;
-                double w = 1.0 / (1.0 + u * u) * inv_s2;
-                double j[3] = {nx, ny, jt};
-                for (int a = 0; a < 3; a++) {
-                    double wa = w * j[a];
-                    for (int b = 0; b < 3; b++) hh[3 * a + b] += wa * j[b];
-                    g[a] += wa * r;
-                }
+                double w = inv_s2 / (1.0 + u * u);
+                double wx = w * nx, wy = w * ny, wt = w * jt;
+                h00 += wx * nx;
+                h01 += wx * ny;
+                h02 += wx * jt;
+                h11 += wy * ny;
+                h12 += wy * jt;
+                h22 += wt * jt;
+                g0 += wx * r;
+                g1 += wy * r;
+                g2 += wt * r;
             }
+            double hh[9] = {h00, h01, h02, h01, h11, h12, h02, h12, h22}, g[3] = {g0, g1, g2};
             memcpy(h + 9 * p, hh, sizeof hh);
             const double *ip = info + 9 * p;
             double d[3] = {x[3 * p] - mean[3 * p], x[3 * p + 1] - mean[3 * p + 1],
@@ -423,7 +433,7 @@ static PyObject *visibility(PyObject *self, PyObject *args) {
             for (int k = 0; k < 3; k++) {
                 double t = ts[k], u = 1 - t;
                 double rx = (e[0] * u + e[2] * t) - lx, ry = (e[1] * u + e[3] * t) - ly;
-                double dist = hypot(rx, ry);
+                double dist = sqrt(rx * rx + ry * ry);
                 double b = wrap_angle(atan2(ry, rx) - lth);
                 bearing[k] = b;
                 double f = rint((b - a0) / da);
@@ -506,33 +516,85 @@ static PyObject *nearest_within(PyObject *self, PyObject *args) {
     }
     Py_BEGIN_ALLOW_THREADS
     Py_ssize_t n = 0;
+    int64_t x0 = INT64_MAX, y0 = INT64_MAX, x1 = INT64_MIN, y1 = INT64_MIN;
     for (Py_ssize_t i = 0; i < S; i++) {
         double fx = floor(sp[2 * i] / radius), fy = floor(sp[2 * i + 1] / radius);
         if (!(fabs(fx) < 4e18 && fabs(fy) < 4e18)) continue; /* not finite: never nearest */
         cells[n].cx = (int64_t)fx;
         cells[n].cy = (int64_t)fy;
         cells[n].i = i;
+        if (cells[n].cx < x0) x0 = cells[n].cx;
+        if (cells[n].cx > x1) x1 = cells[n].cx;
+        if (cells[n].cy < y0) y0 = cells[n].cy;
+        if (cells[n].cy > y1) y1 = cells[n].cy;
         n++;
     }
-    qsort(cells, (size_t)n, sizeof(Cell), cell_order);
-    for (Py_ssize_t q = 0; q < Q; q++) {
-        double x = qp[2 * q], y = qp[2 * q + 1];
-        double best = INFINITY;
-        double fx = floor(x / radius), fy = floor(y / radius);
-        if (fabs(fx) < 4e18 && fabs(fy) < 4e18) {
-            int64_t cx = (int64_t)fx, cy = (int64_t)fy;
-            for (int64_t gx = cx - 1; gx <= cx + 1; gx++) {
-                Py_ssize_t k = lower_bound(cells, 0, n, gx, cy - 1);
-                for (; k < n && cells[k].cx == gx && cells[k].cy <= cy + 1; k++) {
-                    Py_ssize_t i = cells[k].i;
-                    double dx = sp[2 * i] - x, dy = sp[2 * i + 1] - y;
-                    double dd = sqrt(dx * dx + dy * dy);
-                    if (dd < best) best = dd;
+    /* a dense grid of cells over the samples' extent when it is small (a local map), the cells
+     * sorted otherwise (samples spread far apart) */
+    double area = n ? ((double)(x1 - x0) + 1.0) * ((double)(y1 - y0) + 1.0) : 0.0;
+    Py_ssize_t W = 0, H = 0;
+    Py_ssize_t *start = NULL, *order = NULL;
+    if (n && area <= 8.0 * (double)n + 4096.0) {
+        W = (Py_ssize_t)(x1 - x0 + 1);
+        H = (Py_ssize_t)(y1 - y0 + 1);
+        start = calloc((size_t)(W * H + 1), sizeof(Py_ssize_t));
+        order = malloc(sizeof(Py_ssize_t) * (size_t)n);
+    }
+    if (start && order) {
+        for (Py_ssize_t k = 0; k < n; k++) start[(cells[k].cx - x0) * H + (cells[k].cy - y0) + 1]++;
+        for (Py_ssize_t c = 0; c < W * H; c++) start[c + 1] += start[c];
+        for (Py_ssize_t k = 0; k < n; k++) {
+            Py_ssize_t c = (cells[k].cx - x0) * H + (cells[k].cy - y0);
+            order[start[c]++] = cells[k].i;
+        }
+        for (Py_ssize_t c = W * H; c > 0; c--) start[c] = start[c - 1]; /* back to the first of each */
+        start[0] = 0;
+        for (Py_ssize_t q = 0; q < Q; q++) {
+            double x = qp[2 * q], y = qp[2 * q + 1];
+            double best2 = INFINITY;
+            double fx = floor(x / radius), fy = floor(y / radius);
+            if (fabs(fx) < 4e18 && fabs(fy) < 4e18) {
+                int64_t cx = (int64_t)fx - x0, cy = (int64_t)fy - y0;
+                for (int64_t gx = cx - 1; gx <= cx + 1; gx++) {
+                    if (gx < 0 || gx >= W) continue;
+                    for (int64_t gy = cy - 1; gy <= cy + 1; gy++) {
+                        if (gy < 0 || gy >= H) continue;
+                        Py_ssize_t c = (Py_ssize_t)(gx * H + gy);
+                        for (Py_ssize_t k = start[c]; k < start[c + 1]; k++) {
+                            Py_ssize_t i = order[k];
+                            double dx = sp[2 * i] - x, dy = sp[2 * i + 1] - y;
+                            double dd = dx * dx + dy * dy;
+                            if (dd < best2) best2 = dd;
+                        }
+                    }
                 }
             }
+            double best = sqrt(best2);
+            d[q] = best < radius ? best : INFINITY;
         }
-        d[q] = best < radius ? best : INFINITY;
+    } else {
+        qsort(cells, (size_t)n, sizeof(Cell), cell_order);
+        for (Py_ssize_t q = 0; q < Q; q++) {
+            double x = qp[2 * q], y = qp[2 * q + 1];
+            double best = INFINITY;
+            double fx = floor(x / radius), fy = floor(y / radius);
+            if (fabs(fx) < 4e18 && fabs(fy) < 4e18) {
+                int64_t cx = (int64_t)fx, cy = (int64_t)fy;
+                for (int64_t gx = cx - 1; gx <= cx + 1; gx++) {
+                    Py_ssize_t k = lower_bound(cells, 0, n, gx, cy - 1);
+                    for (; k < n && cells[k].cx == gx && cells[k].cy <= cy + 1; k++) {
+                        Py_ssize_t i = cells[k].i;
+                        double dx = sp[2 * i] - x, dy = sp[2 * i + 1] - y;
+                        double dd = sqrt(dx * dx + dy * dy);
+                        if (dd < best) best = dd;
+                    }
+                }
+            }
+            d[q] = best < radius ? best : INFINITY;
+        }
     }
+    free(start);
+    free(order);
     Py_END_ALLOW_THREADS
     free(cells);
     result = Py_None;
