@@ -919,6 +919,56 @@ done:
     return result;
 }
 
+/* FastSLAM._local_columns: the columns with an element, in any of the particles ``rows``, whose
+ * distance from (cx, cy) to its midpoint less its half length is below ``limit``. */
+static PyObject *local_columns(PyObject *self, PyObject *args) {
+    Py_buffer b_valid, b_seg, b_rows, b_out;
+    Py_ssize_t P, M, R;
+    double cx, cy, limit;
+    if (!PyArg_ParseTuple(args, "y*y*y*w*nnnddd", &b_valid, &b_seg, &b_rows, &b_out, &P, &M, &R, &cx, &cy, &limit))
+        return NULL;
+    Py_buffer *all[] = {&b_valid, &b_seg, &b_rows, &b_out};
+    Py_ssize_t need[] = {P * M, P * M * 4 * 8, R * 8, M * 8};
+    PyObject *result = NULL;
+    for (int k = 0; k < 4; k++) {
+        if (all[k]->len != need[k]) {
+            PyErr_Format(PyExc_ValueError, "local_columns: argument %d holds %zd bytes, expected %zd", k,
+                         all[k]->len, need[k]);
+            goto done;
+        }
+    }
+    const uint8_t *valid = b_valid.buf;
+    const double *seg = b_seg.buf;
+    const int64_t *rows = b_rows.buf;
+    int64_t *out = b_out.buf;
+    for (Py_ssize_t r = 0; r < R; r++) {
+        if (rows[r] < 0 || rows[r] >= P) {
+            PyErr_Format(PyExc_IndexError, "local_columns: row %lld is not a particle", (long long)rows[r]);
+            goto done;
+        }
+    }
+    Py_ssize_t n = 0;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t c = 0; c < M; c++) {
+        for (Py_ssize_t r = 0; r < R; r++) {
+            Py_ssize_t j = rows[r] * M + c;
+            if (!valid[j]) continue;
+            const double *e = seg + 4 * j;
+            double mx = 0.5 * (e[0] + e[2]) - cx, my = 0.5 * (e[1] + e[3]) - cy;
+            double lx = e[2] - e[0], ly = e[3] - e[1];
+            if (sqrt(mx * mx + my * my) - 0.5 * sqrt(lx * lx + ly * ly) < limit) {
+                out[n++] = c;
+                break;
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    result = PyLong_FromSsize_t(n);
+done:
+    for (int k = 0; k < 4; k++) PyBuffer_Release(all[k]);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"gn_points", gn_points, METH_VARARGS,
      "gn_points(x, prior_mean, info_prior, pts, nx, ny, rho, seg, fx, fy, valid, gate_wide, h_out, idx_out, "
@@ -944,6 +994,8 @@ static PyMethodDef methods[] = {
      "window_sums(values, cells, ox, oy, out, W, H, A, N, T): scanmatch.window_scores' mean likelihoods."},
     {"flat_sums", flat_sums, METH_VARARGS,
      "flat_sums(level, flat, a, off, out, L, A, N, M): scanmatch.branch_and_bound's scores of M blocks."},
+    {"local_columns", local_columns, METH_VARARGS,
+     "local_columns(valid, seg, rows, out, P, M, R, cx, cy, limit) -> count: FastSLAM._local_columns."},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from robot_agent.slam import consensus as consensus_mod
+from robot_agent.slam import kernels
 from robot_agent.slam import kidnap as kidnap_mod
 from robot_agent.slam import relocalize as reloc_mod
 from robot_agent.slam.association import AssociationConfig, associate, match_log_likelihood, observe
@@ -82,6 +83,7 @@ class FilterConfig:
     min_travel_m: float = 0.1  # process a scan only after this much motion ...
     min_turn_rad: float = np.radians(5.0)  # ... or this much turning (between, odometry bridges)
     local_margin_m: float = 3.0  # elements farther than the scan's reach plus this are not touched
+    compiled: bool = True  # the local columns by the compiled kernel (kernels.py) when it is built
     clean_every: int = 5  # steps between map cleanings
     refine_bridged: bool = True  # align a bridged scan to the best particle's map (pose only):
     # its pose then comes from the scan, not from odometry whose timing may lag the laser's
@@ -392,6 +394,11 @@ class FastSLAM:
         the segment's midpoint minus its half length); of the particles ``rows`` only when given
         (their maps alone are used: columns valid in none of them would be carried for nothing)."""
         maps = self.particles.maps
+        centre = poses[:, :2].mean(axis=0)
+        spread = np.max(np.hypot(*(poses[:, :2] - centre).T))
+        if self.cfg.filter.compiled and kernels.AVAILABLE:  # the same test, over the whole map, compiled
+            every = np.arange(maps.n_particles) if rows is None else rows
+            return kernels.local_columns(maps.valid, maps.seg, every, centre, radius_m + spread)
         of = slice(None) if rows is None else rows
         valid = maps.valid[of]
         used = np.flatnonzero(valid.any(axis=0))
@@ -400,8 +407,6 @@ class FastSLAM:
         seg = maps.seg[of][:, used]
         mid = 0.5 * (seg[:, :, 0] + seg[:, :, 1])
         half = 0.5 * np.hypot(*(seg[:, :, 1] - seg[:, :, 0]).transpose(2, 0, 1))
-        centre = poses[:, :2].mean(axis=0)
-        spread = np.max(np.hypot(*(poses[:, :2] - centre).T))
         d = np.hypot(*(mid - centre).transpose(2, 0, 1)) - half
         near = np.any(valid[:, used] & (d < radius_m + spread), axis=0)
         return used[near]

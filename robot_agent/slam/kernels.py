@@ -18,6 +18,14 @@ def _f64(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float64)
 
 
+def _u8(mask: np.ndarray) -> np.ndarray:
+    """A boolean mask as bytes for the kernels: a view when it is contiguous, a copy else."""
+    mask = np.asarray(mask)
+    if mask.dtype == np.bool_ and mask.flags.c_contiguous:
+        return mask.view(np.uint8)
+    return np.ascontiguousarray(mask, dtype=np.uint8)
+
+
 def gn_points(
     x: np.ndarray,
     prior_mean: np.ndarray,
@@ -58,7 +66,7 @@ def gn_points(
         _f64(seg),
         _f64(np.cos(facing)),
         _f64(np.sin(facing)),
-        np.ascontiguousarray(valid, dtype=np.uint8),
+        _u8(valid),
         _f64(gate),
         h,
         idx,
@@ -112,7 +120,7 @@ def associate_segments(
         _f64(rho),
         _f64(facing),
         _f64(seg),
-        np.ascontiguousarray(valid, dtype=np.uint8),
+        _u8(valid),
         idx,
         cost,
         d_angle,
@@ -157,7 +165,7 @@ def visibility(
         _f64(np.sin(alpha)),
         _f64(np.cos(facing)),
         _f64(np.sin(facing)),
-        np.ascontiguousarray(valid, dtype=np.uint8),
+        _u8(valid),
         _f64(laser_poses),
         _f64(ranges_m),
         _f64(samples),
@@ -256,3 +264,20 @@ def flat_sums(level: np.ndarray, flat: np.ndarray, a: np.ndarray, off: np.ndarra
         lv.size, flat.shape[0], flat.shape[1], len(a),
     )  # fmt: skip
     return out
+
+
+def local_columns(
+    valid: np.ndarray, seg: np.ndarray, rows: np.ndarray, centre: np.ndarray, limit_m: float
+) -> np.ndarray:
+    """Columns ``(K,)`` of maps ``valid (P,M)``, ``seg (P,M,2,2)`` with an element in one of the
+    particles ``rows`` whose midpoint is nearer ``centre (2,)`` than ``limit_m`` plus its half length."""
+    if _kernels is None:
+        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    p, m = valid.shape
+    out = np.empty(m, dtype=np.int64)
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    n = _kernels.local_columns(
+        _u8(valid),
+        _f64(seg), rows, out, p, m, len(rows), float(centre[0]), float(centre[1]), float(limit_m),
+    )  # fmt: skip
+    return out[:n]

@@ -11,10 +11,12 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from robot_agent.backend.batch import feed
 from robot_agent.slam import kernels
 from robot_agent.slam.association import AssociationConfig, associate, observe
 from robot_agent.slam.coarse import CoarseConfig, heading_offset
 from robot_agent.slam.extraction import ExtractionConfig, extract_segments
+from robot_agent.slam.fastslam import FastSLAM, SlamConfig
 from robot_agent.slam.kidnap import KidnapConfig, overlap
 from robot_agent.slam.lines import fit_lines, moments_of
 from robot_agent.slam.particles import SegmentMaps
@@ -329,6 +331,29 @@ def test_the_kidnap_overlap_is_the_numpy_one(seed):
     expected = overlap(ref, odo_ref, points, odo, dataclasses.replace(cfg, compiled=False))
     assert 0.0 < expected < 1.0
     assert overlap(ref, odo_ref, points, odo, cfg) == expected
+
+
+@needs_kernels
+def test_the_local_columns_are_the_numpy_ones():
+    """FastSLAM._local_columns over the map of an excerpt's 675 scans, from every particle and
+    from one, at several radii: the same columns."""
+    log = carmen.read_log(DATA / "aces_head.clf.gz")
+    slam = FastSLAM(SlamConfig(particles=10), np.random.default_rng(0))
+    for i in range(len(log)):
+        feed(slam, log, i)
+    numpy_cfg = dataclasses.replace(slam.cfg, filter=dataclasses.replace(slam.cfg.filter, compiled=False))
+    poses = slam.particles.poses
+    assert slam.particles.maps.valid.any(axis=0).sum() > 30
+    for radius in (0.5, 3.0, 10.0):
+        for rows in (None, np.array([3]), np.array([0, 7])):
+            got = slam._local_columns(poses, radius, rows)
+            compiled_cfg, slam.cfg = slam.cfg, numpy_cfg
+            try:
+                ref = slam._local_columns(poses, radius, rows)
+            finally:
+                slam.cfg = compiled_cfg
+            np.testing.assert_array_equal(got, ref)
+            assert 0 < len(ref) or radius < 1.0
 
 
 @needs_kernels
