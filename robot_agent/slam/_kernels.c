@@ -869,56 +869,6 @@ done:
     return result;
 }
 
-/* scanmatch.branch_and_bound's scores: out[m] = sum over n of level[flat[a[m], n] + off[m]] / N,
- * level a padded float32 grid, flattened; an index off it is an error (the padding is wrong). */
-static PyObject *flat_sums(PyObject *self, PyObject *args) {
-    Py_buffer b_l, b_f, b_a, b_o, b_out;
-    Py_ssize_t L, A, N, M;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*w*nnnn", &b_l, &b_f, &b_a, &b_o, &b_out, &L, &A, &N, &M)) return NULL;
-    Py_buffer *all[] = {&b_l, &b_f, &b_a, &b_o, &b_out};
-    Py_ssize_t need[] = {L * 4, A * N * 8, M * 8, M * 8, M * 8};
-    PyObject *result = NULL;
-    for (int k = 0; k < 5; k++) {
-        if (all[k]->len != need[k]) {
-            PyErr_Format(PyExc_ValueError, "flat_sums: argument %d holds %zd bytes, expected %zd", k, all[k]->len,
-                         need[k]);
-            goto done;
-        }
-    }
-    const float *level = b_l.buf;
-    const int64_t *flat = b_f.buf, *am = b_a.buf, *off = b_o.buf;
-    double *out = b_out.buf;
-    int bad = 0;
-    Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t m = 0; m < M && !bad; m++) {
-        if (am[m] < 0 || am[m] >= A) {
-            bad = 1;
-            break;
-        }
-        const int64_t *f = flat + N * am[m];
-        double sum = 0.0;
-        for (Py_ssize_t n = 0; n < N; n++) {
-            int64_t i = f[n] + off[m];
-            if (i < 0 || i >= L) {
-                bad = 1;
-                break;
-            }
-            sum += level[i];
-        }
-        out[m] = sum / (double)(N > 0 ? N : 1);
-    }
-    Py_END_ALLOW_THREADS
-    if (bad) {
-        PyErr_SetString(PyExc_IndexError, "flat_sums: an index falls off the level");
-        goto done;
-    }
-    result = Py_None;
-    Py_INCREF(result);
-done:
-    for (int k = 0; k < 5; k++) PyBuffer_Release(all[k]);
-    return result;
-}
-
 /* FastSLAM._local_columns: the columns with an element, in any of the particles ``rows``, whose
  * distance from (cx, cy) to its midpoint less its half length is below ``limit``. */
 static PyObject *local_columns(PyObject *self, PyObject *args) {
@@ -969,6 +919,114 @@ done:
     return result;
 }
 
+/* scanmatch.branch_and_bound's scores without padding: out[m] = mean over n of
+ * level[cells[a[m], n] + (ox[m], oy[m])], 0 off the (W, H) float32 grid. */
+static PyObject *block_sums(PyObject *self, PyObject *args) {
+    Py_buffer b_l, b_c, b_a, b_ox, b_oy, b_out;
+    Py_ssize_t W, H, A, N, M;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*w*nnnnn", &b_l, &b_c, &b_a, &b_ox, &b_oy, &b_out, &W, &H, &A, &N, &M))
+        return NULL;
+    Py_buffer *all[] = {&b_l, &b_c, &b_a, &b_ox, &b_oy, &b_out};
+    Py_ssize_t need[] = {W * H * 4, A * N * 2 * 8, M * 8, M * 8, M * 8, M * 8};
+    PyObject *result = NULL;
+    for (int k = 0; k < 6; k++) {
+        if (all[k]->len != need[k]) {
+            PyErr_Format(PyExc_ValueError, "block_sums: argument %d holds %zd bytes, expected %zd", k,
+                         all[k]->len, need[k]);
+            goto done;
+        }
+    }
+    const float *level = b_l.buf;
+    const int64_t *cells = b_c.buf, *am = b_a.buf, *ox = b_ox.buf, *oy = b_oy.buf;
+    double *out = b_out.buf;
+    for (Py_ssize_t m = 0; m < M; m++) {
+        if (am[m] < 0 || am[m] >= A) {
+            PyErr_Format(PyExc_IndexError, "block_sums: angle %lld of %zd", (long long)am[m], A);
+            goto done;
+        }
+    }
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t m = 0; m < M; m++) {
+        const int64_t *c = cells + 2 * N * am[m];
+        int64_t dx = ox[m], dy = oy[m];
+        double sum = 0.0;
+        for (Py_ssize_t n = 0; n < N; n++) {
+            int64_t ix = c[2 * n] + dx, iy = c[2 * n + 1] + dy;
+            if (ix >= 0 && ix < W && iy >= 0 && iy < H) sum += level[ix * H + iy];
+        }
+        out[m] = sum / (double)(N > 0 ? N : 1);
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    for (int k = 0; k < 6; k++) PyBuffer_Release(all[k]);
+    return result;
+}
+
+/* update._redundant_pairs: out[p, x, j] — column x and recent column r = recent[j] both valid,
+ * distinct, facing the same way, r's midpoint on x's line and their extents along it overlapping. */
+static PyObject *redundant_pairs(PyObject *self, PyObject *args) {
+    Py_buffer b_valid, b_seg, b_c, b_s, b_rho, b_facing, b_recent, b_out;
+    Py_ssize_t P, C, R;
+    double max_angle, max_perp, min_overlap;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*w*nnnddd", &b_valid, &b_seg, &b_c, &b_s, &b_rho, &b_facing,
+                          &b_recent, &b_out, &P, &C, &R, &max_angle, &max_perp, &min_overlap))
+        return NULL;
+    Py_buffer *all[] = {&b_valid, &b_seg, &b_c, &b_s, &b_rho, &b_facing, &b_recent, &b_out};
+    Py_ssize_t pc = P * C * 8;
+    Py_ssize_t need[] = {P * C, 4 * pc, pc, pc, pc, pc, R * 8, P * C * R};
+    PyObject *result = NULL;
+    for (int k = 0; k < 8; k++) {
+        if (all[k]->len != need[k]) {
+            PyErr_Format(PyExc_ValueError, "redundant_pairs: argument %d holds %zd bytes, expected %zd", k,
+                         all[k]->len, need[k]);
+            goto done;
+        }
+    }
+    const uint8_t *valid = b_valid.buf;
+    const double *seg = b_seg.buf, *ca = b_c.buf, *sa = b_s.buf, *rho = b_rho.buf, *facing = b_facing.buf;
+    const int64_t *recent = b_recent.buf;
+    uint8_t *out = b_out.buf;
+    for (Py_ssize_t j = 0; j < R; j++) {
+        if (recent[j] < 0 || recent[j] >= C) {
+            PyErr_Format(PyExc_IndexError, "redundant_pairs: recent column %lld of %zd", (long long)recent[j], C);
+            goto done;
+        }
+    }
+    Py_BEGIN_ALLOW_THREADS
+    memset(out, 0, (size_t)(P * C * R));
+    for (Py_ssize_t p = 0; p < P; p++) {
+        for (Py_ssize_t j = 0; j < R; j++) {
+            Py_ssize_t r = recent[j], pr = p * C + r;
+            if (!valid[pr]) continue;
+            const double *er = seg + 4 * pr;
+            double mx = 0.5 * (er[0] + er[2]), my = 0.5 * (er[1] + er[3]);
+            for (Py_ssize_t x = 0; x < C; x++) {
+                Py_ssize_t px = p * C + x;
+                if (x == r || !valid[px]) continue;
+                if (!(fabs(wrap_angle(facing[px] - facing[pr])) < max_angle)) continue;
+                double c = ca[px], s = sa[px];
+                if (!(fabs(c * mx + s * my - rho[px]) < max_perp)) continue;
+                const double *ex = seg + 4 * px;
+                double tx0 = -s * ex[0] + c * ex[1], tx1 = -s * ex[2] + c * ex[3];
+                double tr0 = -s * er[0] + c * er[1], tr1 = -s * er[2] + c * er[3];
+                double lo_x = tx0 < tx1 ? tx0 : tx1, hi_x = tx0 < tx1 ? tx1 : tx0;
+                double lo_r = tr0 < tr1 ? tr0 : tr1, hi_r = tr0 < tr1 ? tr1 : tr0;
+                double lo = lo_x > lo_r ? lo_x : lo_r, hi = hi_x < hi_r ? hi_x : hi_r;
+                if (!(hi - lo > min_overlap)) continue;
+                out[(p * C + x) * R + j] = 1;
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    for (int k = 0; k < 8; k++) PyBuffer_Release(all[k]);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"gn_points", gn_points, METH_VARARGS,
      "gn_points(x, prior_mean, info_prior, pts, nx, ny, rho, seg, fx, fy, valid, gate_wide, h_out, idx_out, "
@@ -992,10 +1050,13 @@ static PyMethodDef methods[] = {
      "extraction._merge in place on starts and cluster (int64)."},
     {"window_sums", window_sums, METH_VARARGS,
      "window_sums(values, cells, ox, oy, out, W, H, A, N, T): scanmatch.window_scores' mean likelihoods."},
-    {"flat_sums", flat_sums, METH_VARARGS,
-     "flat_sums(level, flat, a, off, out, L, A, N, M): scanmatch.branch_and_bound's scores of M blocks."},
     {"local_columns", local_columns, METH_VARARGS,
      "local_columns(valid, seg, rows, out, P, M, R, cx, cy, limit) -> count: FastSLAM._local_columns."},
+    {"block_sums", block_sums, METH_VARARGS,
+     "block_sums(level, cells, a, ox, oy, out, W, H, A, N, M): branch_and_bound's scores, no padding."},
+    {"redundant_pairs", redundant_pairs, METH_VARARGS,
+     "redundant_pairs(valid, seg, cos_alpha, sin_alpha, rho, facing, recent, out, P, C, R, max_angle, max_perp, "
+     "min_overlap): update._redundant_pairs."},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

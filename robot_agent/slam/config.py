@@ -58,12 +58,19 @@ def config_from_dict(values: Mapping[str, Any], base: SlamConfig | None = None) 
 
 
 def apply_overrides(cfg: SlamConfig, overrides: Iterable[str]) -> SlamConfig:
-    """Apply ``section.key=value`` strings (``particles=50`` for top-level keys)."""
+    """Apply ``section.key=value`` strings (``particles=50`` for top-level keys). ``compiled=false``
+    sets every section's ``compiled`` (the numpy code instead of the compiled kernels)."""
     nested: dict[str, Any] = {}
     for item in overrides:
         if "=" not in item:
             raise ConfigError(f"override {item!r} must look like section.key=value")
         path, value = item.split("=", 1)
+        if path.strip() == "compiled":  # every section that has the switch
+            for f in dataclasses.fields(cfg):
+                section = getattr(cfg, f.name)
+                if dataclasses.is_dataclass(section) and hasattr(section, "compiled"):
+                    nested.setdefault(f.name, {})["compiled"] = value.strip()
+            continue
         parts = path.strip().split(".")
         node = nested
         for p in parts[:-1]:

@@ -251,21 +251,6 @@ def window_sums(values: np.ndarray, cells: np.ndarray, ox: np.ndarray, oy: np.nd
     return out
 
 
-def flat_sums(level: np.ndarray, flat: np.ndarray, a: np.ndarray, off: np.ndarray) -> np.ndarray:
-    """``level.ravel()[flat[a] + off[:, None]].mean(axis=1)`` for a float32 ``level``, ``flat (A,N)``
-    and blocks ``a, off (M,)`` — scanmatch.branch_and_bound's scores."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
-    lv = np.ascontiguousarray(level, dtype=np.float32).ravel()
-    out = np.empty(len(a))
-    ints = np.ascontiguousarray
-    _kernels.flat_sums(
-        lv, ints(flat, dtype=np.int64), ints(a, dtype=np.int64), ints(off, dtype=np.int64), out,
-        lv.size, flat.shape[0], flat.shape[1], len(a),
-    )  # fmt: skip
-    return out
-
-
 def local_columns(
     valid: np.ndarray, seg: np.ndarray, rows: np.ndarray, centre: np.ndarray, limit_m: float
 ) -> np.ndarray:
@@ -281,3 +266,44 @@ def local_columns(
         _f64(seg), rows, out, p, m, len(rows), float(centre[0]), float(centre[1]), float(limit_m),
     )  # fmt: skip
     return out[:n]
+
+
+def block_sums(
+    level: np.ndarray, cells: np.ndarray, a: np.ndarray, ox: np.ndarray, oy: np.ndarray
+) -> np.ndarray:
+    """Mean of ``level (W,H)`` (float32; 0 off the grid) over the cells ``(A,N,2)`` of angle ``a``
+    moved by ``(ox, oy)``, for every block ``(M,)`` — scanmatch.branch_and_bound's scores."""
+    if _kernels is None:
+        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    lv = np.ascontiguousarray(level, dtype=np.float32)
+    out = np.empty(len(a))
+    ints = np.ascontiguousarray
+    _kernels.block_sums(
+        lv, ints(cells, dtype=np.int64), ints(a, dtype=np.int64), ints(ox, dtype=np.int64),
+        ints(oy, dtype=np.int64), out, lv.shape[0], lv.shape[1], cells.shape[0], cells.shape[1], len(a),
+    )  # fmt: skip
+    return out
+
+
+def redundant_pairs(
+    valid: np.ndarray,
+    seg: np.ndarray,
+    alpha: np.ndarray,
+    rho: np.ndarray,
+    facing: np.ndarray,
+    recent: np.ndarray,
+    max_angle_rad: float,
+    max_perp_m: float,
+    min_overlap_m: float,
+) -> np.ndarray:
+    """update._redundant_pairs for maps ``(P,C)`` and recent columns ``(R,)``: ``(P,C,R)`` bool."""
+    if _kernels is None:
+        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    p, c = valid.shape
+    recent = np.ascontiguousarray(recent, dtype=np.int64)
+    out = np.empty((p, c, len(recent)), dtype=np.uint8)
+    _kernels.redundant_pairs(
+        _u8(valid), _f64(seg), _f64(np.cos(alpha)), _f64(np.sin(alpha)), _f64(rho), _f64(facing), recent, out,
+        p, c, len(recent), float(max_angle_rad), float(max_perp_m), float(min_overlap_m),
+    )  # fmt: skip
+    return out.view(bool)

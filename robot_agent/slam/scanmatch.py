@@ -141,22 +141,26 @@ def branch_and_bound(
     angles = guess[2] + step_rad * np.arange(-n_th, n_th + 1)
     w = int(np.ceil(half_xy_m / fld.res_m))
     top = 2**depth
-    # the query cells clipped to just beyond the reach of any offset (-w .. w + top) — a point
-    # that far stays off the grid whatever the offset — and every level padded with zeros by
-    # as much: a lookup is one flat index, no bounds test
-    pad = 2 * w + top + 1
-    levels = [np.pad(v.astype(np.float32), pad) for v in max_pyramid(fld.values, depth)]
-    height = levels[0].shape[1]
     cells = _query_cells(fld, query, guess, angles)  # (A,N,2)
-    cx = np.clip(cells[..., 0], -(w + top + 1), fld.values.shape[0] + w) + pad
-    cy = np.clip(cells[..., 1], -(w + top + 1), fld.values.shape[1] + w) + pad
-    flat = cx * height + cy  # (A,N)
     n_points = query.shape[0]
+    if compiled and kernels.AVAILABLE:  # bounds tested per lookup: no padded copies of the levels
+        levels = [v.astype(np.float32) for v in max_pyramid(fld.values, depth)]
 
-    def score(k: int, a: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
-        if compiled and kernels.AVAILABLE:
-            return kernels.flat_sums(levels[k], flat, a, ox * height + oy)
-        return levels[k].ravel()[flat[a] + (ox * height + oy)[:, None]].sum(axis=1) / n_points
+        def score(k: int, a: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
+            return kernels.block_sums(levels[k], cells, a, ox, oy)
+
+    else:  # the query cells clipped to just beyond the reach of any offset (-w .. w + top) — a point
+        # that far stays off the grid whatever the offset — and every level padded with zeros by
+        # as much: a lookup is one flat index, no bounds test
+        pad = 2 * w + top + 1
+        levels = [np.pad(v.astype(np.float32), pad) for v in max_pyramid(fld.values, depth)]
+        height = levels[0].shape[1]
+        cx = np.clip(cells[..., 0], -(w + top + 1), fld.values.shape[0] + w) + pad
+        cy = np.clip(cells[..., 1], -(w + top + 1), fld.values.shape[1] + w) + pad
+        flat = cx * height + cy  # (A,N)
+
+        def score(k: int, a: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
+            return levels[k].ravel()[flat[a] + (ox * height + oy)[:, None]].sum(axis=1) / n_points
 
     starts = np.arange(-w, w + 1, top)
     a, ox, oy = (g.ravel() for g in np.meshgrid(np.arange(len(angles)), starts, starts, indexing="ij"))

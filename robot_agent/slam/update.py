@@ -198,6 +198,7 @@ class CleaningConfig:
     redundant_angle_rad: float = np.radians(4.0)
     redundant_perp_m: float = 0.08
     redundant_overlap_m: float = 0.05  # must overlap (or touch within this) to be merged
+    compiled: bool = True  # the redundant pairs by the compiled kernel (kernels.py) when it is built
 
 
 def clean(maps: SegmentMaps, step: int, cfg: CleaningConfig, recent: np.ndarray | None = None) -> None:
@@ -217,6 +218,11 @@ def clean(maps: SegmentMaps, step: int, cfg: CleaningConfig, recent: np.ndarray 
 def _redundant_pairs(maps: SegmentMaps, cfg: CleaningConfig, recent: np.ndarray) -> np.ndarray:
     """``(P,C,R)``: column ``x`` and recent column ``r`` are both valid, distinct, face the same
     way, lie on one line and overlap (or touch)."""
+    if cfg.compiled and kernels.AVAILABLE:  # the same tests, compiled
+        return kernels.redundant_pairs(
+            maps.valid, maps.seg, maps.alpha, maps.rho, maps.facing, recent,
+            cfg.redundant_angle_rad, cfg.redundant_perp_m, -cfg.redundant_overlap_m,
+        )  # fmt: skip
     fr, sr = maps.facing[:, recent], maps.seg[:, recent]
     da = np.abs(wrap_angle(maps.facing[:, :, None] - fr[:, None, :]))
     mid = 0.5 * (sr[..., 0, :] + sr[..., 1, :])

@@ -15,6 +15,7 @@ from robot_agent.backend.batch import feed
 from robot_agent.slam import kernels
 from robot_agent.slam.association import AssociationConfig, associate, observe
 from robot_agent.slam.coarse import CoarseConfig, heading_offset
+from robot_agent.slam.config import apply_overrides
 from robot_agent.slam.extraction import ExtractionConfig, extract_segments
 from robot_agent.slam.fastslam import FastSLAM, SlamConfig
 from robot_agent.slam.kidnap import KidnapConfig, overlap
@@ -22,7 +23,7 @@ from robot_agent.slam.lines import fit_lines, moments_of
 from robot_agent.slam.particles import SegmentMaps
 from robot_agent.slam.proposal import ProposalConfig, align_points, associate_points
 from robot_agent.slam.scanmatch import branch_and_bound, likelihood_field, window_scores
-from robot_agent.slam.update import UpdateConfig, visibility
+from robot_agent.slam.update import CleaningConfig, UpdateConfig, _redundant_pairs, visibility
 from robot_agent.sources import carmen
 from shared.geometry import apply_points, inverse, relative, wrap_angle
 
@@ -357,9 +358,36 @@ def test_the_local_columns_are_the_numpy_ones():
 
 
 @needs_kernels
-def test_a_level_index_off_the_grid_is_refused():
-    with pytest.raises(IndexError, match="falls off the level"):
-        kernels.flat_sums(np.zeros((4, 4), np.float32), np.array([[0, 15]]), np.array([0]), np.array([1]))
+@pytest.mark.parametrize("seed", range(5))
+def test_the_redundant_pairs_are_the_numpy_ones(seed):
+    """Maps with near-duplicates of their elements (shifted along and across, turned a little)."""
+    rng = np.random.default_rng(900 + seed)
+    maps, _, _ = random_world(rng, 6, 40)
+    dup = rng.choice(40, 15, replace=False)
+    src = rng.choice(40, 15, replace=False)
+    for d, s_ in zip(dup, src, strict=True):  # column d becomes a noisy copy of column s_
+        shift = rng.normal(0, [0.3, 0.03])
+        for field in ("valid", "alpha", "rho", "facing"):
+            getattr(maps, field)[:, d] = getattr(maps, field)[:, s_]
+        a = maps.alpha[:, s_]
+        along = np.stack([-np.sin(a), np.cos(a)], axis=-1) * shift[0]
+        across = np.stack([np.cos(a), np.sin(a)], axis=-1) * shift[1]
+        maps.seg[:, d] = maps.seg[:, s_] + (along + across)[:, None, :]
+        maps.rho[:, d] += shift[1]
+        maps.facing[:, d] += rng.normal(0, 0.03)
+    recent = np.sort(rng.choice(40, 20, replace=False))
+    cfg = CleaningConfig()
+    ref = _redundant_pairs(maps, dataclasses.replace(cfg, compiled=False), recent)
+    got = _redundant_pairs(maps, cfg, recent)
+    assert ref.sum() >= 3
+    np.testing.assert_array_equal(got, ref)
+
+
+@needs_kernels
+def test_a_block_of_an_angle_not_searched_is_refused():
+    with pytest.raises(IndexError, match="angle 3 of 1"):
+        kernels.block_sums(np.zeros((4, 4), np.float32), np.zeros((1, 2, 2), np.int64), np.array([3]),
+                           np.array([0]), np.array([0]))  # fmt: skip
 
 
 @needs_kernels
@@ -373,3 +401,26 @@ def test_arrays_of_the_wrong_size_are_refused_by_name():
             np.full(4, 0.2), np.zeros((4, 3, 3)), np.zeros((4, len(pts)), np.int64),
             4, len(pts), 6, 4, 1, 0.2, 0.2, 0.1, 0.03,
         )  # fmt: skip
+
+
+def test_one_override_turns_every_kernel_off():
+    """``--set compiled=false``: every section with the switch, and nothing else."""
+    cfg = apply_overrides(SlamConfig(), ["compiled=false"])
+    switched = {
+        f.name
+        for f in dataclasses.fields(cfg)
+        if dataclasses.is_dataclass(getattr(cfg, f.name)) and hasattr(getattr(cfg, f.name), "compiled")
+    }
+    assert switched >= {
+        "proposal",
+        "association",
+        "update",
+        "coarse",
+        "extraction",
+        "filter",
+        "kidnap",
+        "backend",
+    }
+    assert all(getattr(cfg, name).compiled is False for name in switched)
+    assert dataclasses.replace(cfg, **{n: getattr(SlamConfig(), n) for n in switched}) == SlamConfig()
+    assert apply_overrides(SlamConfig(), ["compiled=true"]) == SlamConfig()
