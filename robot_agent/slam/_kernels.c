@@ -434,15 +434,20 @@ static PyObject *visibility(PyObject *self, PyObject *args) {
                 double t = ts[k], u = 1 - t;
                 double rx = (e[0] * u + e[2] * t) - lx, ry = (e[1] * u + e[3] * t) - ly;
                 double dist = sqrt(rx * rx + ry * ry);
+                double cos_inc = fabs(nc[j] * rx + ns[j] * ry) / (dist > 1e-9 ? dist : 1e-9);
+                int steep = cos_inc > sin_min_inc;
+                bearing[k] = 0.0;
+                if (!(steep && dist < usable && dist > 0.1)) { /* neither seen through nor in view */
+                    all_end = 0;
+                    continue;
+                }
                 double b = wrap_angle(atan2(ry, rx) - lth);
                 bearing[k] = b;
                 double f = rint((b - a0) / da);
-                int inside = f >= 0 && f < (double)B && dist < usable && dist > 0.1;
+                int inside = f >= 0 && f < (double)B;
                 Py_ssize_t beam = !(f >= 0) ? 0 : (f > (double)(B - 1) ? B - 1 : (Py_ssize_t)f);
                 double measured = ranges[beam];
                 int has_return = isfinite(measured) && measured < usable;
-                double cos_inc = fabs(nc[j] * rx + ns[j] * ry) / (dist > 1e-9 ? dist : 1e-9);
-                int steep = cos_inc > sin_min_inc;
                 double margin = margin_m + margin_rel * dist;
                 if (inside && steep && (measured > dist + margin || !has_return)) n_through++;
                 int front = fc[j] * rx + fs[j] * ry < 0;
@@ -1027,6 +1032,65 @@ done:
     return result;
 }
 
+/* association.observe: a scan's segments (robot frame: moments (O,6), ends (O,2,2), facing (O,))
+ * moved into every particle's map frame (lines.transform_moments, lines.fit_lines,
+ * geometry.apply_segments, the facing turned). */
+static PyObject *observe_segments(PyObject *self, PyObject *args) {
+    Py_buffer b_poses, b_m, b_e, b_f, b_mo, b_al, b_rh, b_fo, b_eo;
+    Py_ssize_t P, O;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*w*w*w*w*w*nn", &b_poses, &b_m, &b_e, &b_f, &b_mo, &b_al, &b_rh, &b_fo,
+                          &b_eo, &P, &O))
+        return NULL;
+    Py_buffer *all[] = {&b_poses, &b_m, &b_e, &b_f, &b_mo, &b_al, &b_rh, &b_fo, &b_eo};
+    Py_ssize_t po = P * O * 8;
+    Py_ssize_t need[] = {P * 3 * 8, O * 6 * 8, O * 4 * 8, O * 8, 6 * po, po, po, po, 4 * po};
+    PyObject *result = NULL;
+    for (int k = 0; k < 9; k++) {
+        if (all[k]->len != need[k]) {
+            PyErr_Format(PyExc_ValueError, "observe_segments: argument %d holds %zd bytes, expected %zd", k,
+                         all[k]->len, need[k]);
+            goto done;
+        }
+    }
+    const double *poses = b_poses.buf, *mr = b_m.buf, *er = b_e.buf, *fr = b_f.buf;
+    double *mo = b_mo.buf, *al = b_al.buf, *rh = b_rh.buf, *fo = b_fo.buf, *eo = b_eo.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t p = 0; p < P; p++) {
+        double tx = poses[3 * p], ty = poses[3 * p + 1], th = poses[3 * p + 2];
+        double c = cos(th), s = sin(th);
+        for (Py_ssize_t o = 0; o < O; o++) {
+            const double *m = mr + 6 * o;
+            double n = m[0], sx = m[1], sy = m[2], sxx = m[3], sxy = m[4], syy = m[5];
+            double ux = c * sx - s * sy, uy = s * sx + c * sy;
+            double rxx = c * c * sxx - 2.0 * c * s * sxy + s * s * syy;
+            double ryy = s * s * sxx + 2.0 * c * s * sxy + c * c * syy;
+            double rxy = c * s * (sxx - syy) + (c * c - s * s) * sxy;
+            double *q = mo + 6 * (p * O + o);
+            q[0] = n;
+            q[1] = ux + n * tx;
+            q[2] = uy + n * ty;
+            q[3] = rxx + 2.0 * ux * tx + n * tx * tx;
+            q[4] = rxy + ux * ty + uy * tx + n * tx * ty;
+            q[5] = ryy + 2.0 * uy * ty + n * ty * ty;
+            double sig2;
+            fit_line(q, al + p * O + o, rh + p * O + o, &sig2);
+            const double *e = er + 4 * o;
+            double *f = eo + 4 * (p * O + o);
+            for (int k = 0; k < 2; k++) {
+                f[2 * k] = c * e[2 * k] - s * e[2 * k + 1] + tx;
+                f[2 * k + 1] = s * e[2 * k] + c * e[2 * k + 1] + ty;
+            }
+            fo[p * O + o] = wrap_angle(fr[o] + th);
+        }
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    for (int k = 0; k < 9; k++) PyBuffer_Release(all[k]);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"gn_points", gn_points, METH_VARARGS,
      "gn_points(x, prior_mean, info_prior, pts, nx, ny, rho, seg, fx, fy, valid, gate_wide, h_out, idx_out, "
@@ -1057,6 +1121,9 @@ static PyMethodDef methods[] = {
     {"redundant_pairs", redundant_pairs, METH_VARARGS,
      "redundant_pairs(valid, seg, cos_alpha, sin_alpha, rho, facing, recent, out, P, C, R, max_angle, max_perp, "
      "min_overlap): update._redundant_pairs."},
+    {"observe_segments", observe_segments, METH_VARARGS,
+     "observe_segments(poses, moments, ends, facing, moments_out, alpha_out, rho_out, facing_out, ends_out, P, O): "
+     "association.observe."},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

@@ -70,13 +70,18 @@ def observe(
     facing_robot: np.ndarray,
     cov_robot: np.ndarray,
     point_sigma_m: float,
+    compiled: bool = True,
 ) -> Observations:
     """Move a scan's segments (robot frame: ``moments (O,6)``, ``ends (O,2,2)``, ``facing (O,)``,
-    line covariance ``(O,2,2)``) into the map frame of each particle ``poses (P,3)``."""
-    m = transform_moments(poses[:, None, :], moments_robot[None])
-    alpha, rho, _ = fit_lines(m)
-    ends = apply_segments(poses, ends_robot)
-    facing = wrap_angle(facing_robot[None, :] + poses[:, 2:3])
+    line covariance ``(O,2,2)``) into the map frame of each particle ``poses (P,3)``
+    (``compiled``: by the compiled kernel when it is built)."""
+    if compiled and kernels.AVAILABLE:
+        m, alpha, rho, facing, ends = kernels.observe_segments(poses, moments_robot, ends_robot, facing_robot)
+    else:
+        m = transform_moments(poses[:, None, :], moments_robot[None])
+        alpha, rho, _ = fit_lines(m)
+        ends = apply_segments(poses, ends_robot)
+        facing = wrap_angle(facing_robot[None, :] + poses[:, 2:3])
     n = moments_robot[:, 0]
     return Observations(
         moments=m,

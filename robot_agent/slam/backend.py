@@ -41,7 +41,7 @@ from robot_agent.slam.scanmatch import (
     window_scores,
     window_surface,
 )
-from shared.geometry import apply_points, compose, relative, wrap_angle
+from shared.geometry import apply_points, compose, relative, relative_one, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -121,7 +121,7 @@ def select_keyframes(poses: np.ndarray, cfg: BackendConfig, jumps: np.ndarray | 
     keep = [0]
     last = poses[0]
     for i in range(1, len(poses)):
-        d = relative(last, poses[i])
+        d = relative_one(last, poses[i])
         if (
             (jumps is not None and jumps[i])
             or np.hypot(d[0], d[1]) >= cfg.keyframe_m
@@ -138,7 +138,7 @@ def local_cloud(
     """Points of keyframes ``lo..hi`` (inclusive) in keyframe ``centre``'s frame."""
     parts = []
     for m in range(max(lo, 0), min(hi, len(kf_points) - 1) + 1):
-        rel = relative(kf_poses[centre], kf_poses[m])
+        rel = relative_one(kf_poses[centre], kf_poses[m])
         parts.append(apply_points(rel, kf_points[m]))
     return np.vstack(parts) if parts else np.zeros((0, 2))
 
@@ -175,7 +175,7 @@ def match_loop(
     if len(query) > cfg.query_points:
         query = query[np.linspace(0, len(query) - 1, cfg.query_points).astype(int)]
     est = kf_poses if estimate is None else estimate
-    guess = relative(est[old], est[new])
+    guess = relative_one(est[old], est[new])
     fld = likelihood_field(cloud, cfg.search_step_m, cfg.field_sigma_m, 4.0 * cfg.field_sigma_m)
     stats["matches"] = stats.get("matches", 0) + 1
     wide = None

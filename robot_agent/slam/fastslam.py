@@ -54,7 +54,15 @@ from robot_agent.slam.update import (
     trusted_mask,
     visibility,
 )
-from shared.geometry import apply_points, compose, inverse, point_segment_distance, relative, wrap_angle
+from shared.geometry import (
+    apply_points,
+    compose,
+    inverse,
+    point_segment_distance,
+    relative,
+    relative_one,
+    wrap_angle,
+)
 
 
 @dataclass(frozen=True)
@@ -232,7 +240,7 @@ class FastSLAM:
                 # odometry stands: the scans are followed from where the last bridged one was
                 start = self._bridged if self._odometry_stood and self._bridged is not None else u
                 if pose is not None:  # the pose is known (a rebuilt map): no scan to align
-                    u = relative(ps.poses[best], np.asarray(pose, dtype=float))
+                    u = relative_one(ps.poses[best], np.asarray(pose, dtype=float))
                 elif cfg.filter.refine_bridged and cfg.proposal.enabled:
                     u = self._refine_bridged(best, start, ranges_m, angles_rad, laser_offset, range_max_m)
                     self._bridged = u
@@ -304,7 +312,10 @@ class FastSLAM:
             ps.slip_cov = walk_slip(ps.slip_cov, float(np.hypot(u[0], u[1])), cfg.motion)
 
         # 4. association at the sampled poses, 5. weights
-        obs = observe(ps.poses, segs.moments, segs.endpoints, facing, segs.cov, cfg.association.point_sigma_m)
+        obs = observe(
+            ps.poses, segs.moments, segs.endpoints, facing, segs.cov, cfg.association.point_sigma_m,
+            cfg.association.compiled,
+        )  # fmt: skip
         assoc = associate(obs, local, cfg.association)
         ll = match_log_likelihood(assoc, obs, cfg.association, cfg.weights.log_p_new).sum(axis=1)
         laser_poses = compose(ps.poses, laser_offset)
@@ -437,7 +448,7 @@ class FastSLAM:
             return u
         local = ps.maps.take(one).columns(cols)
         prop = align_points(mean, cov, pts, local, cfg.proposal)
-        return relative(ps.poses[best], prop.mean[0])
+        return relative_one(ps.poses[best], prop.mean[0])
 
     def _maybe_relocalize(
         self, segs: ScanSegments, facing: np.ndarray, k: int, rays: reloc_mod.ScanRays

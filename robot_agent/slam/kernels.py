@@ -307,3 +307,23 @@ def redundant_pairs(
         p, c, len(recent), float(max_angle_rad), float(max_perp_m), float(min_overlap_m),
     )  # fmt: skip
     return out.view(bool)
+
+
+def observe_segments(
+    poses: np.ndarray, moments: np.ndarray, ends: np.ndarray, facing: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """association.observe's geometry: robot-frame segments (``moments (O,6)``, ``ends (O,2,2)``,
+    ``facing (O,)``) in the map frame of every particle ``poses (P,3)``: moments ``(P,O,6)``,
+    alpha, rho, facing ``(P,O)`` and ends ``(P,O,2,2)``."""
+    if _kernels is None:
+        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    p, o = len(poses), len(moments)
+    mo, al, rh, fo, eo = (
+        np.empty((p, o, 6)),
+        np.empty((p, o)),
+        np.empty((p, o)),
+        np.empty((p, o)),
+        np.empty((p, o, 2, 2)),
+    )
+    _kernels.observe_segments(_f64(poses), _f64(moments), _f64(ends), _f64(facing), mo, al, rh, fo, eo, p, o)
+    return mo, al, rh, fo, eo

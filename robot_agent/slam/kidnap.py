@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from robot_agent.slam import kernels
-from shared.geometry import apply_points, relative
+from shared.geometry import apply_points, relative_one
 
 
 @dataclass(frozen=True)
@@ -70,7 +70,7 @@ def overlap(
     is another fault, :mod:`robot_agent.health`)."""
     if len(ref_points) < 10 or len(points) < 10:
         return 1.0
-    q = apply_points(relative(ref_odometry, odometry), points)
+    q = apply_points(relative_one(ref_odometry, odometry), points)
     r = np.hypot(points[:, 0], points[:, 1])
     tol = cfg.tol_m + cfg.tol_per_m * r
     if cfg.compiled and kernels.AVAILABLE and tol.max() > 0:  # a point farther than every tolerance: inf

@@ -300,7 +300,9 @@ def align(
     var_p = (prior_cov[:, 0, 0] + prior_cov[:, 1, 1])[:, None, None]
 
     def associate_at(x: np.ndarray, wide: bool) -> np.ndarray:
-        obs = observe(x, moments_robot, ends_robot, facing_robot, cov_robot, assoc_cfg.point_sigma_m)
+        obs = observe(
+            x, moments_robot, ends_robot, facing_robot, cov_robot, assoc_cfg.point_sigma_m, assoc_cfg.compiled
+        )
         if wide:
             return associate(obs, maps, assoc_cfg, var_a, var_p, cfg.gate_scale_predicted).index
         return associate(obs, maps, assoc_cfg).index

@@ -384,6 +384,21 @@ def test_the_redundant_pairs_are_the_numpy_ones(seed):
 
 
 @needs_kernels
+@pytest.mark.parametrize("seed", range(4))
+def test_the_observations_are_the_numpy_ones(seed):
+    """The scan's segments in every particle's frame: moments and ends exactly (the same operations),
+    lines to rounding (the kernel's atan2 and hypot are the C library's)."""
+    rng = np.random.default_rng(1000 + seed)
+    maps, _, poses = random_world(rng, 12, 20)
+    args = (poses, *scan_segments(rng, maps, poses[0], 10), 0.02)
+    ref, got = observe(*args, compiled=False), observe(*args)
+    for name in ("moments", "ends", "facing", "n_points", "var_angle", "var_perp"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
+    np.testing.assert_allclose(got.rho, ref.rho, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(wrap_angle(got.alpha - ref.alpha), 0.0, atol=1e-12)
+
+
+@needs_kernels
 def test_a_block_of_an_angle_not_searched_is_refused():
     with pytest.raises(IndexError, match="angle 3 of 1"):
         kernels.block_sums(np.zeros((4, 4), np.float32), np.zeros((1, 2, 2), np.int64), np.array([3]),
