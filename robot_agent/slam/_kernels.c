@@ -1091,6 +1091,45 @@ done:
     return result;
 }
 
+/* geometry.sample_segments (the middle of each piece, ``step`` long at most) of segments (S,2,2)
+ * into out (capacity K): the number of samples, or -1 when they would not fit. */
+static PyObject *segment_samples(PyObject *self, PyObject *args) {
+    Py_buffer b_seg, b_out;
+    Py_ssize_t S, K;
+    double step;
+    if (!PyArg_ParseTuple(args, "y*w*nnd", &b_seg, &b_out, &S, &K, &step)) return NULL;
+    PyObject *result = NULL;
+    if (b_seg.len != S * 4 * 8 || b_out.len != K * 2 * 8 || !(step > 0)) {
+        PyErr_Format(PyExc_ValueError, "segment_samples: %zd segments in %zd bytes, room for %zd in %zd, step %g", S,
+                     b_seg.len, K, b_out.len, step);
+        goto done;
+    }
+    const double *seg = b_seg.buf;
+    double *out = b_out.buf;
+    Py_ssize_t n = 0;
+    for (Py_ssize_t i = 0; i < S && n >= 0; i++) {
+        const double *e = seg + 4 * i;
+        double dx = e[2] - e[0], dy = e[3] - e[1];
+        double count = ceil(sqrt(dx * dx + dy * dy) / step);
+        if (!(count >= 1.0)) count = 1.0;
+        if (count > (double)(K - n)) {
+            n = -1;
+            break;
+        }
+        for (Py_ssize_t k = 0; k < (Py_ssize_t)count; k++) {
+            double t = ((double)k + 0.5) / count;
+            out[2 * n] = e[0] + t * dx;
+            out[2 * n + 1] = e[1] + t * dy;
+            n++;
+        }
+    }
+    result = PyLong_FromSsize_t(n);
+done:
+    PyBuffer_Release(&b_seg);
+    PyBuffer_Release(&b_out);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"gn_points", gn_points, METH_VARARGS,
      "gn_points(x, prior_mean, info_prior, pts, nx, ny, rho, seg, fx, fy, valid, gate_wide, h_out, idx_out, "
@@ -1124,6 +1163,8 @@ static PyMethodDef methods[] = {
     {"observe_segments", observe_segments, METH_VARARGS,
      "observe_segments(poses, moments, ends, facing, moments_out, alpha_out, rho_out, facing_out, ends_out, P, O): "
      "association.observe."},
+    {"segment_samples", segment_samples, METH_VARARGS,
+     "segment_samples(seg, out, S, K, step) -> count (-1: no room): geometry.sample_segments' points."},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

@@ -61,10 +61,11 @@ def heading_offset(
     world = np.stack(
         [c * pts[:, 0] - s * pts[:, 1] + pose[0], s * pts[:, 0] + c * pts[:, 1] + pose[1]], axis=-1
     )  # (A,N,2)
-    samples = sample_segments(segments, cfg.sample_m)[0]
     if cfg.compiled and kernels.AVAILABLE:
+        samples = kernels.segment_samples(segments, cfg.sample_m)
         d = kernels.nearest_within(samples, world.reshape(-1, 2), 3.0 * cfg.sigma_m)
     else:
+        samples = sample_segments(segments, cfg.sample_m)[0]
         d, _ = cKDTree(samples).query(world.reshape(-1, 2), distance_upper_bound=3.0 * cfg.sigma_m)
     score = np.exp(-0.5 * (d.reshape(len(offsets), -1) / cfg.sigma_m) ** 2).sum(axis=1)  # inf -> 0
     best = int(np.argmax(score))

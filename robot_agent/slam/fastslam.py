@@ -216,8 +216,10 @@ class FastSLAM:
         ps = self.particles
         odometry = np.asarray(odometry, dtype=float)
         scan_driven = False  # the step's motion is the scan's, not odometry's (a stuck wheel)
+        scan_xy = None  # the scan's points in the robot frame, once made
         if cfg.kidnap.enabled and pose is None:
-            self._watch(odometry, ranges_m, angles_rad, laser_offset, range_max_m)
+            scan_xy = self._scan_xy(ranges_m, angles_rad, laser_offset, range_max_m)
+            self._watch(odometry, scan_xy)
         if self._prev_odo is not None:  # odometry that does not change at all from scan to scan
             d = odometry_increment(self._prev_odo, odometry)
             stood = np.hypot(d[0], d[1]) < ODOMETRY_STANDS_M and abs(d[2]) < ODOMETRY_STANDS_RAD
@@ -242,7 +244,9 @@ class FastSLAM:
                 if pose is not None:  # the pose is known (a rebuilt map): no scan to align
                     u = relative_one(ps.poses[best], np.asarray(pose, dtype=float))
                 elif cfg.filter.refine_bridged and cfg.proposal.enabled:
-                    u = self._refine_bridged(best, start, ranges_m, angles_rad, laser_offset, range_max_m)
+                    u = self._refine_bridged(
+                        best, start, ranges_m, angles_rad, laser_offset, range_max_m, scan_xy
+                    )
                     self._bridged = u
                 scan = (ranges_m, angles_rad, laser_offset, range_max_m)
                 if not (pose is None and self._stuck(still, u, scan)):
@@ -430,12 +434,14 @@ class FastSLAM:
         angles_rad: np.ndarray,
         laser_offset: np.ndarray,
         range_max_m: float,
+        scan_xy: np.ndarray | None = None,
     ) -> np.ndarray:
         """The motion ``u`` since the last processed scan, refined by aligning this scan's points
-        to the best particle's local map (one particle, no sampling, no map change)."""
+        (``scan_xy``, robot frame, when already made) to the best particle's local map (one
+        particle, no sampling, no map change)."""
         cfg = self.cfg
         ps = self.particles
-        pts = apply_points(laser_offset, scan_points(ranges_m, angles_rad, cfg.extraction, range_max_m))
+        pts = self._scan_xy(ranges_m, angles_rad, laser_offset, range_max_m) if scan_xy is None else scan_xy
         if len(pts) == 0:
             return u
         one = np.array([best])
@@ -479,15 +485,18 @@ class FastSLAM:
         self.stats["injections"] += len(targets)
         self.trajectory.inherit(targets, sources)
 
-    def _watch(self, odometry: np.ndarray, ranges_m, angles_rad, laser_offset, range_max_m) -> None:
+    def _scan_xy(self, ranges_m, angles_rad, laser_offset, range_max_m) -> np.ndarray:
+        """The scan's usable readings as points ``(K,2)`` in the robot frame."""
+        return apply_points(laser_offset, scan_points(ranges_m, angles_rad, self.cfg.extraction, range_max_m))
+
+    def _watch(self, odometry: np.ndarray, scan_xy: np.ndarray) -> None:
         """Does the scan lie on the last agreeing one, moved by odometry's increment? Two in a row
         that do not: doubt (:mod:`robot_agent.slam.kidnap`)."""
         if self.doubt is not None:
             self.doubt.scans += 1
             return
         kc = self.cfg.kidnap
-        pts = apply_points(laser_offset, scan_points(ranges_m, angles_rad, self.cfg.extraction, range_max_m))
-        pts = kidnap_mod.thin(pts, kc.points)
+        pts = kidnap_mod.thin(scan_xy, kc.points)
         if self._ref is None or kidnap_mod.overlap(*self._ref, pts, odometry, kc) >= kc.min_overlap:
             self._ref, self._disagree = (pts, odometry), 0
             return

@@ -327,3 +327,18 @@ def observe_segments(
     )
     _kernels.observe_segments(_f64(poses), _f64(moments), _f64(ends), _f64(facing), mo, al, rh, fo, eo, p, o)
     return mo, al, rh, fo, eo
+
+
+def segment_samples(segments: np.ndarray, step_m: float) -> np.ndarray:
+    """``geometry.sample_segments(segments, step_m)[0]``: the middle of each piece of the segments
+    ``(S,2,2)`` cut into equal pieces no longer than ``step_m``."""
+    if _kernels is None:
+        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    seg = _f64(segments).reshape(-1, 2, 2)
+    d = seg[:, 1] - seg[:, 0]
+    room = int(np.sum(np.maximum(np.ceil(np.sqrt(np.sum(d * d, axis=1)) / step_m), 1))) + len(seg)
+    out = np.empty((room, 2))
+    n = _kernels.segment_samples(seg, out, len(seg), room, float(step_m))
+    if n < 0:  # (cannot happen: the room is counted above)
+        raise RuntimeError("segment_samples: the samples did not fit")
+    return out[:n]

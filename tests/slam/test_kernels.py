@@ -25,7 +25,7 @@ from robot_agent.slam.proposal import ProposalConfig, align_points, associate_po
 from robot_agent.slam.scanmatch import branch_and_bound, likelihood_field, window_scores
 from robot_agent.slam.update import CleaningConfig, UpdateConfig, _redundant_pairs, visibility
 from robot_agent.sources import carmen
-from shared.geometry import apply_points, inverse, relative, wrap_angle
+from shared.geometry import apply_points, inverse, relative, sample_segments, wrap_angle
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 
@@ -215,6 +215,16 @@ def test_nearest_within_is_the_k_d_tree_query(seed):
         got = kernels.nearest_within(samples, queries, radius)
         assert np.isfinite(expected).sum() > 10
         np.testing.assert_array_equal(got, expected)
+
+
+@needs_kernels
+@pytest.mark.parametrize("step", [0.05, 0.3, 5.0])
+def test_segment_samples_are_the_numpy_ones(step):
+    rng = np.random.default_rng(1100)
+    seg = rng.uniform(-10, 10, (200, 2, 2))
+    seg[:5, 1] = seg[:5, 0]  # points: one sample each
+    np.testing.assert_array_equal(kernels.segment_samples(seg, step), sample_segments(seg, step)[0])
+    assert kernels.segment_samples(np.zeros((0, 2, 2)), step).shape == (0, 2)
 
 
 @needs_kernels
