@@ -452,7 +452,7 @@ class FastSLAM:
         cols = self._local_columns(mean, reach + cfg.filter.local_margin_m, one)
         if len(cols) == 0:
             return u
-        local = ps.maps.take(one).columns(cols)
+        local = ps.maps.row_columns(best, cols)
         prop = align_points(mean, cov, pts, local, cfg.proposal)
         return relative_one(ps.poses[best], prop.mean[0])
 

@@ -74,6 +74,10 @@ class SegmentMaps:
         """A local view-copy of columns ``cols (C,)`` (all particles)."""
         return SegmentMaps(**{k: v[:, cols] for k, v in self.arrays().items()})
 
+    def row_columns(self, row: int, cols: np.ndarray) -> SegmentMaps:
+        """``take([row]).columns(cols)`` without copying the row's other columns first."""
+        return SegmentMaps(**{k: v[row : row + 1, cols] for k, v in self.arrays().items()})
+
     def put_columns(self, cols: np.ndarray, local: SegmentMaps) -> None:
         """Write a local copy made by :meth:`columns` back."""
         for k, v in self.arrays().items():

@@ -449,3 +449,13 @@ def test_one_override_turns_every_kernel_off():
     assert all(getattr(cfg, name).compiled is False for name in switched)
     assert dataclasses.replace(cfg, **{n: getattr(SlamConfig(), n) for n in switched}) == SlamConfig()
     assert apply_overrides(SlamConfig(), ["compiled=true"]) == SlamConfig()
+
+
+def test_row_columns_is_take_then_columns():
+    rng = np.random.default_rng(1200)
+    maps, _, _ = random_world(rng, 5, 30)
+    cols = np.array([3, 7, 8, 21])
+    a, b = maps.row_columns(2, cols), maps.take(np.array([2])).columns(cols)
+    for name, v in a.arrays().items():
+        np.testing.assert_array_equal(v, getattr(b, name), err_msg=name)
+        assert v.shape[:2] == (1, 4)
