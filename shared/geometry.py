@@ -57,12 +57,14 @@ def relative_one(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     b0, b1, b2 = (float(v) for v in b)
     c, s = math.cos(a2), math.sin(a2)
     ix, iy = -(c * a0 + s * a1), -(-s * a0 + c * a1)  # inverse(a)
-    ith = (-a2 + math.pi) % TWO_PI - math.pi
+    ith = _wrap_float(-a2)
     c, s = math.cos(ith), math.sin(ith)
-    x = ix + c * b0 - s * b1
-    y = iy + s * b0 + c * b1
-    th = (ith + b2 + math.pi) % TWO_PI - math.pi
-    return np.array([x, y, th])
+    return np.array([ix + c * b0 - s * b1, iy + s * b0 + c * b1, _wrap_float(ith + b2)])
+
+
+def _wrap_float(angle_rad: float) -> float:
+    """:func:`wrap_angle` of one Python float (the same floor modulo)."""
+    return (angle_rad + math.pi) % TWO_PI - math.pi
 
 
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -159,9 +159,7 @@ class Grid:
         return row, col
 
 
-def occupancy_grid(
-    seg: np.ndarray, free, resolution_m: float = 0.05, margin_m: float = 0.5
-) -> Grid:
+def occupancy_grid(seg: np.ndarray, free, resolution_m: float = 0.05, margin_m: float = 0.5) -> Grid:
     """The grid of fused segments ``(M,2,2)`` (occupied) over the free space ``free`` (a shapely
     geometry: cells whose centre lies in it are free), the rest unknown; it spans both, plus
     ``margin_m``. A wall wins over free space in its cells."""

@@ -1,15 +1,15 @@
-/* Compiled kernels of the SLAM's hot loops, with the same arithmetic as their numpy versions.
- *
- * gn_points: the point-to-line Gauss-Newton of proposal.align_points for every particle —
- * association of each scan point with the nearest element (proposal.associate_points) and the
- * normal equations (proposal._point_normal_equations), solved with the motion prior. The numpy
- * version stays the reference (robot_agent/slam/proposal.py) and the fallback when this module
- * is not built; tests/slam/test_kernels.py holds both to the same results.
+/* Compiled kernels of the SLAM's hot loops, with the same arithmetic as their numpy versions
+ * (named in each function's comment: proposal.align_points' Gauss-Newton, association.associate
+ * and observe, update.visibility and _redundant_pairs, extraction's split and merge rounds,
+ * FastSLAM._local_columns, the coarse search's and the kidnap watch's nearest samples, the scan
+ * matcher's sums). The numpy code stays the reference and the fallback when this module is not
+ * built; tests/slam/test_kernels.py holds both to the same results.
  *
  * Arrays come through the buffer protocol (no numpy headers at build time): C-contiguous
- * float64 unless said otherwise; the Python wrapper (robot_agent/slam/kernels.py) checks shapes
- * and dtypes and converts. Built with -ffp-contract=off so that a product and a sum are not fused
- * into one rounding the numpy code does not make.
+ * float64 unless said otherwise; the Python wrapper (robot_agent/slam/kernels.py) converts them,
+ * each function here checks their sizes against the shapes it is given. Built with
+ * -ffp-contract=off so that a product and a sum are not fused into one rounding the numpy code
+ * does not make.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -30,6 +30,42 @@ static double wrap_angle(double a) {
         r = 0.0;
     }
     return r - M_PI;
+}
+
+/* Every buffer holds the bytes its shape says, else a ValueError naming the argument: 1 if so. */
+static int sizes_ok(const char *name, Py_buffer *const *all, const Py_ssize_t *need, int n) {
+    for (int k = 0; k < n; k++) {
+        if (all[k]->len != need[k]) {
+            PyErr_Format(PyExc_ValueError, "%s: argument %d holds %zd bytes, expected %zd", name, k, all[k]->len,
+                         need[k]);
+            return 0;
+        }
+    }
+    return 1;
+}
+
+static void release(Py_buffer *const *all, int n) {
+    for (int k = 0; k < n; k++) PyBuffer_Release(all[k]);
+}
+
+/* Piece starts rise within [0, K), else a ValueError: 1 if so. */
+static int starts_ok(const char *name, const int64_t *starts, Py_ssize_t S, Py_ssize_t K) {
+    for (Py_ssize_t j = 0; j < S; j++) {
+        if (starts[j] < 0 || starts[j] >= K || (j > 0 && starts[j] <= starts[j - 1])) {
+            PyErr_Format(PyExc_ValueError, "%s: starts must rise within [0, %zd)", name, K);
+            return 0;
+        }
+    }
+    return 1;
+}
+
+/* How far intervals [a0, a1] and [b0, b1] (ends in any order) overlap; negative: the gap
+ * (lines.interval_overlap). */
+static double interval_overlap(double a0, double a1, double b0, double b1) {
+    double lo_a = a0 < a1 ? a0 : a1, hi_a = a0 < a1 ? a1 : a0;
+    double lo_b = b0 < b1 ? b0 : b1, hi_b = b0 < b1 ? b1 : b0;
+    double lo = lo_a > lo_b ? lo_a : lo_b, hi = hi_a < hi_b ? hi_a : hi_b;
+    return hi - lo;
 }
 
 /* Solve the 3x3 system a x = b by Gaussian elimination with partial pivoting; 0 if singular. */
@@ -95,17 +131,20 @@ static void rotate(Assoc *s, const double *x) {
     }
 }
 
-/* Element index (P,N) or -1 of every point at poses x, gates gate (P,): see associate_points. */
-static int associate(Assoc *s, const double *x, const double *gate, int64_t *idx) {
+/* Element index (P,N) or -1 of every point as rotate() last placed them: see associate_points.
+ * The gate is ``wide[p]`` per particle when given, else ``gate_m``. */
+static int associate(Assoc *s, const double *wide, double gate_m, int64_t *idx) {
     Py_ssize_t P = s->P, N = s->N, C = s->C;
-    rotate(s, x);
     for (Py_ssize_t k = 0; k < P * N; k++) idx[k] = -1;
     if (N == 0 || C == 0 || P == 0) return 1;
     /* the candidate pairs: the points' mean view against a box around every particle's copy of
      * each element, widened by the gate, the margin and the particles' spread (a superset) */
-    double gmax = gate[0];
-    for (Py_ssize_t p = 1; p < P; p++)
-        if (gate[p] > gmax) gmax = gate[p];
+    double gmax = gate_m;
+    if (wide) {
+        gmax = wide[0];
+        for (Py_ssize_t p = 1; p < P; p++)
+            if (wide[p] > gmax) gmax = wide[p];
+    }
     double spread = 0.0;
     double *ref_x = s->ref_x, *ref_y = s->ref_y;
     for (Py_ssize_t i = 0; i < N; i++) {
@@ -164,7 +203,7 @@ static int associate(Assoc *s, const double *x, const double *gate, int64_t *idx
     s->cand_start[N] = n;
     /* the exact test on the candidates, per particle: nearest passing element, lower column on a tie */
     for (Py_ssize_t p = 0; p < P; p++) {
-        double g = gate[p];
+        double g = wide ? wide[p] : gate_m;
         for (Py_ssize_t i = 0; i < N; i++) {
             double px = s->wx[p * N + i], py = s->wy[p * N + i];
             double qx = s->qx[p * N + i], qy = s->qy[p * N + i];
@@ -209,20 +248,13 @@ static PyObject *gn_points(PyObject *self, PyObject *args) {
                          P * C * 4 * 8, P * C * 8, P * C * 8, P * C, P * 8, P * 9 * 8, P * N * 8};
     const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
     PyObject *result = NULL;
-    for (int k = 0; k < n_buf; k++) {
-        if (all[k]->len != need[k]) {
-            PyErr_Format(PyExc_ValueError, "gn_points: argument %d holds %zd bytes, expected %zd", k,
-                         all[k]->len, need[k]);
-            goto done;
-        }
-    }
+    if (!sizes_ok("gn_points", all, need, n_buf)) goto done;
     Assoc s = {P, N, C, b_pts.buf, b_nx.buf, b_ny.buf, b_rho.buf, b_seg.buf, b_fx.buf, b_fy.buf, b_valid.buf,
                margin};
     size_t pn = (size_t)(P * N > 0 ? P * N : 1);
     double *work = malloc(sizeof(double) * (4 * pn + 4 * (size_t)C + 2 * (size_t)N + 1));
     Py_ssize_t *starts = malloc(sizeof(Py_ssize_t) * ((size_t)N + 1));
-    double *gate_normal = malloc(sizeof(double) * (size_t)(P > 0 ? P : 1));
-    int ok = work && starts && gate_normal;
+    int ok = work && starts;
     if (ok) {
         s.qx = work;
         s.qy = work + pn;
@@ -235,9 +267,6 @@ static PyObject *gn_points(PyObject *self, PyObject *args) {
         s.ref_x = s.hi_y + C;
         s.ref_y = s.ref_x + N;
         s.cand_start = starts;
-        s.cand = NULL;
-        s.cand_cap = 0;
-        for (Py_ssize_t p = 0; p < P; p++) gate_normal[p] = gate_m;
     }
     double *x = b_x.buf;
     const double *mean = b_mean.buf, *info = b_info.buf;
@@ -248,13 +277,11 @@ static PyObject *gn_points(PyObject *self, PyObject *args) {
     memset(h, 0, sizeof(double) * 9 * (size_t)P);
     for (Py_ssize_t k = 0; ok && k < P * N; k++) idx[k] = -1;
     for (int it = 0; ok && it < iterations; it++) {
-        if (it == 0 || it == reassociate_after) {
-            if (!associate(&s, x, it == 0 ? (const double *)b_gate.buf : gate_normal, idx)) {
-                ok = 0;
-                break;
-            }
-        }
         rotate(&s, x);
+        if ((it == 0 || it == reassociate_after) && !associate(&s, it == 0 ? b_gate.buf : NULL, gate_m, idx)) {
+            ok = 0;
+            break;
+        }
         for (Py_ssize_t p = 0; p < P; p++) {
             /* the symmetric 3x3 information and the gradient, in registers */
             double h00 = 0, h01 = 0, h02 = 0, h11 = 0, h12 = 0, h22 = 0, g0 = 0, g1 = 0, g2 = 0;
@@ -299,19 +326,17 @@ static PyObject *gn_points(PyObject *self, PyObject *args) {
         }
     }
     Py_END_ALLOW_THREADS
-    if (!ok) {
-        PyErr_NoMemory();
-        free(s.cand);
-    } else {
-        free(s.cand);
+    if (ok) {
         result = Py_None;
         Py_INCREF(result);
+    } else {
+        PyErr_NoMemory();
     }
+    free(s.cand);
     free(work);
     free(starts);
-    free(gate_normal);
 done:
-    for (int k = 0; k < n_buf; k++) PyBuffer_Release(all[k]);
+    release(all, n_buf);
     return result;
 }
 
@@ -332,13 +357,7 @@ static PyObject *associate_segments(PyObject *self, PyObject *args) {
     Py_ssize_t need[] = {po, po, po, 4 * po, po, po, pc, pc, pc, pc, 4 * pc, P * C, po, po, po, po};
     const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
     PyObject *result = NULL;
-    for (int k = 0; k < n_buf; k++) {
-        if (all[k]->len != need[k]) {
-            PyErr_Format(PyExc_ValueError, "associate_segments: argument %d holds %zd bytes, expected %zd", k,
-                         all[k]->len, need[k]);
-            goto done;
-        }
-    }
+    if (!sizes_ok("associate_segments", all, need, n_buf)) goto done;
     const double *of = b_of.buf, *cx = b_cx.buf, *cy = b_cy.buf, *oe = b_oe.buf, *va = b_va.buf, *vp = b_vp.buf;
     const double *mc = b_mc.buf, *ms = b_ms.buf, *mr = b_mr.buf, *mf = b_mf.buf, *seg = b_seg.buf;
     const uint8_t *valid = b_valid.buf;
@@ -360,12 +379,8 @@ static PyObject *associate_segments(PyObject *self, PyObject *args) {
                 double d_perp = cs * cx[k] + sn * cy[k] - mr[j];
                 if (!(fabs(d_perp) < perp_gate)) continue;
                 const double *m = seg + 4 * j;
-                double to0 = -sn * e[0] + cs * e[1], to1 = -sn * e[2] + cs * e[3];
-                double tm0 = -sn * m[0] + cs * m[1], tm1 = -sn * m[2] + cs * m[3];
-                double lo_o = to0 < to1 ? to0 : to1, hi_o = to0 < to1 ? to1 : to0;
-                double lo_m = tm0 < tm1 ? tm0 : tm1, hi_m = tm0 < tm1 ? tm1 : tm0;
-                double lo = lo_o > lo_m ? lo_o : lo_m, hi = hi_o < hi_m ? hi_o : hi_m;
-                double gap = -(hi - lo);
+                double gap = -interval_overlap(-sn * e[0] + cs * e[1], -sn * e[2] + cs * e[3],
+                                               -sn * m[0] + cs * m[1], -sn * m[2] + cs * m[3]);
                 if (gap < 0.0) gap = 0.0;
                 if (!(gap < gap_gate)) continue;
                 double g = gap / sigma_gap;
@@ -387,7 +402,7 @@ static PyObject *associate_segments(PyObject *self, PyObject *args) {
     result = Py_None;
     Py_INCREF(result);
 done:
-    for (int k = 0; k < n_buf; k++) PyBuffer_Release(all[k]);
+    release(all, n_buf);
     return result;
 }
 
@@ -406,13 +421,7 @@ static PyObject *visibility(PyObject *self, PyObject *args) {
     Py_ssize_t need[] = {4 * pc, pc, pc, pc, pc, P * C, P * 3 * 8, B * 8, 3 * 8, pc, P * C};
     const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
     PyObject *result = NULL;
-    for (int k = 0; k < n_buf; k++) {
-        if (all[k]->len != need[k]) {
-            PyErr_Format(PyExc_ValueError, "visibility: argument %d holds %zd bytes, expected %zd", k, all[k]->len,
-                         need[k]);
-            goto done;
-        }
-    }
+    if (!sizes_ok("visibility", all, need, n_buf)) goto done;
     const double *seg = b_seg.buf, *nc = b_nc.buf, *ns = b_ns.buf, *fc = b_fc.buf, *fs = b_fs.buf;
     const double *lp = b_lp.buf, *ranges = b_ranges.buf, *ts = b_samples.buf;
     const uint8_t *valid = b_valid.buf;
@@ -462,7 +471,7 @@ static PyObject *visibility(PyObject *self, PyObject *args) {
     result = Py_None;
     Py_INCREF(result);
 done:
-    for (int k = 0; k < n_buf; k++) PyBuffer_Release(all[k]);
+    release(all, n_buf);
     return result;
 }
 
@@ -490,6 +499,17 @@ static Py_ssize_t lower_bound(const Cell *cells, Py_ssize_t lo, Py_ssize_t hi, i
     return lo;
 }
 
+/* The smaller of best2 and the squared distances from (x, y) to samples order[from..to). */
+static double nearest2(const double *sp, const Py_ssize_t *order, Py_ssize_t from, Py_ssize_t to, double x,
+                       double y, double best2) {
+    for (Py_ssize_t k = from; k < to; k++) {
+        double dx = sp[2 * order[k]] - x, dy = sp[2 * order[k] + 1] - y;
+        double dd = dx * dx + dy * dy;
+        if (dd < best2) best2 = dd;
+    }
+    return best2;
+}
+
 /* Distance from each query point to the nearest sample point, if nearer than radius, else inf
  * (a k-d tree's query with distance_upper_bound): the samples sorted by grid cell of the radius'
  * size, each query looking in the 3 x 3 cells around its own. */
@@ -500,14 +520,9 @@ static PyObject *nearest_within(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "y*y*w*nnd", &b_s, &b_q, &b_d, &S, &Q, &radius)) return NULL;
     Py_buffer *all[] = {&b_s, &b_q, &b_d};
     Py_ssize_t need[] = {S * 2 * 8, Q * 2 * 8, Q * 8};
+    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
     PyObject *result = NULL;
-    for (int k = 0; k < 3; k++) {
-        if (all[k]->len != need[k]) {
-            PyErr_Format(PyExc_ValueError, "nearest_within: argument %d holds %zd bytes, expected %zd", k,
-                         all[k]->len, need[k]);
-            goto done;
-        }
-    }
+    if (!sizes_ok("nearest_within", all, need, n_buf)) goto done;
     if (!(radius > 0.0) || !isfinite(radius)) {
         PyErr_Format(PyExc_ValueError, "nearest_within: radius must be finite and > 0, got %g", radius);
         goto done;
@@ -519,6 +534,7 @@ static PyObject *nearest_within(PyObject *self, PyObject *args) {
         PyErr_NoMemory();
         goto done;
     }
+    int no_memory = 0;
     Py_BEGIN_ALLOW_THREADS
     Py_ssize_t n = 0;
     int64_t x0 = INT64_MAX, y0 = INT64_MAX, x1 = INT64_MIN, y1 = INT64_MIN;
@@ -534,78 +550,60 @@ static PyObject *nearest_within(PyObject *self, PyObject *args) {
         if (cells[n].cy > y1) y1 = cells[n].cy;
         n++;
     }
-    /* a dense grid of cells over the samples' extent when it is small (a local map), the cells
-     * sorted otherwise (samples spread far apart) */
+    /* the samples in cell order (``order``): over a dense grid of cells when the samples' extent is
+     * small (a local map), counted into it; else sorted by cell (samples spread far apart) */
     double area = n ? ((double)(x1 - x0) + 1.0) * ((double)(y1 - y0) + 1.0) : 0.0;
-    Py_ssize_t W = 0, H = 0;
-    Py_ssize_t *start = NULL, *order = NULL;
-    if (n && area <= 8.0 * (double)n + 4096.0) {
-        W = (Py_ssize_t)(x1 - x0 + 1);
-        H = (Py_ssize_t)(y1 - y0 + 1);
-        start = calloc((size_t)(W * H + 1), sizeof(Py_ssize_t));
-        order = malloc(sizeof(Py_ssize_t) * (size_t)n);
-    }
-    if (start && order) {
+    int dense = n && area <= 8.0 * (double)n + 4096.0;
+    Py_ssize_t W = dense ? (Py_ssize_t)(x1 - x0 + 1) : 0, H = dense ? (Py_ssize_t)(y1 - y0 + 1) : 0;
+    Py_ssize_t *start = dense ? calloc((size_t)(W * H + 1), sizeof(Py_ssize_t)) : NULL;
+    Py_ssize_t *order = malloc(sizeof(Py_ssize_t) * (size_t)(n > 0 ? n : 1));
+    if (dense && start && order) {
         for (Py_ssize_t k = 0; k < n; k++) start[(cells[k].cx - x0) * H + (cells[k].cy - y0) + 1]++;
         for (Py_ssize_t c = 0; c < W * H; c++) start[c + 1] += start[c];
-        for (Py_ssize_t k = 0; k < n; k++) {
-            Py_ssize_t c = (cells[k].cx - x0) * H + (cells[k].cy - y0);
-            order[start[c]++] = cells[k].i;
-        }
+        for (Py_ssize_t k = 0; k < n; k++) order[start[(cells[k].cx - x0) * H + (cells[k].cy - y0)]++] = cells[k].i;
         for (Py_ssize_t c = W * H; c > 0; c--) start[c] = start[c - 1]; /* back to the first of each */
         start[0] = 0;
-        for (Py_ssize_t q = 0; q < Q; q++) {
-            double x = qp[2 * q], y = qp[2 * q + 1];
-            double best2 = INFINITY;
-            double fx = floor(x / radius), fy = floor(y / radius);
-            if (fabs(fx) < 4e18 && fabs(fy) < 4e18) {
-                int64_t cx = (int64_t)fx - x0, cy = (int64_t)fy - y0;
-                for (int64_t gx = cx - 1; gx <= cx + 1; gx++) {
-                    if (gx < 0 || gx >= W) continue;
-                    for (int64_t gy = cy - 1; gy <= cy + 1; gy++) {
-                        if (gy < 0 || gy >= H) continue;
-                        Py_ssize_t c = (Py_ssize_t)(gx * H + gy);
-                        for (Py_ssize_t k = start[c]; k < start[c + 1]; k++) {
-                            Py_ssize_t i = order[k];
-                            double dx = sp[2 * i] - x, dy = sp[2 * i + 1] - y;
-                            double dd = dx * dx + dy * dy;
-                            if (dd < best2) best2 = dd;
-                        }
-                    }
-                }
-            }
-            double best = sqrt(best2);
-            d[q] = best < radius ? best : INFINITY;
-        }
-    } else {
+    } else if (order) {
+        dense = 0;
         qsort(cells, (size_t)n, sizeof(Cell), cell_order);
-        for (Py_ssize_t q = 0; q < Q; q++) {
-            double x = qp[2 * q], y = qp[2 * q + 1];
-            double best = INFINITY;
-            double fx = floor(x / radius), fy = floor(y / radius);
-            if (fabs(fx) < 4e18 && fabs(fy) < 4e18) {
-                int64_t cx = (int64_t)fx, cy = (int64_t)fy;
-                for (int64_t gx = cx - 1; gx <= cx + 1; gx++) {
-                    Py_ssize_t k = lower_bound(cells, 0, n, gx, cy - 1);
-                    for (; k < n && cells[k].cx == gx && cells[k].cy <= cy + 1; k++) {
-                        Py_ssize_t i = cells[k].i;
-                        double dx = sp[2 * i] - x, dy = sp[2 * i + 1] - y;
-                        double dd = sqrt(dx * dx + dy * dy);
-                        if (dd < best) best = dd;
+        for (Py_ssize_t k = 0; k < n; k++) order[k] = cells[k].i;
+    }
+    for (Py_ssize_t q = 0; order && q < Q; q++) {
+        double x = qp[2 * q], y = qp[2 * q + 1];
+        double best2 = INFINITY;
+        double fx = floor(x / radius), fy = floor(y / radius);
+        if (fabs(fx) < 4e18 && fabs(fy) < 4e18) {
+            int64_t cx = (int64_t)fx, cy = (int64_t)fy;
+            for (int64_t gx = cx - 1; gx <= cx + 1; gx++) {
+                if (dense) {
+                    for (int64_t gy = cy - 1; gy <= cy + 1; gy++) {
+                        if (gx < x0 || gx > x1 || gy < y0 || gy > y1) continue;
+                        Py_ssize_t c = (Py_ssize_t)((gx - x0) * H + (gy - y0));
+                        best2 = nearest2(sp, order, start[c], start[c + 1], x, y, best2);
                     }
+                } else {
+                    Py_ssize_t from = lower_bound(cells, 0, n, gx, cy - 1), to = from;
+                    while (to < n && cells[to].cx == gx && cells[to].cy <= cy + 1) to++;
+                    best2 = nearest2(sp, order, from, to, x, y, best2);
                 }
             }
-            d[q] = best < radius ? best : INFINITY;
         }
+        double best = sqrt(best2);
+        d[q] = best < radius ? best : INFINITY;
     }
+    no_memory = !order;
     free(start);
     free(order);
     Py_END_ALLOW_THREADS
     free(cells);
+    if (no_memory) {
+        PyErr_NoMemory();
+        goto done;
+    }
     result = Py_None;
     Py_INCREF(result);
 done:
-    for (int k = 0; k < 3; k++) PyBuffer_Release(all[k]);
+    release(all, n_buf);
     return result;
 }
 
@@ -621,23 +619,13 @@ static PyObject *split_pieces(PyObject *self, PyObject *args) {
         return NULL;
     Py_buffer *all[] = {&b_pts, &b_thr, &b_starts, &b_out};
     Py_ssize_t need[] = {K * 2 * 8, K * 8, S * 8, K * 8};
+    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
     PyObject *result = NULL;
-    for (int k = 0; k < 4; k++) {
-        if (all[k]->len != need[k]) {
-            PyErr_Format(PyExc_ValueError, "split_pieces: argument %d holds %zd bytes, expected %zd", k,
-                         all[k]->len, need[k]);
-            goto done;
-        }
-    }
+    if (!sizes_ok("split_pieces", all, need, n_buf)) goto done;
     const double *pts = b_pts.buf, *thr = b_thr.buf;
     const int64_t *starts = b_starts.buf;
     int64_t *out = b_out.buf; /* at most K starts */
-    for (Py_ssize_t j = 0; j < S; j++) {
-        if (starts[j] < 0 || starts[j] >= K || (j > 0 && starts[j] <= starts[j - 1])) {
-            PyErr_Format(PyExc_ValueError, "split_pieces: starts must rise within [0, %zd)", K);
-            goto done;
-        }
-    }
+    if (!starts_ok("split_pieces", starts, S, K)) goto done;
     int64_t *stack = malloc(sizeof(int64_t) * 2 * (size_t)(K + 1));
     if (!stack) {
         PyErr_NoMemory();
@@ -684,7 +672,7 @@ static PyObject *split_pieces(PyObject *self, PyObject *args) {
     free(stack);
     result = PyLong_FromSsize_t(n_out);
 done:
-    for (int k = 0; k < 4; k++) PyBuffer_Release(all[k]);
+    release(all, n_buf);
     return result;
 }
 
@@ -727,22 +715,12 @@ static PyObject *merge_pieces(PyObject *self, PyObject *args) {
         return NULL;
     Py_buffer *all[] = {&b_pts, &b_thr, &b_starts, &b_cluster};
     Py_ssize_t need[] = {K * 2 * 8, K * 8, S * 8, S * 8};
+    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
     PyObject *result = NULL;
-    for (int k = 0; k < 4; k++) {
-        if (all[k]->len != need[k]) {
-            PyErr_Format(PyExc_ValueError, "merge_pieces: argument %d holds %zd bytes, expected %zd", k,
-                         all[k]->len, need[k]);
-            goto done;
-        }
-    }
+    if (!sizes_ok("merge_pieces", all, need, n_buf)) goto done;
     const double *pts = b_pts.buf, *thr = b_thr.buf;
     int64_t *starts = b_starts.buf, *cluster = b_cluster.buf;
-    for (Py_ssize_t j = 0; j < S; j++) {
-        if (starts[j] < 0 || starts[j] >= K || (j > 0 && starts[j] <= starts[j - 1])) {
-            PyErr_Format(PyExc_ValueError, "merge_pieces: starts must rise within [0, %zd)", K);
-            goto done;
-        }
-    }
+    if (!starts_ok("merge_pieces", starts, S, K)) goto done;
     size_t s1 = (size_t)(S > 0 ? S : 1);
     double *mom = malloc(sizeof(double) * 6 * s1);
     double *alpha = malloc(sizeof(double) * 4 * s1), *var_a = alpha + s1, *cost = alpha + 2 * s1;
@@ -756,10 +734,8 @@ static PyObject *merge_pieces(PyObject *self, PyObject *args) {
     }
     Py_ssize_t n = S;
     Py_BEGIN_ALLOW_THREADS
-    int any_pair = 0;
-    for (Py_ssize_t j = 0; j + 1 < n; j++) any_pair |= cluster[j] == cluster[j + 1];
     /* the pieces' moments, summed in point order (as numpy's bincount) */
-    for (Py_ssize_t j = 0; any_pair && j < n; j++) {
+    for (Py_ssize_t j = 0; j < n; j++) {
         double *m = mom + 6 * j;
         m[0] = m[1] = m[2] = m[3] = m[4] = m[5] = 0.0;
         int64_t e = j + 1 < n ? starts[j + 1] : K;
@@ -773,7 +749,7 @@ static PyObject *merge_pieces(PyObject *self, PyObject *args) {
             m[5] += y * y;
         }
     }
-    while (any_pair && n > 1) {
+    while (n > 1) {
         int any_ok = 0;
         for (Py_ssize_t j = 0; j + 1 < n; j++) {
             for (int f = 0; f < 6; f++) mm[6 * j + f] = mom[6 * j + f] + mom[6 * (j + 1) + f];
@@ -828,7 +804,7 @@ static PyObject *merge_pieces(PyObject *self, PyObject *args) {
     free(mom), free(alpha), free(mm), free(m_alpha), free(ok), free(keep);
     result = PyLong_FromSsize_t(n);
 done:
-    for (int k = 0; k < 4; k++) PyBuffer_Release(all[k]);
+    release(all, n_buf);
     return result;
 }
 
@@ -843,14 +819,9 @@ static PyObject *window_sums(PyObject *self, PyObject *args) {
         return NULL;
     Py_buffer *all[] = {&b_v, &b_c, &b_ox, &b_oy, &b_out};
     Py_ssize_t need[] = {W * H * 8, A * N * 2 * 8, T * 8, T * 8, A * T * 8};
+    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
     PyObject *result = NULL;
-    for (int k = 0; k < 5; k++) {
-        if (all[k]->len != need[k]) {
-            PyErr_Format(PyExc_ValueError, "window_sums: argument %d holds %zd bytes, expected %zd", k,
-                         all[k]->len, need[k]);
-            goto done;
-        }
-    }
+    if (!sizes_ok("window_sums", all, need, n_buf)) goto done;
     const double *v = b_v.buf;
     const int64_t *cells = b_c.buf, *ox = b_ox.buf, *oy = b_oy.buf;
     double *out = b_out.buf;
@@ -870,7 +841,7 @@ static PyObject *window_sums(PyObject *self, PyObject *args) {
     result = Py_None;
     Py_INCREF(result);
 done:
-    for (int k = 0; k < 5; k++) PyBuffer_Release(all[k]);
+    release(all, n_buf);
     return result;
 }
 
@@ -884,14 +855,9 @@ static PyObject *local_columns(PyObject *self, PyObject *args) {
         return NULL;
     Py_buffer *all[] = {&b_valid, &b_seg, &b_rows, &b_out};
     Py_ssize_t need[] = {P * M, P * M * 4 * 8, R * 8, M * 8};
+    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
     PyObject *result = NULL;
-    for (int k = 0; k < 4; k++) {
-        if (all[k]->len != need[k]) {
-            PyErr_Format(PyExc_ValueError, "local_columns: argument %d holds %zd bytes, expected %zd", k,
-                         all[k]->len, need[k]);
-            goto done;
-        }
-    }
+    if (!sizes_ok("local_columns", all, need, n_buf)) goto done;
     const uint8_t *valid = b_valid.buf;
     const double *seg = b_seg.buf;
     const int64_t *rows = b_rows.buf;
@@ -920,7 +886,7 @@ static PyObject *local_columns(PyObject *self, PyObject *args) {
     Py_END_ALLOW_THREADS
     result = PyLong_FromSsize_t(n);
 done:
-    for (int k = 0; k < 4; k++) PyBuffer_Release(all[k]);
+    release(all, n_buf);
     return result;
 }
 
@@ -933,14 +899,9 @@ static PyObject *block_sums(PyObject *self, PyObject *args) {
         return NULL;
     Py_buffer *all[] = {&b_l, &b_c, &b_a, &b_ox, &b_oy, &b_out};
     Py_ssize_t need[] = {W * H * 4, A * N * 2 * 8, M * 8, M * 8, M * 8, M * 8};
+    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
     PyObject *result = NULL;
-    for (int k = 0; k < 6; k++) {
-        if (all[k]->len != need[k]) {
-            PyErr_Format(PyExc_ValueError, "block_sums: argument %d holds %zd bytes, expected %zd", k,
-                         all[k]->len, need[k]);
-            goto done;
-        }
-    }
+    if (!sizes_ok("block_sums", all, need, n_buf)) goto done;
     const float *level = b_l.buf;
     const int64_t *cells = b_c.buf, *am = b_a.buf, *ox = b_ox.buf, *oy = b_oy.buf;
     double *out = b_out.buf;
@@ -965,7 +926,7 @@ static PyObject *block_sums(PyObject *self, PyObject *args) {
     result = Py_None;
     Py_INCREF(result);
 done:
-    for (int k = 0; k < 6; k++) PyBuffer_Release(all[k]);
+    release(all, n_buf);
     return result;
 }
 
@@ -981,14 +942,9 @@ static PyObject *redundant_pairs(PyObject *self, PyObject *args) {
     Py_buffer *all[] = {&b_valid, &b_seg, &b_c, &b_s, &b_rho, &b_facing, &b_recent, &b_out};
     Py_ssize_t pc = P * C * 8;
     Py_ssize_t need[] = {P * C, 4 * pc, pc, pc, pc, pc, R * 8, P * C * R};
+    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
     PyObject *result = NULL;
-    for (int k = 0; k < 8; k++) {
-        if (all[k]->len != need[k]) {
-            PyErr_Format(PyExc_ValueError, "redundant_pairs: argument %d holds %zd bytes, expected %zd", k,
-                         all[k]->len, need[k]);
-            goto done;
-        }
-    }
+    if (!sizes_ok("redundant_pairs", all, need, n_buf)) goto done;
     const uint8_t *valid = b_valid.buf;
     const double *seg = b_seg.buf, *ca = b_c.buf, *sa = b_s.buf, *rho = b_rho.buf, *facing = b_facing.buf;
     const int64_t *recent = b_recent.buf;
@@ -1014,12 +970,9 @@ static PyObject *redundant_pairs(PyObject *self, PyObject *args) {
                 double c = ca[px], s = sa[px];
                 if (!(fabs(c * mx + s * my - rho[px]) < max_perp)) continue;
                 const double *ex = seg + 4 * px;
-                double tx0 = -s * ex[0] + c * ex[1], tx1 = -s * ex[2] + c * ex[3];
-                double tr0 = -s * er[0] + c * er[1], tr1 = -s * er[2] + c * er[3];
-                double lo_x = tx0 < tx1 ? tx0 : tx1, hi_x = tx0 < tx1 ? tx1 : tx0;
-                double lo_r = tr0 < tr1 ? tr0 : tr1, hi_r = tr0 < tr1 ? tr1 : tr0;
-                double lo = lo_x > lo_r ? lo_x : lo_r, hi = hi_x < hi_r ? hi_x : hi_r;
-                if (!(hi - lo > min_overlap)) continue;
+                double overlap = interval_overlap(-s * ex[0] + c * ex[1], -s * ex[2] + c * ex[3],
+                                                  -s * er[0] + c * er[1], -s * er[2] + c * er[3]);
+                if (!(overlap > min_overlap)) continue;
                 out[(p * C + x) * R + j] = 1;
             }
         }
@@ -1028,7 +981,7 @@ static PyObject *redundant_pairs(PyObject *self, PyObject *args) {
     result = Py_None;
     Py_INCREF(result);
 done:
-    for (int k = 0; k < 8; k++) PyBuffer_Release(all[k]);
+    release(all, n_buf);
     return result;
 }
 
@@ -1044,14 +997,9 @@ static PyObject *observe_segments(PyObject *self, PyObject *args) {
     Py_buffer *all[] = {&b_poses, &b_m, &b_e, &b_f, &b_mo, &b_al, &b_rh, &b_fo, &b_eo};
     Py_ssize_t po = P * O * 8;
     Py_ssize_t need[] = {P * 3 * 8, O * 6 * 8, O * 4 * 8, O * 8, 6 * po, po, po, po, 4 * po};
+    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
     PyObject *result = NULL;
-    for (int k = 0; k < 9; k++) {
-        if (all[k]->len != need[k]) {
-            PyErr_Format(PyExc_ValueError, "observe_segments: argument %d holds %zd bytes, expected %zd", k,
-                         all[k]->len, need[k]);
-            goto done;
-        }
-    }
+    if (!sizes_ok("observe_segments", all, need, n_buf)) goto done;
     const double *poses = b_poses.buf, *mr = b_m.buf, *er = b_e.buf, *fr = b_f.buf;
     double *mo = b_mo.buf, *al = b_al.buf, *rh = b_rh.buf, *fo = b_fo.buf, *eo = b_eo.buf;
     Py_BEGIN_ALLOW_THREADS
@@ -1087,46 +1035,51 @@ static PyObject *observe_segments(PyObject *self, PyObject *args) {
     result = Py_None;
     Py_INCREF(result);
 done:
-    for (int k = 0; k < 9; k++) PyBuffer_Release(all[k]);
+    release(all, n_buf);
     return result;
 }
 
-/* geometry.sample_segments (the middle of each piece, ``step`` long at most) of segments (S,2,2)
- * into out (capacity K): the number of samples, or -1 when they would not fit. */
+/* geometry.sample_segments' points: segment i of (S,2,2) cut into counts[i] equal pieces, a point
+ * at the middle of each, into out (K = sum of counts). */
 static PyObject *segment_samples(PyObject *self, PyObject *args) {
-    Py_buffer b_seg, b_out;
+    Py_buffer b_seg, b_counts, b_out;
     Py_ssize_t S, K;
-    double step;
-    if (!PyArg_ParseTuple(args, "y*w*nnd", &b_seg, &b_out, &S, &K, &step)) return NULL;
+    if (!PyArg_ParseTuple(args, "y*y*w*nn", &b_seg, &b_counts, &b_out, &S, &K)) return NULL;
+    Py_buffer *all[] = {&b_seg, &b_counts, &b_out};
+    Py_ssize_t need[] = {S * 4 * 8, S * 8, K * 2 * 8};
+    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
     PyObject *result = NULL;
-    if (b_seg.len != S * 4 * 8 || b_out.len != K * 2 * 8 || !(step > 0)) {
-        PyErr_Format(PyExc_ValueError, "segment_samples: %zd segments in %zd bytes, room for %zd in %zd, step %g", S,
-                     b_seg.len, K, b_out.len, step);
+    if (!sizes_ok("segment_samples", all, need, n_buf)) goto done;
+    const double *seg = b_seg.buf;
+    const int64_t *counts = b_counts.buf;
+    double *out = b_out.buf;
+    Py_ssize_t total = 0;
+    for (Py_ssize_t i = 0; i < S; i++) {
+        if (counts[i] < 1) {
+            PyErr_Format(PyExc_ValueError, "segment_samples: segment %zd cut into %lld pieces", i,
+                         (long long)counts[i]);
+            goto done;
+        }
+        total += counts[i];
+    }
+    if (total != K) {
+        PyErr_Format(PyExc_ValueError, "segment_samples: %zd pieces in all, room for %zd", total, K);
         goto done;
     }
-    const double *seg = b_seg.buf;
-    double *out = b_out.buf;
     Py_ssize_t n = 0;
-    for (Py_ssize_t i = 0; i < S && n >= 0; i++) {
+    for (Py_ssize_t i = 0; i < S; i++) {
         const double *e = seg + 4 * i;
-        double dx = e[2] - e[0], dy = e[3] - e[1];
-        double count = ceil(sqrt(dx * dx + dy * dy) / step);
-        if (!(count >= 1.0)) count = 1.0;
-        if (count > (double)(K - n)) {
-            n = -1;
-            break;
-        }
-        for (Py_ssize_t k = 0; k < (Py_ssize_t)count; k++) {
+        double dx = e[2] - e[0], dy = e[3] - e[1], count = (double)counts[i];
+        for (int64_t k = 0; k < counts[i]; k++, n++) {
             double t = ((double)k + 0.5) / count;
             out[2 * n] = e[0] + t * dx;
             out[2 * n + 1] = e[1] + t * dy;
-            n++;
         }
     }
-    result = PyLong_FromSsize_t(n);
+    result = Py_None;
+    Py_INCREF(result);
 done:
-    PyBuffer_Release(&b_seg);
-    PyBuffer_Release(&b_out);
+    release(all, n_buf);
     return result;
 }
 
@@ -1164,7 +1117,7 @@ static PyMethodDef methods[] = {
      "observe_segments(poses, moments, ends, facing, moments_out, alpha_out, rho_out, facing_out, ends_out, P, O): "
      "association.observe."},
     {"segment_samples", segment_samples, METH_VARARGS,
-     "segment_samples(seg, out, S, K, step) -> count (-1: no room): geometry.sample_segments' points."},
+     "segment_samples(seg, counts, out, S, K): geometry.sample_segments' points."},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

@@ -242,7 +242,7 @@ class FastSLAM:
                 # odometry stands: the scans are followed from where the last bridged one was
                 start = self._bridged if self._odometry_stood and self._bridged is not None else u
                 if pose is not None:  # the pose is known (a rebuilt map): no scan to align
-                    u = relative_one(ps.poses[best], np.asarray(pose, dtype=float))
+                    u = relative_one(ps.poses[best], pose)
                 elif cfg.filter.refine_bridged and cfg.proposal.enabled:
                     u = self._refine_bridged(
                         best, start, ranges_m, angles_rad, laser_offset, range_max_m, scan_xy

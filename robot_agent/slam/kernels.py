@@ -1,6 +1,7 @@
-"""The compiled kernels (``_kernels.c``) behind a check of what they are given, or ``None`` when
-the extension was not built (no C compiler at install): the callers then run their numpy code,
-which stays the reference (tests/slam/test_kernels.py holds both to the same results)."""
+"""The compiled kernels (``_kernels.c``), given arrays of the dtype and layout they take;
+``AVAILABLE`` is False when the extension was not built (no C compiler at install): the callers
+then run their numpy code, which stays the reference (tests/slam/test_kernels.py holds both to
+the same results)."""
 
 from __future__ import annotations
 
@@ -14,8 +15,19 @@ except ImportError:  # built without a C compiler: the numpy versions run
 AVAILABLE = _kernels is not None
 
 
+def _lib():
+    """The extension module, or a RuntimeError when the install did not build it."""
+    if _kernels is None:
+        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    return _kernels
+
+
 def _f64(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _i64(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.int64)
 
 
 def _u8(mask: np.ndarray) -> np.ndarray:
@@ -48,14 +60,13 @@ def gn_points(
     step) for poses ``x (P,3)`` from a local map of ``C`` columns (``alpha, rho, facing, valid
     (P,C)``, ``seg (P,C,2,2)``) and points ``pts (N,2)``: the refined poses ``(P,3)``, the last
     iteration's measurement information ``(P,3,3)`` and the last association ``(P,N)``."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    lib = _lib()
     x = np.array(x, dtype=np.float64, order="C")
     p, n, c = len(x), len(pts), alpha.shape[1]
     h = np.zeros((p, 3, 3))
     idx = np.empty((p, n), dtype=np.int64)
     gate = np.broadcast_to(np.asarray(gate_wide, dtype=np.float64), (p,))
-    _kernels.gn_points(
+    lib.gn_points(
         x,
         _f64(prior_mean),
         _f64(info_prior),
@@ -102,13 +113,12 @@ def associate_segments(
     """association.associate for observations ``(P,O)`` (facing, ``centroid (P,O,2)``, ``ends
     (P,O,2,2)``, the distance's variances ``(P,O)``) and a local map ``(P,C)``: element index
     (-1: none), cost, facing difference and signed offset of the chosen pair, each ``(P,O)``."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    lib = _lib()
     p, o = obs_facing.shape
     c = alpha.shape[1]
     idx = np.empty((p, o), dtype=np.int64)
     cost, d_angle, d_perp = np.empty((p, o)), np.empty((p, o)), np.empty((p, o))
-    _kernels.associate_segments(
+    lib.associate_segments(
         _f64(obs_facing),
         _f64(centroid[..., 0]),
         _f64(centroid[..., 1]),
@@ -154,12 +164,11 @@ def visibility(
 ) -> tuple[np.ndarray, np.ndarray]:
     """update.visibility for elements ``(P,C)`` (``seg (P,C,2,2)``) seen from ``laser_poses (P,3)``
     by beams ``a0 + i da`` of ``ranges_m (B,)``: ``through (P,C)`` int and ``in_view (P,C)`` bool."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    lib = _lib()
     p, c = alpha.shape
     through = np.empty((p, c), dtype=np.int64)
     in_view = np.empty((p, c), dtype=np.uint8)
-    _kernels.visibility(
+    lib.visibility(
         _f64(seg),
         _f64(np.cos(alpha)),
         _f64(np.sin(alpha)),
@@ -188,21 +197,19 @@ def visibility(
 def nearest_within(samples: np.ndarray, queries: np.ndarray, radius_m: float) -> np.ndarray:
     """Distance ``(Q,)`` from each of ``queries (Q,2)`` to the nearest of ``samples (S,2)`` when
     below ``radius_m``, else inf: ``cKDTree(samples).query(queries, distance_upper_bound=radius_m)[0]``."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    lib = _lib()
     samples, queries = _f64(samples).reshape(-1, 2), _f64(queries).reshape(-1, 2)
     d = np.empty(len(queries))
-    _kernels.nearest_within(samples, queries, d, len(samples), len(queries), float(radius_m))
+    lib.nearest_within(samples, queries, d, len(samples), len(queries), float(radius_m))
     return d
 
 
 def split_pieces(pts: np.ndarray, threshold: np.ndarray, starts: np.ndarray, min_points: int) -> np.ndarray:
     """extraction._split: the piece starts after iterative end-point fit of ``pts (K,2)``."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    lib = _lib()
     out = np.empty(len(pts), dtype=np.int64)
-    starts = np.ascontiguousarray(starts, dtype=np.int64)
-    n = _kernels.split_pieces(_f64(pts), _f64(threshold), starts, out, len(pts), len(starts), int(min_points))
+    starts = _i64(starts)
+    n = lib.split_pieces(_f64(pts), _f64(threshold), starts, out, len(pts), len(starts), int(min_points))
     return out[:n]
 
 
@@ -217,11 +224,10 @@ def merge_pieces(
     merge_angle_n_sigma: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """extraction._merge: starts and cluster of the pieces after merging adjacent collinear ones."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    lib = _lib()
     starts = np.array(starts, dtype=np.int64)
     cluster = np.array(cluster, dtype=np.int64)
-    n = _kernels.merge_pieces(
+    n = lib.merge_pieces(
         _f64(pts),
         _f64(threshold),
         starts,
@@ -239,13 +245,11 @@ def merge_pieces(
 def window_sums(values: np.ndarray, cells: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
     """Mean of ``values (W,H)`` (0 off the grid) over the cells ``(A,N,2)`` moved by each offset
     ``(ox, oy) (T,)``: ``(A,T)`` — scanmatch.window_scores."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    lib = _lib()
     a, n = cells.shape[:2]
     out = np.empty((a, len(ox)))
-    ints = np.ascontiguousarray
-    _kernels.window_sums(
-        _f64(values), ints(cells, dtype=np.int64), ints(ox, dtype=np.int64), ints(oy, dtype=np.int64), out,
+    lib.window_sums(
+        _f64(values), _i64(cells), _i64(ox), _i64(oy), out,
         values.shape[0], values.shape[1], a, n, len(ox),
     )  # fmt: skip
     return out
@@ -256,12 +260,11 @@ def local_columns(
 ) -> np.ndarray:
     """Columns ``(K,)`` of maps ``valid (P,M)``, ``seg (P,M,2,2)`` with an element in one of the
     particles ``rows`` whose midpoint is nearer ``centre (2,)`` than ``limit_m`` plus its half length."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    lib = _lib()
     p, m = valid.shape
     out = np.empty(m, dtype=np.int64)
-    rows = np.ascontiguousarray(rows, dtype=np.int64)
-    n = _kernels.local_columns(
+    rows = _i64(rows)
+    n = lib.local_columns(
         _u8(valid),
         _f64(seg), rows, out, p, m, len(rows), float(centre[0]), float(centre[1]), float(limit_m),
     )  # fmt: skip
@@ -273,14 +276,12 @@ def block_sums(
 ) -> np.ndarray:
     """Mean of ``level (W,H)`` (float32; 0 off the grid) over the cells ``(A,N,2)`` of angle ``a``
     moved by ``(ox, oy)``, for every block ``(M,)`` — scanmatch.branch_and_bound's scores."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    lib = _lib()
     lv = np.ascontiguousarray(level, dtype=np.float32)
     out = np.empty(len(a))
-    ints = np.ascontiguousarray
-    _kernels.block_sums(
-        lv, ints(cells, dtype=np.int64), ints(a, dtype=np.int64), ints(ox, dtype=np.int64),
-        ints(oy, dtype=np.int64), out, lv.shape[0], lv.shape[1], cells.shape[0], cells.shape[1], len(a),
+    lib.block_sums(
+        lv, _i64(cells), _i64(a), _i64(ox),
+        _i64(oy), out, lv.shape[0], lv.shape[1], cells.shape[0], cells.shape[1], len(a),
     )  # fmt: skip
     return out
 
@@ -297,12 +298,11 @@ def redundant_pairs(
     min_overlap_m: float,
 ) -> np.ndarray:
     """update._redundant_pairs for maps ``(P,C)`` and recent columns ``(R,)``: ``(P,C,R)`` bool."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    lib = _lib()
     p, c = valid.shape
-    recent = np.ascontiguousarray(recent, dtype=np.int64)
+    recent = _i64(recent)
     out = np.empty((p, c, len(recent)), dtype=np.uint8)
-    _kernels.redundant_pairs(
+    lib.redundant_pairs(
         _u8(valid), _f64(seg), _f64(np.cos(alpha)), _f64(np.sin(alpha)), _f64(rho), _f64(facing), recent, out,
         p, c, len(recent), float(max_angle_rad), float(max_perp_m), float(min_overlap_m),
     )  # fmt: skip
@@ -315,8 +315,7 @@ def observe_segments(
     """association.observe's geometry: robot-frame segments (``moments (O,6)``, ``ends (O,2,2)``,
     ``facing (O,)``) in the map frame of every particle ``poses (P,3)``: moments ``(P,O,6)``,
     alpha, rho, facing ``(P,O)`` and ends ``(P,O,2,2)``."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    lib = _lib()
     p, o = len(poses), len(moments)
     mo, al, rh, fo, eo = (
         np.empty((p, o, 6)),
@@ -325,20 +324,17 @@ def observe_segments(
         np.empty((p, o)),
         np.empty((p, o, 2, 2)),
     )
-    _kernels.observe_segments(_f64(poses), _f64(moments), _f64(ends), _f64(facing), mo, al, rh, fo, eo, p, o)
+    lib.observe_segments(_f64(poses), _f64(moments), _f64(ends), _f64(facing), mo, al, rh, fo, eo, p, o)
     return mo, al, rh, fo, eo
 
 
 def segment_samples(segments: np.ndarray, step_m: float) -> np.ndarray:
     """``geometry.sample_segments(segments, step_m)[0]``: the middle of each piece of the segments
-    ``(S,2,2)`` cut into equal pieces no longer than ``step_m``."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
+    ``(S,2,2)`` cut into equal pieces no longer than ``step_m`` (counted as sample_segments does)."""
+    lib = _lib()
     seg = _f64(segments).reshape(-1, 2, 2)
     d = seg[:, 1] - seg[:, 0]
-    room = int(np.sum(np.maximum(np.ceil(np.sqrt(np.sum(d * d, axis=1)) / step_m), 1))) + len(seg)
-    out = np.empty((room, 2))
-    n = _kernels.segment_samples(seg, out, len(seg), room, float(step_m))
-    if n < 0:  # (cannot happen: the room is counted above)
-        raise RuntimeError("segment_samples: the samples did not fit")
-    return out[:n]
+    counts = _i64(np.maximum(np.ceil(np.hypot(d[:, 0], d[:, 1]) / step_m).astype(int), 1))
+    out = np.empty((int(counts.sum()), 2))
+    lib.segment_samples(seg, counts, out, len(seg), len(out))
+    return out

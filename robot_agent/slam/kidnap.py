@@ -74,7 +74,7 @@ def overlap(
     r = np.hypot(points[:, 0], points[:, 1])
     tol = cfg.tol_m + cfg.tol_per_m * r
     if cfg.compiled and kernels.AVAILABLE and tol.max() > 0:  # a point farther than every tolerance: inf
-        d = kernels.nearest_within(ref_points, q, float(tol.max()) * (1 + 1e-9))
+        d = kernels.nearest_within(ref_points, q, float(tol.max()))
     else:
         d, _ = cKDTree(ref_points).query(q)
     return float(np.mean(d < tol))

@@ -93,12 +93,12 @@ def window_scores(
     cells = _query_cells(fld, query, guess, angles)
     if compiled and kernels.AVAILABLE:
         scores = kernels.window_sums(fld.values, cells, ox, oy)
-        return scores, angles, np.column_stack([ox, oy]) * fld.res_m
-    scores = np.empty((len(angles), len(ox)))
-    for a in range(len(angles)):
-        ix = cells[a, None, :, 0] + ox[:, None]
-        iy = cells[a, None, :, 1] + oy[:, None]
-        scores[a] = _lookup(fld.values, ix, iy).mean(axis=1)
+    else:
+        scores = np.empty((len(angles), len(ox)))
+        for a in range(len(angles)):
+            ix = cells[a, None, :, 0] + ox[:, None]
+            iy = cells[a, None, :, 1] + oy[:, None]
+            scores[a] = _lookup(fld.values, ix, iy).mean(axis=1)
     return scores, angles, np.column_stack([ox, oy]) * fld.res_m
 
 
@@ -142,7 +142,6 @@ def branch_and_bound(
     w = int(np.ceil(half_xy_m / fld.res_m))
     top = 2**depth
     cells = _query_cells(fld, query, guess, angles)  # (A,N,2)
-    n_points = query.shape[0]
     if compiled and kernels.AVAILABLE:  # bounds tested per lookup: no padded copies of the levels
         levels = [v.astype(np.float32) for v in max_pyramid(fld.values, depth)]
 
@@ -158,6 +157,7 @@ def branch_and_bound(
         cx = np.clip(cells[..., 0], -(w + top + 1), fld.values.shape[0] + w) + pad
         cy = np.clip(cells[..., 1], -(w + top + 1), fld.values.shape[1] + w) + pad
         flat = cx * height + cy  # (A,N)
+        n_points = query.shape[0]
 
         def score(k: int, a: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
             return levels[k].ravel()[flat[a] + (ox * height + oy)[:, None]].sum(axis=1) / n_points

@@ -115,7 +115,7 @@ def visibility(
             maps.facing,
             maps.valid,
             laser_poses,
-            np.asarray(ranges_m, dtype=float),
+            ranges_m,
             VISIBILITY_SAMPLES,
             a0,
             da,
