@@ -1,5 +1,5 @@
 # One image for the map server and the agents (the zenoh router is the official eclipse/zenoh image).
-# The SLAM's C kernels (robot_agent/slam/_kernels.c) are compiled in a build stage that has a C
+# The C kernels (robot_agent/slam/_kernels.c, shared/_kernels.c) are compiled in a build stage that has a C
 # compiler; the image itself gets the built wheel only.
 FROM python:3.11-slim AS build
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
@@ -16,7 +16,7 @@ FROM python:3.11-slim
 ENV PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 COPY --from=build /wheels /wheels
 RUN pip install /wheels/*.whl && rm -rf /wheels \
-    && python -c "from robot_agent.slam import kernels; assert kernels.AVAILABLE, 'C kernels not built'" \
+    && python -c "from robot_agent.slam import kernels as a; from shared import kernels as b; assert a.AVAILABLE and b.AVAILABLE, 'C kernels not built'" \
     && useradd --create-home --uid 1000 fleet && mkdir -p /state /out && chown fleet /state /out
 WORKDIR /app
 USER fleet

@@ -7,7 +7,7 @@ OUT ?= out/demo
 
 .PHONY: test demo lint bench clean browser
 
-$(STAMP): pyproject.toml setup.py robot_agent/slam/_kernels.c  # the C kernels are built by the install
+$(STAMP): pyproject.toml setup.py robot_agent/slam/_kernels.c shared/_kernels.c shared/_common.h  # the C kernels are built by the install
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[dev]'

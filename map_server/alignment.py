@@ -90,6 +90,9 @@ class AlignmentConfig:
     max_crossing_share: float = 1.0  # crossing robot walls' length / matched length (Intel: ~0.9)
     max_sigma_m: float = 0.10  # a fit this loose (one direction unconstrained: a corridor) is refused
     max_sigma_rad: float = np.radians(1.0)
+    # the placed map's nearest-sample index searched by the compiled kernel (shared/kernels.py;
+    # False, or not built: scipy's k-d tree, the same answer)
+    compiled: bool = True
     # prior
     prior_gate_sigmas: float = 4.0  # refinement may move the prior this far (Mahalanobis, 99.9 %)
     prior_min_sigma_m: float = 0.01  # floors of the prior's sigma (a zero sigma pins the pose)
@@ -186,7 +189,7 @@ def estimate_alignment(
     if robot_samples is None:
         robot_samples = Samples.of(robot_seg, cfg.sample_step_m), Samples.of(robot_seg, cfg.coarse_step_m)
     robot, coarse = robot_samples
-    index = MapIndex(placed_seg, cfg.sample_step_m) if index is None else index
+    index = MapIndex(placed_seg, cfg.sample_step_m, compiled=cfg.compiled) if index is None else index
     total = float(robot.length.sum())
     if prior is not None:
         sigma = np.zeros(3) if prior_sigma is None else np.asarray(prior_sigma, float)

@@ -329,7 +329,6 @@ class Fleet:
         (a robot whose map just came: its new layer and its new place are merged in one go), then
         in arrival order; until their layers add up to ``refine_budget_segments`` (the first
         always)."""
-        due = [r for r in placed if r.alignment.status != "reference" and r.due(self.cfg, *key_of(r), now_s)]
         overdue = 2.0 * self.cfg.retry_interval_s
 
         def rank(r: RobotState) -> tuple:
@@ -337,12 +336,13 @@ class Fleet:
             return now_s - r.attempt_s < overdue, r.map.seq == r.attempt_seq, newest, r.order
 
         turn: set[int] = set()
-        for r in sorted(due, key=rank):
+        for r in sorted((r for r in placed if r.alignment.status != "reference"), key=rank):
             spent = self._budget < self.cfg.refine_budget_segments  # in this round or an earlier one
             if spent and len(r.layer) > self._budget:
-                continue
-            turn.add(id(r))
-            self._budget -= len(r.layer)
+                continue  # (before asking whether it is due: that looks at the maps around it)
+            if r.due(self.cfg, *key_of(r), now_s):
+                turn.add(id(r))
+                self._budget -= len(r.layer)
         return turn
 
     def _global_segments(self, exclude: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None):
@@ -372,7 +372,7 @@ class Fleet:
             lo, hi = box[:2] - self.cfg.refine_margin_m, box[2:] + self.cfg.refine_margin_m
             near = self._global_segments(r.robot, lo - reach, hi + reach)
             if len(near):
-                index = MapIndex(near, c.sample_step_m, inner=(lo, hi))
+                index = MapIndex(near, c.sample_step_m, inner=(lo, hi), compiled=c.compiled)
                 try:
                     return estimate_alignment(
                         r.layer.seg, near, c, prior, sigma, current, search, index=index, **kw
@@ -419,12 +419,12 @@ class Fleet:
         for r in self._ordered():
             if r.layer is None or r.alignment.status == "reference":
                 continue
+            if turn is not None and r.alignment.placed and id(r) not in turn:
+                continue  # a refinement whose turn comes in a later fusion (or not due)
             prior = r.map.prior if self.frame == "prior" else None
             placed_m, key = key_of(r)
             if not r.due(self.cfg, placed_m, key, now_s, urgent):
                 continue
-            if turn is not None and r.alignment.placed and id(r) not in turn:
-                continue  # a refinement whose turn comes in a later fusion
             key = key()
             others = [p for p in placed if p is not r]
             if prior is None and not r.alignment.placed and not self._mature([r, *others], now_s):

@@ -2,11 +2,12 @@
 
 Both maps are directed segment maps (facing = left normal of ``p0 → p1``). The placed (global)
 map is sampled every ``step_m`` into points that carry their segment's line and facing, indexed
-by a k-d tree once per alignment attempt; the robot map is sampled the same way. A robot sample
+in a :class:`shared.kernels.NearIndex` once per alignment attempt (a cell grid searched by a
+compiled kernel, else a k-d tree: the same answer); the robot map is sampled the same way. A robot sample
 *lies on* the placed map at a pose when a placed sample within the gate has a facing within the
 angle tolerance and the sample is within the perpendicular tolerance of that sample's line — so
 the overlap score is the robot-map length lying on placed walls (shared/matching.py's
-``overlap_scores``, to the sample step, at k-d tree cost instead of all pairs).
+``overlap_scores``, to the sample step, at the index's cost instead of all pairs).
 """
 
 from __future__ import annotations
@@ -14,14 +15,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from map_server.fusion import box_pairs
 from shared.geometry import sample_segments, segment_directions, segment_lengths, transform_points, wrap_angle
+from shared.kernels import Lines, NearIndex
 
 NEIGHBOURS = 8  # placed samples examined per robot sample (the nearest within the gate)
 OTHER_FACE_RAD = 0.75 * np.pi  # facings this far apart: the two faces of one thin wall
 CROSS_CHUNK_PAIRS = 2_000_000  # robot × placed segment pairs tested at once for crossings
+INDEX_CELL_M = 0.3  # the placed samples' grid (compiled index): the usual query bound, 0.15-0.3 m
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,10 +46,10 @@ class Samples:
             z = np.zeros(0)
             return cls(np.zeros((0, 2)), z, np.zeros((0, 2)), z, z, np.zeros(0, int))
         pts, owner, length = sample_segments(seg, step_m)
-        facing = wrap_angle(segment_directions(seg) + 0.5 * np.pi)[owner]
+        facing = wrap_angle(segment_directions(seg) + 0.5 * np.pi)  # per segment, then per sample
         normal = np.stack([np.cos(facing), np.sin(facing)], axis=-1)
-        offset = np.sum(normal * seg[owner, 0], axis=-1)
-        return cls(pts, facing, normal, offset, length, owner)
+        offset = np.sum(normal * seg[:, 0], axis=-1)
+        return cls(pts, facing[owner], normal[owner], offset[owner], length, owner)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -58,43 +60,67 @@ class OutsideIndex(Exception):
 
 
 class MapIndex:
-    """The placed map's samples in a k-d tree, and its segments for the crossing test.
+    """The placed map's samples indexed for nearest-sample queries (``compiled``: a cell grid and
+    a compiled search, else a k-d tree; the same answer), and its segments for the crossing test.
 
     ``inner (lo (2,), hi (2,))``: the index holds a crop of the placed map — every segment whose
     bounding box meets the inner box grown by ``reach`` — and answers like the whole map for query
     points inside the inner box, as long as no query looks farther than ``reach``; a query point
     outside raises :class:`OutsideIndex` (the caller asks the whole map instead)."""
 
-    def __init__(self, seg: np.ndarray, step_m: float, inner: tuple[np.ndarray, np.ndarray] | None = None):
+    def __init__(
+        self,
+        seg: np.ndarray,
+        step_m: float,
+        inner: tuple[np.ndarray, np.ndarray] | None = None,
+        compiled: bool = True,
+    ):
         self.seg = np.asarray(seg, float).reshape(-1, 2, 2)
         self.samples = Samples.of(self.seg, step_m)
-        self.tree = cKDTree(self.samples.points) if len(self.samples) else None
+        ps = self.samples
+        lines = Lines(ps.facing, ps.normal[:, 0], ps.normal[:, 1], ps.offset)
+        self.tree = NearIndex(ps.points, INDEX_CELL_M, lines, compiled) if len(ps) else None
         self.inner = inner
         self.box = np.concatenate([self.seg.min(axis=1), self.seg.max(axis=1)], axis=1)  # (P,4)
-        ps = self.samples  # columns apart: gathers and products without (K, NEIGHBOURS, 2) temporaries
-        self._nx, self._ny = ps.normal[:, 0].copy(), ps.normal[:, 1].copy()
-        self._px, self._py = ps.points[:, 0].copy(), ps.points[:, 1].copy()
         self._last: tuple | None = None  # the last _near() (robot, pose, bound, d, answer)
 
-    def _near(self, pose: np.ndarray, robot: Samples, q: np.ndarray, bound: float) -> tuple:
-        """The nearest placed samples (at most NEIGHBOURS) within ``bound`` of the query points
-        ``q`` (``robot``'s samples at ``pose``): ``valid (K,N)``, indices ``j (K,N)`` (0 where not
-        valid), facing difference ``dang (K,N)`` and distance to their lines ``perp (K,N)``. The
-        nearest within a smaller bound are the nearest within a larger one that lie within it, so
-        the last query (strict scoring, then the contradiction checks at the same pose) serves
-        the next ones with a bound no larger."""
+    def _near(self, pose: np.ndarray, robot: Samples, bound: float) -> tuple:
+        """The nearest placed samples (at most NEIGHBOURS) within ``bound`` of ``robot``'s samples
+        at ``pose``: ``valid (K,N)``, indices ``j (K,N)`` (N where not valid), distances ``d``,
+        facing difference ``dang`` and distance to their lines ``perp`` (K,N). The nearest within
+        a smaller bound are the nearest within a larger one that lie within it, so the last query
+        (strict scoring, then the contradiction checks at the same pose) serves the next ones with
+        a bound no larger. :class:`OutsideIndex` when a sample lies outside a crop's inner box."""
         last = self._last
         if last is not None and last[0] is robot and bound <= last[2] and np.array_equal(last[1], pose):
-            valid, j, dang, perp = last[4]
-            return (valid if bound == last[2] else valid & (last[3] <= bound)), j, dang, perp
-        d, j = self.tree.query(q, k=NEIGHBOURS, distance_upper_bound=bound)
-        valid = j < len(self.samples)
-        j = np.where(valid, j, 0)
-        dang = np.abs(wrap_angle(robot.facing[:, None] + pose[2] - self.samples.facing[j]))
-        perp = np.abs(self._nx[j] * q[:, None, 0] + self._ny[j] * q[:, None, 1] - self.samples.offset[j])
-        answer = valid, j, dang, perp
-        self._last = (robot, np.array(pose, float), bound, d, answer)
+            valid, j, d, dang, perp = last[3]
+            return (valid if bound == last[2] else valid & (d <= bound)), j, d, dang, perp
+        q = transform_points(pose, robot.points)
+        near = self.tree.query(q, NEIGHBOURS, bound, robot.facing + pose[2], self.inner)
+        if near.outside:
+            raise OutsideIndex
+        answer = near.j < len(self.samples), near.j, near.d, near.dang, np.abs(near.perp)
+        self._last = (robot, np.array(pose, float), bound, answer)
         return answer
+
+    def match(
+        self, pose: np.ndarray, robot: Samples, gate_m: float, angle_rad: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For each robot sample moved by ``pose``: whether a facing-compatible placed sample is
+        within ``gate_m`` (``ok (K,)``) among its NEIGHBOURS nearest, the nearest such one
+        (``idx (K,)``; else the nearest, else 0) and the signed distance to its line (``perp``)."""
+        k = len(robot)
+        if self.tree is None or k == 0:
+            return np.zeros(k, bool), np.zeros(k, int), np.zeros(k)
+        q = transform_points(pose, robot.points)
+        near = self.tree.query(q, NEIGHBOURS, gate_m, robot.facing + pose[2], self.inner)
+        if near.outside:
+            raise OutsideIndex
+        good = (near.j < len(self.samples)) & (near.dang <= angle_rad)
+        first = np.argmax(good, axis=1)
+        rows = np.arange(k)
+        idx = np.where(near.j[rows, first] < len(self.samples), near.j[rows, first], 0)
+        return _any_row(good), idx, near.perp[rows, first]
 
     def _inside(self, q: np.ndarray) -> None:
         if self.inner is None or len(q) == 0:
@@ -102,28 +128,6 @@ class MapIndex:
         lo, hi = self.inner
         if (q.min(axis=0) < lo).any() or (q.max(axis=0) > hi).any():
             raise OutsideIndex
-
-    def match(
-        self, pose: np.ndarray, robot: Samples, gate_m: float, angle_rad: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For each robot sample moved by ``pose``: whether a facing-compatible placed sample is
-        within ``gate_m`` (``ok (K,)``), the nearest such one (``idx (K,)``) and the signed
-        distance to its line (``perp (K,)``)."""
-        k = len(robot)
-        if self.tree is None or k == 0:
-            return np.zeros(k, bool), np.zeros(k, int), np.zeros(k)
-        q = transform_points(pose, robot.points)
-        self._inside(q)
-        _, j = self.tree.query(q, k=NEIGHBOURS, distance_upper_bound=gate_m)
-        valid = j < len(self.samples)
-        j = np.where(valid, j, 0)
-        ps = self.samples
-        dang = np.abs(wrap_angle(robot.facing[:, None] + pose[2] - ps.facing[j]))
-        good = valid & (dang <= angle_rad)
-        first = np.argmax(good, axis=1)
-        idx = j[np.arange(k), first]
-        perp = self._nx[idx] * q[:, 0] + self._ny[idx] * q[:, 1] - ps.offset[idx]
-        return _any_row(good), idx, perp
 
     def overlap(self, pose: np.ndarray, robot: Samples, perp_m: float, angle_rad: float) -> float:
         """Robot-map length [m] lying on the placed map at ``pose``."""
@@ -139,10 +143,7 @@ class MapIndex:
         k = len(robot)
         if self.tree is None or k == 0:
             return np.zeros(k, bool), np.zeros(k, bool)
-        q = transform_points(pose, robot.points)
-        self._inside(q)
-        valid, j, dang, perp = self._near(pose, robot, q, max(conflict_m, perp_m))
-        dist = np.hypot(q[:, None, 0] - self._px[j], q[:, None, 1] - self._py[j])
+        valid, _, dist, dang, perp = self._near(pose, robot, max(conflict_m, perp_m))
         gate = np.hypot(perp_m, robot_step(robot))
         on = _any_row(valid & (dang <= angle_rad) & (perp <= perp_m) & (dist <= gate))
         near = _any_row(valid & (dang < OTHER_FACE_RAD))
@@ -153,9 +154,7 @@ class MapIndex:
         a side the placed map says is inside it): a contradiction."""
         if self.tree is None or len(robot) == 0:
             return 0.0
-        q = transform_points(pose, robot.points)
-        self._inside(q)
-        valid, _, dang, perp = self._near(pose, robot, q, float(np.hypot(perp_m, robot_step(robot))))
+        valid, _, _, dang, perp = self._near(pose, robot, float(np.hypot(perp_m, robot_step(robot))))
         bad = _any_row(valid & (dang >= OTHER_FACE_RAD) & (perp <= perp_m))
         return float(robot.length[bad].sum())
 

@@ -11,42 +11,11 @@
  * -ffp-contract=off so that a product and a sum are not fused into one rounding the numpy code
  * does not make.
  */
-#define PY_SSIZE_T_CLEAN
-#include <Python.h>
+#include "_common.h" /* shared/: sizes_ok, release, wrap_angle */
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
-
-#define TWO_PI 6.283185307179586
-
-/* numpy's (a + pi) % 2pi - pi: floor modulo, the result takes the divisor's sign */
-static double wrap_angle(double a) {
-    double t = a + M_PI;
-    double r = fmod(t, TWO_PI);
-    if (r != 0.0) {
-        if (r < 0.0) r += TWO_PI;
-    } else {
-        r = 0.0;
-    }
-    return r - M_PI;
-}
-
-/* Every buffer holds the bytes its shape says, else a ValueError naming the argument: 1 if so. */
-static int sizes_ok(const char *name, Py_buffer *const *all, const Py_ssize_t *need, int n) {
-    for (int k = 0; k < n; k++) {
-        if (all[k]->len != need[k]) {
-            PyErr_Format(PyExc_ValueError, "%s: argument %d holds %zd bytes, expected %zd", name, k, all[k]->len,
-                         need[k]);
-            return 0;
-        }
-    }
-    return 1;
-}
-
-static void release(Py_buffer *const *all, int n) {
-    for (int k = 0; k < n; k++) PyBuffer_Release(all[k]);
-}
 
 /* Piece starts rise within [0, K), else a ValueError: 1 if so. */
 static int starts_ok(const char *name, const int64_t *starts, Py_ssize_t S, Py_ssize_t K) {

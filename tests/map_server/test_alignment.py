@@ -10,13 +10,13 @@ from collections import Counter
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 from map_server import candidates, registration
 from map_server.alignment import Alignment, AlignmentConfig, estimate_alignment, prior_gauge
 from map_server.fusion import FusionConfig, fuse_particles
 from map_server.registration import Samples
 from shared.geometry import apply_segments, compose, inverse
+from shared.kernels import NearIndex
 from shared.metrics import ate, transform_error
 from tests.map_server.robots import robot_map_from_slam, scan_map, slam_run
 
@@ -34,18 +34,18 @@ def pair(duration_s, a=0, b=1, world="office"):
 @pytest.fixture
 def work(monkeypatch) -> Counter:
     """What an alignment attempt does, counted around its costly steps (the code is unchanged):
-    pose hypotheses, refinements, k-d trees built and queried, and the points queried."""
+    pose hypotheses, refinements, nearest-sample indexes built and queried, and the points queried."""
     counts = Counter()
 
-    class CountingTree:
-        def __init__(self, data, *args, **kwargs):
+    class CountingIndex(NearIndex):
+        def __init__(self, *args, **kwargs):
             counts["trees"] += 1
-            self._tree = cKDTree(data, *args, **kwargs)
+            super().__init__(*args, **kwargs)
 
-        def query(self, x, *args, **kwargs):
+        def query(self, q, *args, **kwargs):
             counts["queries"] += 1
-            counts["query_points"] += len(x)
-            return self._tree.query(x, *args, **kwargs)
+            counts["query_points"] += len(q)
+            return super().query(q, *args, **kwargs)
 
     hypotheses, refine = candidates.pose_hypotheses, candidates.refine
 
@@ -58,7 +58,7 @@ def work(monkeypatch) -> Counter:
         counts["refinements"] += 1
         return refine(*args, **kwargs)
 
-    monkeypatch.setattr(registration, "cKDTree", CountingTree)
+    monkeypatch.setattr(registration, "NearIndex", CountingIndex)
     monkeypatch.setattr(candidates, "pose_hypotheses", counted_hypotheses)
     monkeypatch.setattr(candidates, "refine", counted_refine)
     return counts
@@ -76,7 +76,7 @@ def test_exact_maps_give_the_exact_frame_within_the_work_budget(work):
     assert 1.10 <= a.rival_ratio < 1.3
     # The work of one attempt stays within what its config allows (its time is measured by
     # benchmarks/bench_fleet.py, fusion without priors, per attempt): the placed map indexed once;
-    # k-d queries: the vote peaks pre-scored, the best refined (one query per stage) and scored
+    # index queries: the vote peaks pre-scored, the best refined (one query per stage) and scored
     # strictly, and the winner's opposed-wall check — coarse samples for the first two, fine ones after.
     fine, coarse = len(Samples.of(seg, CFG.sample_step_m)), len(Samples.of(seg, CFG.coarse_step_m))
     stages = len(CFG.refine_stages)

@@ -1,0 +1,153 @@
+/* Compiled kernels of the map server's hot loops (the SLAM's are in robot_agent/slam/_kernels.c):
+ * the k nearest points within a distance, for map_server/registration.py's map index (the same
+ * answer as scipy's cKDTree.query with distance_upper_bound, ties in distance ordered by index),
+ * with what registration computes of each neighbour (facing difference, distance to its line).
+ * shared/kernels.py wraps it and keeps the k-d tree as the reference and the fallback when this
+ * module is not built; tests/map_server/test_near_index.py holds both to the same results.
+ *
+ * Arrays come through the buffer protocol (no numpy headers at build time), C-contiguous,
+ * float64 unless said otherwise; each function checks their sizes against the shapes it is
+ * given. Built with -ffp-contract=off (no fused multiply-add the reference does not make).
+ */
+#include "_common.h" /* sizes_ok, release, wrap_angle */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+
+#define MAX_K 64
+
+/* Whether (d2, j) comes before (e2, i): nearer first, the lower index among equals. */
+static inline int before(double d2, int64_t j, double e2, int64_t i) { return d2 < e2 || (d2 == e2 && j < i); }
+
+/* The grid's cells [lo, hi] along one axis that points within ``bound`` of ``v`` can lie in,
+ * clamped to [0, n): 0 if none. The range is widened by a part in 1e9 of the bound: a point whose
+ * computed distance is just below the bound is never in a cell the rounding put outside. */
+static int cell_range(double v, double bound, double cell, int64_t origin, int64_t n, int64_t *lo, int64_t *hi) {
+    double slack = bound * 1e-9 + 1e-12;
+    double a = floor((v - bound - slack) / cell), b = floor((v + bound + slack) / cell);
+    if (!(fabs(a) < 4e18 && fabs(b) < 4e18)) return 0; /* not finite */
+    int64_t l = (int64_t)a - origin, h = (int64_t)b - origin;
+    if (l < 0) l = 0;
+    if (h > n - 1) h = n - 1;
+    *lo = l;
+    *hi = h;
+    return l <= h;
+}
+
+/* near: for each query point, the k nearest points nearer than ``bound`` (squared distance
+ * below bound²), nearest first, the lower index first among equals; missing neighbours get
+ * distance inf and index M. The N points come sorted by grid cell (``px``, ``py`` in that order,
+ * ``order`` their indices in [0, M): points left out of the grid keep theirs; ``start`` (W*H+1,)
+ * the first of each cell: cell (cx, cy) is row cx*H + cy relative to the grid's origin cell
+ * (x0, y0); a point's cell is floor(x / cell)).
+ *
+ * With ``lines`` the points are samples of directed lines (facing ``pf``, unit normal ``nx``,
+ * ``ny``, offset ``off``, all (M,)) and each query has a facing ``qf`` (Q,): for every neighbour
+ * slot the facing difference |wrap(qf - pf[j])| and the signed distance of the query to the line
+ * nx[j] x + ny[j] y - off[j], with j = 0 in the slots of missing neighbours (as
+ * map_server/registration.py computes them); without, those four arrays and the two outputs are
+ * empty. Returns how many queries lie outside the box lo_x, lo_y, hi_x, hi_y. */
+static PyObject *near(PyObject *self, PyObject *args) {
+    Py_buffer b_px, b_py, b_order, b_start, b_q, b_qf, b_pf, b_nx, b_ny, b_off, b_d, b_j, b_dang, b_perp;
+    Py_ssize_t N, M, W, H, Q, K;
+    long long x0, y0;
+    int lines;
+    double cell, bound, lo_x, lo_y, hi_x, hi_y;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*y*y*w*w*w*w*nnnnnnLLddpdddd", &b_px, &b_py, &b_order, &b_start, &b_q,
+                          &b_qf, &b_pf, &b_nx, &b_ny, &b_off, &b_d, &b_j, &b_dang, &b_perp, &N, &M, &W, &H, &Q, &K,
+                          &x0, &y0, &cell, &bound, &lines, &lo_x, &lo_y, &hi_x, &hi_y))
+        return NULL;
+    Py_buffer *all[] = {&b_px, &b_py, &b_order, &b_start, &b_q, &b_qf, &b_pf, &b_nx, &b_ny, &b_off, &b_d, &b_j, &b_dang, &b_perp};
+    const int n_buf = (int)(sizeof(all) / sizeof(all[0]));
+    PyObject *result = NULL;
+    if (N < 0 || M < N || W < 0 || H < 0 || Q < 0 || K < 1 || K > MAX_K || (W > 0 && H > PY_SSIZE_T_MAX / 8 / W) ||
+        (lines && M == 0)) {
+        PyErr_Format(PyExc_ValueError, "near: bad sizes N=%zd M=%zd W=%zd H=%zd Q=%zd k=%zd (k in 1..%d; lines need M > 0)",
+                     N, M, W, H, Q, K, MAX_K);
+        goto done;
+    }
+    Py_ssize_t L = lines ? 1 : 0;
+    Py_ssize_t need[] = {N * 8,     N * 8,     N * 8,     (W * H + 1) * 8, Q * 2 * 8,     L * Q * 8,     L * M * 8,
+                         L * M * 8, L * M * 8, L * M * 8, Q * K * 8,       Q * K * 8, L * Q * K * 8, L * Q * K * 8};
+    if (!sizes_ok("near", all, need, n_buf)) goto done;
+    if (!(cell > 0.0) || !isfinite(cell) || !(bound >= 0.0)) {
+        PyErr_Format(PyExc_ValueError, "near: cell must be finite and > 0 (got %g), bound >= 0 (got %g)", cell, bound);
+        goto done;
+    }
+    const double *px = b_px.buf, *py = b_py.buf, *q = b_q.buf, *qf = b_qf.buf, *pf = b_pf.buf;
+    const double *nx = b_nx.buf, *ny = b_ny.buf, *off = b_off.buf;
+    const int64_t *order = b_order.buf, *start = b_start.buf;
+    double *d_out = b_d.buf, *dang_out = b_dang.buf, *perp_out = b_perp.buf;
+    int64_t *j_out = b_j.buf;
+    /* a grid the queries can trust: starts rise from 0 to N, indices within [0, M) */
+    int bad = start[0] != 0 || start[W * H] != N;
+    for (Py_ssize_t c = 0; !bad && c < W * H; c++) bad = start[c + 1] < start[c];
+    for (Py_ssize_t i = 0; !bad && i < N; i++) bad = order[i] < 0 || order[i] >= M;
+    if (bad) {
+        PyErr_SetString(PyExc_ValueError, "near: the grid's starts must rise from 0 to N, its order lie in [0, M)");
+        goto done;
+    }
+    double b2 = bound * bound;
+    Py_ssize_t outside = 0;
+    Py_BEGIN_ALLOW_THREADS
+    double bd[MAX_K];
+    int64_t bj[MAX_K];
+    for (Py_ssize_t k = 0; k < Q; k++) {
+        double x = q[2 * k], y = q[2 * k + 1];
+        outside += x < lo_x || y < lo_y || x > hi_x || y > hi_y;
+        Py_ssize_t m = 0; /* neighbours held, nearest first */
+        int64_t gx0, gx1, gy0, gy1;
+        if (W > 0 && cell_range(x, bound, cell, x0, W, &gx0, &gx1) && cell_range(y, bound, cell, y0, H, &gy0, &gy1)) {
+            for (int64_t gx = gx0; gx <= gx1; gx++) {
+                /* the cells (gx, gy0..gy1) are one run of points */
+                Py_ssize_t from = start[gx * H + gy0], to = start[gx * H + gy1 + 1];
+                for (Py_ssize_t i = from; i < to; i++) {
+                    double dx = px[i] - x, dy = py[i] - y;
+                    double d2 = dx * dx + dy * dy;
+                    if (!(d2 < b2)) continue;
+                    int64_t j = order[i];
+                    if (m == K && !before(d2, j, bd[K - 1], bj[K - 1])) continue;
+                    Py_ssize_t at = m < K ? m++ : K - 1; /* insert, the last one falling off when full */
+                    while (at > 0 && before(d2, j, bd[at - 1], bj[at - 1])) {
+                        bd[at] = bd[at - 1];
+                        bj[at] = bj[at - 1];
+                        at--;
+                    }
+                    bd[at] = d2;
+                    bj[at] = j;
+                }
+            }
+        }
+        double *d = d_out + k * K;
+        int64_t *jo = j_out + k * K;
+        for (Py_ssize_t a = 0; a < K; a++) {
+            d[a] = a < m ? sqrt(bd[a]) : INFINITY;
+            jo[a] = a < m ? bj[a] : M;
+        }
+        if (lines) {
+            double *dang = dang_out + k * K, *perp = perp_out + k * K;
+            for (Py_ssize_t a = 0; a < K; a++) {
+                int64_t j = a < m ? bj[a] : 0;
+                dang[a] = fabs(wrap_angle(qf[k] - pf[j]));
+                perp[a] = nx[j] * x + ny[j] * y - off[j];
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    result = PyLong_FromSsize_t(outside);
+done:
+    release(all, n_buf);
+    return result;
+}
+
+static PyMethodDef methods[] = {
+    {"near", near, METH_VARARGS,
+     "near(px, py, order, start, q, qf, pf, nx, ny, off, d_out, j_out, dang_out, perp_out, N, M, W, H, Q, k, x0, y0, "
+     "cell, bound, lines, lo_x, lo_y, hi_x, hi_y) -> outside: the k nearest points within bound of each query "
+     "(cKDTree.query's answer, ties by index), with lines their facing differences and line distances."},
+    {NULL, NULL, 0, NULL}};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",
+                                    "Compiled kernels of the map server (see shared/kernels.py).", -1, methods};
+
+PyMODINIT_FUNC PyInit__kernels(void) { return PyModule_Create(&module); }
