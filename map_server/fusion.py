@@ -23,6 +23,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from shared import kernels
 from shared.geometry import segment_lengths
 from shared.messages import RobotMap
 
@@ -42,6 +43,9 @@ class FusionConfig:
     merge_gap_m: float = 0.30  # ... and they overlap or leave at most this gap (< door openings)
     outlier_perp_m: float = 0.15  # a member farther than this from its group's fitted line
     # (a chain of small tolerances can bend a group) is split off and kept on its own
+    # the collinearity test of segment pairs in the compiled kernel (shared/kernels.py; False, or
+    # not built: numpy, the same answer)
+    compiled: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -191,6 +195,8 @@ def pair_margin(cfg: FusionConfig) -> float:
 
 def collinear(seg: np.ndarray, i: np.ndarray, j: np.ndarray, cfg: FusionConfig) -> np.ndarray:
     """Mask ``(K,)``: whether segments ``i (K,)`` and ``j (K,)`` of ``seg`` are one wall."""
+    if cfg.compiled and kernels.AVAILABLE:
+        return kernels.collinear(seg, i, j, np.cos(cfg.merge_angle_rad), cfg.merge_perp_m, cfg.merge_gap_m)
     length = segment_lengths(seg[i]), segment_lengths(seg[j])
     swap = length[1] > length[0]  # a = the longer one, b = the shorter ...
     tie = np.flatnonzero(length[1] == length[0])  # ... of equal ones the first by coordinates,

@@ -1,9 +1,10 @@
 /* Compiled kernels of the map server's hot loops (the SLAM's are in robot_agent/slam/_kernels.c):
  * the k nearest points within a distance, for map_server/registration.py's map index (the same
  * answer as scipy's cKDTree.query with distance_upper_bound, ties in distance ordered by index),
- * with what registration computes of each neighbour (facing difference, distance to its line).
+ * with what registration computes of each neighbour (facing difference, distance to its line);
+ * and the merge's collinearity test of segment pairs (map_server/fusion.collinear).
  * shared/kernels.py wraps it and keeps the k-d tree as the reference and the fallback when this
- * module is not built; tests/map_server/test_near_index.py holds both to the same results.
+ * module is not built; tests/map_server/test_server_kernels.py holds both to the same results.
  *
  * Arrays come through the buffer protocol (no numpy headers at build time), C-contiguous,
  * float64 unless said otherwise; each function checks their sizes against the shapes it is
@@ -36,46 +37,45 @@ static int cell_range(double v, double bound, double cell, int64_t origin, int64
 
 /* near: for each query point, the k nearest points nearer than ``bound`` (squared distance
  * below bound²), nearest first, the lower index first among equals; missing neighbours get
- * distance inf and index M. The N points come sorted by grid cell (``px``, ``py`` in that order,
- * ``order`` their indices in [0, M): points left out of the grid keep theirs; ``start`` (W*H+1,)
- * the first of each cell: cell (cx, cy) is row cx*H + cy relative to the grid's origin cell
- * (x0, y0); a point's cell is floor(x / cell)).
+ * distance inf and index M. The N points come sorted by grid cell: ``data`` (N,S) their rows in
+ * that order, x and y first; ``order`` (N,) their indices in [0, M) (points left out of the grid
+ * keep theirs); ``start`` (W*H+1,) the first of each cell: cell (cx, cy) is row cx*H + cy relative
+ * to the grid's origin cell (x0, y0); a point's cell is floor(x / cell).
  *
- * With ``lines`` the points are samples of directed lines (facing ``pf``, unit normal ``nx``,
- * ``ny``, offset ``off``, all (M,)) and each query has a facing ``qf`` (Q,): for every neighbour
- * slot the facing difference |wrap(qf - pf[j])| and the signed distance of the query to the line
- * nx[j] x + ny[j] y - off[j], with j = 0 in the slots of missing neighbours (as
- * map_server/registration.py computes them); without, those four arrays and the two outputs are
- * empty. Returns how many queries lie outside the box lo_x, lo_y, hi_x, hi_y. */
+ * With ``lines`` (S = 6) the points are samples of directed lines, each row x, y, facing, unit
+ * normal nx, ny and offset (nx x + ny y = offset on the line), and each query has a facing ``qf``
+ * (Q,): for every neighbour slot the facing difference |wrap(qf - facing)| and the signed distance
+ * of the query to the line nx x + ny y - offset, the slots of missing neighbours with point 0's
+ * line ``line0`` (facing, nx, ny, offset), as map_server/registration.py computes them; without
+ * (S = 2), ``qf``, ``line0`` and the two outputs are empty. Returns how many queries lie outside
+ * the box lo_x, lo_y, hi_x, hi_y. */
 static PyObject *near(PyObject *self, PyObject *args) {
-    Py_buffer b_px, b_py, b_order, b_start, b_q, b_qf, b_pf, b_nx, b_ny, b_off, b_d, b_j, b_dang, b_perp;
+    Py_buffer b_data, b_order, b_start, b_q, b_qf, b_line0, b_d, b_j, b_dang, b_perp;
     Py_ssize_t N, M, W, H, Q, K;
     long long x0, y0;
     int lines;
     double cell, bound, lo_x, lo_y, hi_x, hi_y;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*y*y*w*w*w*w*nnnnnnLLddpdddd", &b_px, &b_py, &b_order, &b_start, &b_q,
-                          &b_qf, &b_pf, &b_nx, &b_ny, &b_off, &b_d, &b_j, &b_dang, &b_perp, &N, &M, &W, &H, &Q, &K,
-                          &x0, &y0, &cell, &bound, &lines, &lo_x, &lo_y, &hi_x, &hi_y))
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*w*w*w*w*nnnnnnLLddpdddd", &b_data, &b_order, &b_start, &b_q, &b_qf,
+                          &b_line0, &b_d, &b_j, &b_dang, &b_perp, &N, &M, &W, &H, &Q, &K, &x0, &y0, &cell, &bound,
+                          &lines, &lo_x, &lo_y, &hi_x, &hi_y))
         return NULL;
-    Py_buffer *all[] = {&b_px, &b_py, &b_order, &b_start, &b_q, &b_qf, &b_pf, &b_nx, &b_ny, &b_off, &b_d, &b_j, &b_dang, &b_perp};
+    Py_buffer *all[] = {&b_data, &b_order, &b_start, &b_q, &b_qf, &b_line0, &b_d, &b_j, &b_dang, &b_perp};
     const int n_buf = (int)(sizeof(all) / sizeof(all[0]));
     PyObject *result = NULL;
-    if (N < 0 || M < N || W < 0 || H < 0 || Q < 0 || K < 1 || K > MAX_K || (W > 0 && H > PY_SSIZE_T_MAX / 8 / W) ||
-        (lines && M == 0)) {
-        PyErr_Format(PyExc_ValueError, "near: bad sizes N=%zd M=%zd W=%zd H=%zd Q=%zd k=%zd (k in 1..%d; lines need M > 0)",
-                     N, M, W, H, Q, K, MAX_K);
+    if (N < 0 || M < N || W < 0 || H < 0 || Q < 0 || K < 1 || K > MAX_K || (W > 0 && H > PY_SSIZE_T_MAX / 8 / W)) {
+        PyErr_Format(PyExc_ValueError, "near: bad sizes N=%zd M=%zd W=%zd H=%zd Q=%zd k=%zd (k in 1..%d)", N, M, W, H,
+                     Q, K, MAX_K);
         goto done;
     }
-    Py_ssize_t L = lines ? 1 : 0;
-    Py_ssize_t need[] = {N * 8,     N * 8,     N * 8,     (W * H + 1) * 8, Q * 2 * 8,     L * Q * 8,     L * M * 8,
-                         L * M * 8, L * M * 8, L * M * 8, Q * K * 8,       Q * K * 8, L * Q * K * 8, L * Q * K * 8};
+    const Py_ssize_t S = lines ? 6 : 2, L = lines ? 1 : 0;
+    Py_ssize_t need[] = {N * S * 8, N * 8, (W * H + 1) * 8, Q * 2 * 8, L * Q * 8, L * 4 * 8, Q * K * 8, Q * K * 8,
+                         L * Q * K * 8, L * Q * K * 8};
     if (!sizes_ok("near", all, need, n_buf)) goto done;
     if (!(cell > 0.0) || !isfinite(cell) || !(bound >= 0.0)) {
         PyErr_Format(PyExc_ValueError, "near: cell must be finite and > 0 (got %g), bound >= 0 (got %g)", cell, bound);
         goto done;
     }
-    const double *px = b_px.buf, *py = b_py.buf, *q = b_q.buf, *qf = b_qf.buf, *pf = b_pf.buf;
-    const double *nx = b_nx.buf, *ny = b_ny.buf, *off = b_off.buf;
+    const double *data = b_data.buf, *q = b_q.buf, *qf = b_qf.buf, *line0 = b_line0.buf;
     const int64_t *order = b_order.buf, *start = b_start.buf;
     double *d_out = b_d.buf, *dang_out = b_dang.buf, *perp_out = b_perp.buf;
     int64_t *j_out = b_j.buf;
@@ -92,6 +92,7 @@ static PyObject *near(PyObject *self, PyObject *args) {
     Py_BEGIN_ALLOW_THREADS
     double bd[MAX_K];
     int64_t bj[MAX_K];
+    Py_ssize_t bi[MAX_K]; /* their rows in data */
     for (Py_ssize_t k = 0; k < Q; k++) {
         double x = q[2 * k], y = q[2 * k + 1];
         outside += x < lo_x || y < lo_y || x > hi_x || y > hi_y;
@@ -102,7 +103,7 @@ static PyObject *near(PyObject *self, PyObject *args) {
                 /* the cells (gx, gy0..gy1) are one run of points */
                 Py_ssize_t from = start[gx * H + gy0], to = start[gx * H + gy1 + 1];
                 for (Py_ssize_t i = from; i < to; i++) {
-                    double dx = px[i] - x, dy = py[i] - y;
+                    double dx = data[S * i] - x, dy = data[S * i + 1] - y;
                     double d2 = dx * dx + dy * dy;
                     if (!(d2 < b2)) continue;
                     int64_t j = order[i];
@@ -111,25 +112,38 @@ static PyObject *near(PyObject *self, PyObject *args) {
                     while (at > 0 && before(d2, j, bd[at - 1], bj[at - 1])) {
                         bd[at] = bd[at - 1];
                         bj[at] = bj[at - 1];
+                        bi[at] = bi[at - 1];
                         at--;
                     }
                     bd[at] = d2;
                     bj[at] = j;
+                    bi[at] = i;
                 }
             }
         }
         double *d = d_out + k * K;
         int64_t *jo = j_out + k * K;
-        for (Py_ssize_t a = 0; a < K; a++) {
-            d[a] = a < m ? sqrt(bd[a]) : INFINITY;
-            jo[a] = a < m ? bj[a] : M;
+        for (Py_ssize_t a = 0; a < m; a++) {
+            d[a] = sqrt(bd[a]);
+            jo[a] = bj[a];
+        }
+        for (Py_ssize_t a = m; a < K; a++) {
+            d[a] = INFINITY;
+            jo[a] = M;
         }
         if (lines) {
             double *dang = dang_out + k * K, *perp = perp_out + k * K;
-            for (Py_ssize_t a = 0; a < K; a++) {
-                int64_t j = a < m ? bj[a] : 0;
-                dang[a] = fabs(wrap_angle(qf[k] - pf[j]));
-                perp[a] = nx[j] * x + ny[j] * y - off[j];
+            for (Py_ssize_t a = 0; a < m; a++) {
+                const double *r = data + S * bi[a];
+                dang[a] = fabs(wrap_angle(qf[k] - r[2]));
+                perp[a] = r[3] * x + r[4] * y - r[5];
+            }
+            if (m < K) {
+                double dang0 = fabs(wrap_angle(qf[k] - line0[0])), perp0 = line0[1] * x + line0[2] * y - line0[3];
+                for (Py_ssize_t a = m; a < K; a++) {
+                    dang[a] = dang0;
+                    perp[a] = perp0;
+                }
             }
         }
     }
@@ -140,11 +154,85 @@ done:
     return result;
 }
 
+/* collinear: whether segments i[k] and j[k] of ``seg`` (N,2,2) are one wall
+ * (map_server/fusion.collinear, the same arithmetic): a = the longer one (of equal ones the first
+ * by coordinates), b = the shorter; b's direction within the angle (cos_ab >= cos_min), b's ends
+ * within perp_max of a's line, and the gap along a at most gap_max. A pair with a coordinate
+ * that is not finite is not one wall. */
+static PyObject *collinear(PyObject *self, PyObject *args) {
+    Py_buffer b_seg, b_i, b_j, b_ok;
+    Py_ssize_t N, K;
+    double cos_min, perp_max, gap_max;
+    if (!PyArg_ParseTuple(args, "y*y*y*w*nnddd", &b_seg, &b_i, &b_j, &b_ok, &N, &K, &cos_min, &perp_max, &gap_max))
+        return NULL;
+    Py_buffer *all[] = {&b_seg, &b_i, &b_j, &b_ok};
+    const int n_buf = (int)(sizeof(all) / sizeof(all[0]));
+    PyObject *result = NULL;
+    if (N < 0 || K < 0) {
+        PyErr_Format(PyExc_ValueError, "collinear: bad sizes N=%zd K=%zd", N, K);
+        goto done;
+    }
+    Py_ssize_t need[] = {N * 4 * 8, K * 8, K * 8, K};
+    if (!sizes_ok("collinear", all, need, n_buf)) goto done;
+    const double *seg = b_seg.buf;
+    const int64_t *ii = b_i.buf, *jj = b_j.buf;
+    uint8_t *ok = b_ok.buf;
+    for (Py_ssize_t k = 0; k < K; k++) {
+        if (ii[k] < 0 || ii[k] >= N || jj[k] < 0 || jj[k] >= N) {
+            PyErr_Format(PyExc_IndexError, "collinear: pair %zd (%lld, %lld) outside [0, %zd)", k, (long long)ii[k],
+                         (long long)jj[k], N);
+            goto done;
+        }
+    }
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t k = 0; k < K; k++) {
+        const double *si = seg + 4 * ii[k], *sj = seg + 4 * jj[k];
+        int finite = 1;
+        for (int c = 0; c < 4; c++) finite &= isfinite(si[c]) && isfinite(sj[c]);
+        if (!finite) {
+            ok[k] = 0;
+            continue;
+        }
+        double l0 = hypot(si[2] - si[0], si[3] - si[1]), l1 = hypot(sj[2] - sj[0], sj[3] - sj[1]);
+        int swap = l1 > l0;
+        if (l1 == l0) { /* of equal ones the first by coordinates */
+            swap = 0;
+            for (int c = 0; c < 4; c++) {
+                double d = sj[c] - si[c];
+                if (d != 0.0) {
+                    swap = d < 0.0;
+                    break;
+                }
+            }
+        }
+        const double *a = swap ? sj : si, *b = swap ? si : sj;
+        double la_raw = swap ? l1 : l0, lb = swap ? l0 : l1;
+        double la = la_raw > 1e-12 ? la_raw : 1e-12;
+        double ux = (a[2] - a[0]) / la, uy = (a[3] - a[1]) / la;
+        double r0x = b[0] - a[0], r0y = b[1] - a[1], r1x = b[2] - a[0], r1y = b[3] - a[1];
+        double t0 = r0x * ux + r0y * uy, t1 = r1x * ux + r1y * uy;
+        double p0 = fabs(ux * r0y - uy * r0x), p1 = fabs(ux * r1y - uy * r1x);
+        double cos_ab = (ux * (b[2] - b[0]) + uy * (b[3] - b[1])) / (lb > 1e-12 ? lb : 1e-12);
+        double tmin = t0 < t1 ? t0 : t1, tmax = t0 > t1 ? t0 : t1;
+        double g0 = tmin - la, g1 = -tmax;
+        double gap = g0 > g1 ? g0 : g1;
+        ok[k] = cos_ab >= cos_min && (p0 > p1 ? p0 : p1) <= perp_max && gap <= gap_max;
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    release(all, n_buf);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"near", near, METH_VARARGS,
-     "near(px, py, order, start, q, qf, pf, nx, ny, off, d_out, j_out, dang_out, perp_out, N, M, W, H, Q, k, x0, y0, "
+     "near(data, order, start, q, qf, line0, d_out, j_out, dang_out, perp_out, N, M, W, H, Q, k, x0, y0, "
      "cell, bound, lines, lo_x, lo_y, hi_x, hi_y) -> outside: the k nearest points within bound of each query "
      "(cKDTree.query's answer, ties by index), with lines their facing differences and line distances."},
+    {"collinear", collinear, METH_VARARGS,
+     "collinear(seg, i, j, ok_out, N, K, cos_min, perp_max, gap_max): map_server/fusion.collinear's mask."},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

@@ -1,7 +1,8 @@
-"""The map server's compiled kernel (``_kernels.c``) and its reference: points indexed for "the k
-nearest within a distance" (map_server/registration.py's placed-map samples). ``AVAILABLE`` is
-False when the extension was not built (no C compiler at install); :class:`NearIndex` then
-answers with scipy's k-d tree and numpy — the same answer (tests/map_server/test_near_index.py),
+"""The map server's compiled kernels (``_kernels.c``): points indexed for "the k nearest within a
+distance" (map_server/registration.py's placed-map samples), and the merge's collinearity test
+(map_server/fusion.collinear). ``AVAILABLE`` is False when the extension was not built (no C
+compiler at install); :class:`NearIndex` then answers with scipy's k-d tree and numpy, and
+fusion.collinear runs its numpy code — the same answers (tests/map_server/test_server_kernels.py),
 ties in distance ordered by index either way."""
 
 from __future__ import annotations
@@ -91,7 +92,11 @@ class NearIndex:
             self._start = np.zeros(w * h + 1, np.int64)
             np.cumsum(np.bincount(key, minlength=w * h), out=self._start[1:])
             self._order = keep[order]
-        self._px, self._py = pts[self._order, 0], pts[self._order, 1]
+        # the points' rows in cell order: x, y and (lines) facing, nx, ny, offset side by side
+        cols = [pts[:, 0], pts[:, 1]] + ([] if self.lines is None else list(self.lines))
+        self._data = np.stack(cols, axis=-1)[self._order]
+        self._line0 = np.array([a[0] for a in self.lines]) if self.lines is not None and self.n else _EMPTY
+        self._xy_only: np.ndarray | None = None
         self._origin, self._w, self._h, self.cell_m = origin, int(w), int(h), float(cell_m)
 
     def query(
@@ -116,17 +121,24 @@ class NearIndex:
         nq = len(q)
         d, j = np.empty((nq, k)), np.empty((nq, k), dtype=np.int64)
         if facing is None:
-            lines, qf, dang, perp = (_EMPTY,) * 4, _EMPTY, _EMPTY, _EMPTY
+            qf, dang, perp = _EMPTY, _EMPTY, _EMPTY
         else:
-            lines, qf = self.lines, np.ascontiguousarray(facing, dtype=np.float64)
+            qf = np.ascontiguousarray(facing, dtype=np.float64)
             dang, perp = np.empty((nq, k)), np.empty((nq, k))
         x0, y0 = (int(v) for v in self._origin)
+        data = self._data if facing is not None or self.lines is None else self._xy()
         outside = _kernels.near(
-            self._px, self._py, self._order, self._start, q, qf, *lines, d, j, dang, perp,
-            len(self._order), self.n, self._w, self._h, nq, int(k), x0, y0, self.cell_m, float(bound),
-            facing is not None, float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]),
+            data, self._order, self._start, q, qf, self._line0 if facing is not None else _EMPTY,
+            d, j, dang, perp, len(self._order), self.n, self._w, self._h, nq, int(k), x0, y0, self.cell_m,
+            float(bound), facing is not None, float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]),
         )  # fmt: skip
         return Near(d, j, None if facing is None else dang, None if facing is None else perp, outside > 0)
+
+    def _xy(self) -> np.ndarray:
+        """The sorted rows' x and y alone (a query without facings of an index with lines)."""
+        if self._xy_only is None:
+            self._xy_only = np.ascontiguousarray(self._data[:, :2])
+        return self._xy_only
 
     def _reference(self, q, k, bound, facing, lo, hi) -> Near:
         """The numpy answer: a k-d tree, its ties reordered by index."""
@@ -156,3 +168,20 @@ def _ties_by_index(d: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray
         o = np.lexsort((j[tie], d[tie]), axis=-1)
         d[tie], j[tie] = np.take_along_axis(d[tie], o, 1), np.take_along_axis(j[tie], o, 1)
     return d, j
+
+
+def collinear(
+    seg: np.ndarray, i: np.ndarray, j: np.ndarray, cos_min: float, perp_max_m: float, gap_max_m: float
+) -> np.ndarray:
+    """map_server/fusion.collinear's mask ``(K,)`` for the pairs ``(i, j)`` of ``seg (N,2,2)``."""
+    seg = np.ascontiguousarray(seg, dtype=np.float64)
+    i, j = np.ascontiguousarray(i, dtype=np.int64), np.ascontiguousarray(j, dtype=np.int64)
+    if seg.ndim != 3 or seg.shape[1:] != (2, 2) or i.shape != j.shape or i.ndim != 1:
+        raise ValueError(
+            f"collinear: segments (N,2,2) and pairs (K,) each; got {seg.shape}, {i.shape}, {j.shape}"
+        )
+    ok = np.empty(len(i), dtype=np.bool_)
+    _kernels.collinear(
+        seg, i, j, ok.view(np.uint8), len(seg), len(i), float(cos_min), float(perp_max_m), float(gap_max_m)
+    )
+    return ok

@@ -1,14 +1,17 @@
-"""The map server's compiled nearest-sample index (shared/_kernels.c) against its reference (scipy's
-k-d tree and numpy, shared/kernels.py): the same answer, bit for bit, and the same registration."""
+"""The map server's compiled kernels (shared/_kernels.c) against their references: the nearest-sample
+index against scipy's k-d tree and numpy (shared/kernels.py) — the same answer bit for bit, and the
+same registration —, and the merge's collinearity test against fusion.collinear's numpy code."""
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 
 import numpy as np
 import pytest
 
 from map_server.alignment import AlignmentConfig, estimate_alignment
+from map_server.fusion import FusionConfig, collinear
 from map_server.registration import MapIndex, OutsideIndex, Samples
 from shared import kernels
 from shared.kernels import Lines, NearIndex
@@ -117,8 +120,9 @@ def test_bad_arguments_are_named():
             NearIndex(np.zeros((3, 2)), 0.0)
         with pytest.raises(ValueError, match="starts must rise"):  # the kernel checks the grid it is given
             kernels._kernels.near(
-                np.zeros(2), np.zeros(2), np.zeros(2, np.int64), np.array([0, 5], np.int64), np.zeros((1, 2)),
-                *(np.zeros(0),) * 5, np.zeros((1, 1)), np.zeros((1, 1), np.int64), np.zeros(0), np.zeros(0),
+                np.zeros((2, 2)), np.zeros(2, np.int64), np.array([0, 5], np.int64), np.zeros((1, 2)),
+                np.zeros(0), np.zeros(0), np.zeros((1, 1)), np.zeros((1, 1), np.int64),
+                np.zeros(0), np.zeros(0),
                 2, 2, 1, 1, 1, 1, 0, 0, 0.3, 0.3, False, 0.0, 0.0, 0.0, 0.0,
             )  # fmt: skip
 
@@ -175,3 +179,43 @@ def test_registration_gives_the_same_result_either_way():
             index.match(truth, robot_s, 0.3, 0.1)
         with pytest.raises(OutsideIndex):
             index.evidence(truth, robot_s, 0.1, 0.1, 0.3)
+
+
+@needs_kernel
+def test_collinearity_as_numpy_decides_it():
+    """fusion.collinear in C and in numpy, pair for pair: near-collinear pairs around every
+    threshold, equal lengths (the tie rule), zero-length and reversed segments, segments that are
+    not finite."""
+    rng = np.random.default_rng(7)
+    n = 6000
+    base = rng.uniform(-20.0, 20.0, (n, 2))
+    ang = rng.uniform(-np.pi, np.pi, n)
+    length = rng.choice([0.0, 0.5, 1.0, 2.0, 3.7], n)  # many equal lengths
+    seg = np.stack([base, base + length[:, None] * np.stack([np.cos(ang), np.sin(ang)], -1)], axis=1)
+    # a second copy nudged along, across and turned by about the thresholds: most pairs decide near them
+    m = n // 2
+    shift = rng.normal(0.0, 0.1, (m, 1, 2)) + rng.normal(0.0, 0.2, (m, 1, 1)) * (seg[:m, 1:] - seg[:m, :1])
+    twin = seg[:m] + shift
+    twin[: m // 4] = twin[: m // 4, ::-1]  # reversed: opposite facing
+    seg = np.concatenate([seg, twin])
+    seg[5] = np.nan
+    seg[6, 1, 0] = np.inf
+    i = np.concatenate([np.arange(m), rng.integers(0, len(seg), 20_000), [5, 0, 6, 7]])
+    j = np.concatenate([np.arange(n, n + m), rng.integers(0, len(seg), 20_000), [0, 5, 7, 6]])
+    cfg = FusionConfig()
+    fast = collinear(seg, i, j, cfg)
+    with np.errstate(invalid="ignore"):  # numpy's inf / inf on the way to its False
+        ref = collinear(seg, i, j, dataclasses.replace(cfg, compiled=False))
+    assert np.array_equal(fast, ref)
+    assert 0.1 < fast[:m].mean() < 0.9  # the twins straddle the thresholds
+    assert not fast[-4:].any()  # nothing that is not finite is one wall
+    assert np.array_equal(collinear(seg, j, i, cfg), fast)  # the order within a pair does not matter
+
+
+@needs_kernel
+def test_collinearity_arguments_are_checked():
+    seg = np.zeros((3, 2, 2))
+    with pytest.raises(IndexError, match="outside"):
+        kernels.collinear(seg, np.array([0]), np.array([3]), 0.99, 0.1, 0.3)
+    with pytest.raises(ValueError, match="segments"):
+        kernels.collinear(np.zeros((3, 4)), np.array([0]), np.array([1]), 0.99, 0.1, 0.3)
