@@ -87,10 +87,13 @@ class MergedMap:
         self._slot_robot = np.zeros(0, np.int64)  # robot id of each slot
         self._offset = np.zeros(0, np.int64)  # first stack position of each slot
         self._robots: dict[str, int] = {}
-        # components: member nodes (stack order) and collinear pairs (node ids)
-        self._comp_nodes: dict[int, np.ndarray] = {}
-        self._comp_edges: dict[int, np.ndarray] = {}
-        self._next_comp = 0
+        # components: a component's id is its smallest member node id (``_comp`` per node, -1: none
+        # yet); the collinear pairs (node ids) and their component (-1: taken out; the rows are
+        # compacted once half of them are), ``_e_top`` rows used
+        self._edges = np.zeros((0, 2), np.int64)
+        self._e_comp = np.zeros(0, np.int64)
+        self._e_top = 0
+        self._e_dead = 0
         # merged groups, rows in the order made (uid ascending); provenance pairs (uid, robot id)
         self._g_seg = np.zeros((0, 2, 2))
         self._g_support = np.zeros(0, np.int64)
@@ -209,9 +212,34 @@ class MergedMap:
 
     # -- components ----------------------------------------------------------------------------
 
+    def _marks(self, comps: np.ndarray) -> np.ndarray:
+        """A table over component ids + 1 (index 0: no component) marking ``comps``."""
+        mark = np.zeros(self._top + 1, bool)
+        mark[np.asarray(comps, np.int64) + 1] = True
+        mark[0] = False
+        return mark
+
+    def _members(self, mark: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The nodes of the marked components, and the rows of the stored pairs that are theirs."""
+        nodes = np.flatnonzero(mark[self._comp[: self._top] + 1])
+        return nodes, np.flatnonzero(mark[self._e_comp[: self._e_top] + 1])
+
+    def _add_edges(self, edges: np.ndarray, comp: np.ndarray) -> None:
+        if self._e_dead > max(self._e_top // 2, 4096):  # compact
+            live = np.flatnonzero(self._e_comp[: self._e_top] >= 0)
+            self._edges[: len(live)], self._e_comp[: len(live)] = self._edges[live], self._e_comp[live]
+            self._e_top, self._e_dead = len(live), 0
+        top = self._e_top + len(edges)
+        if top > len(self._edges):
+            more = max(2 * len(self._edges), top, 4096) - self._e_top
+            self._edges = np.concatenate([self._edges[: self._e_top], np.zeros((more, 2), np.int64)])
+            self._e_comp = np.concatenate([self._e_comp[: self._e_top], np.full(more, -1, np.int64)])
+        self._edges[self._e_top : top], self._e_comp[self._e_top : top] = edges, comp
+        self._e_top = top
+
     def _edit(self, old: np.ndarray, new: np.ndarray) -> None:
         """Take the nodes ``old`` (already dead) out and bring ``new`` in: re-merge what they touch."""
-        touched = set(np.unique(self._comp[old]).tolist()) - {-1}
+        touched = [self._comp[old]]
         edges = [np.zeros((0, 2), np.int64)]
         if len(new):
             seg = self._seg
@@ -226,24 +254,26 @@ class MergedMap:
             ia, jb = box_pairs(self._box[new], self._box[b])
             ok = collinear(seg, new[ia], b[jb], self.cfg)
             edges.append(np.column_stack([new[ia[ok]], b[jb[ok]]]))
-            touched |= set(np.unique(self._comp[b[jb[ok]]]).tolist())
+            touched.append(self._comp[b[jb[ok]]])
+        t = np.unique(np.concatenate(touched))
+        t = t[t >= 0]
+        mark = self._marks(t)
         self._comp[old] = -1
-        nodes = [self._comp_nodes.pop(c) for c in touched]
-        kept = [self._comp_edges.pop(c) for c in touched]
-        nodes = np.concatenate([np.zeros(0, np.int64), *nodes])
-        nodes = np.concatenate([nodes[self._alive[nodes]], new])
-        kept = np.concatenate([np.zeros((0, 2), np.int64), *kept])
+        nodes, theirs = self._members(mark)  # alive: the old nodes are out of their components now
+        nodes = np.concatenate([nodes, new])
+        kept = self._edges[theirs]
         kept = kept[self._alive[kept[:, 0]] & self._alive[kept[:, 1]]]
-        if touched:
-            t = np.fromiter(touched, np.int64)
-            keep = ~np.isin(self._g_comp, t)
+        self._e_comp[theirs] = -1
+        self._e_dead += len(theirs)
+        if len(t):
+            keep = ~mark[self._g_comp + 1]
             self._g_seg, self._g_support = self._g_seg[keep], self._g_support[keep]
             self._g_first, self._g_comp, self._g_uid = (
                 self._g_first[keep],
                 self._g_comp[keep],
                 self._g_uid[keep],
             )
-            keep = ~np.isin(self._p_comp, t)
+            keep = ~mark[self._p_comp + 1]
             self._p_uid, self._p_robot, self._p_comp = (
                 self._p_uid[keep],
                 self._p_robot[keep],
@@ -266,19 +296,11 @@ class MergedMap:
     def _merge(self, nodes: np.ndarray, edges: np.ndarray) -> None:
         nodes, n_comp, comp, first_end = self._local_graph(nodes, edges)
         group, out = merge_groups(self._seg[nodes], self._w[nodes], comp, n_comp, self.cfg)
-        base = self._next_comp
-        self._next_comp += n_comp
-        cid = base + comp
+        smallest = np.full(n_comp, self._top, np.int64)  # a component's id: its smallest node id
+        np.minimum.at(smallest, comp, nodes)
+        cid = smallest[comp]
         self._comp[nodes] = cid
-        order = np.argsort(comp, kind="stable")
-        cuts = np.searchsorted(comp[order], np.arange(1, n_comp))
-        for c, members in enumerate(np.split(nodes[order], cuts)):
-            self._comp_nodes[base + c] = members
-        ec = comp[first_end]
-        order = np.argsort(ec, kind="stable")
-        cuts = np.searchsorted(ec[order], np.arange(n_comp + 1))
-        for c in range(n_comp):
-            self._comp_edges[base + c] = edges[order[cuts[c] : cuts[c + 1]]]
+        self._add_edges(edges, cid[first_end])
         g = len(out)
         first = np.full(g, len(nodes))
         np.minimum.at(first, group, np.arange(len(nodes)))
@@ -321,11 +343,11 @@ class MergedMap:
         keep = np.ones(len(self._g_seg), bool)
         parts = []
         if e is not None and len(e.nodes):
-            touched = np.unique(self._comp[e.nodes])
-            keep = ~np.isin(self._g_comp, touched)
-            nodes = np.concatenate([self._comp_nodes[c] for c in touched.tolist()])
+            mark = self._marks(np.unique(self._comp[e.nodes]))
+            keep = ~mark[self._g_comp + 1]
+            nodes, theirs = self._members(mark)
             nodes = nodes[self._slot[nodes] != e.slot]
-            edges = np.concatenate([self._comp_edges[c] for c in touched.tolist()])
+            edges = self._edges[theirs]
             edges = edges[(self._slot[edges[:, 0]] != e.slot) & (self._slot[edges[:, 1]] != e.slot)]
             if len(nodes):
                 nodes, n_comp, comp, _ = self._local_graph(nodes, edges)
