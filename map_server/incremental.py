@@ -42,6 +42,8 @@ from map_server.fusion import (
 )
 from shared.geometry import apply_segments
 
+EDGES_COMPACT_MIN = 4096  # pair rows taken out before the pair array is compacted (and half of them)
+
 
 @dataclass(frozen=True, eq=False)
 class Source:
@@ -94,6 +96,7 @@ class MergedMap:
         self._e_comp = np.zeros(0, np.int64)
         self._e_top = 0
         self._e_dead = 0
+        self.compactions = 0  # of the pair array (a count for tests)
         # merged groups, rows in the order made (uid ascending); provenance pairs (uid, robot id)
         self._g_seg = np.zeros((0, 2, 2))
         self._g_support = np.zeros(0, np.int64)
@@ -225,10 +228,11 @@ class MergedMap:
         return nodes, np.flatnonzero(mark[self._e_comp[: self._e_top] + 1])
 
     def _add_edges(self, edges: np.ndarray, comp: np.ndarray) -> None:
-        if self._e_dead > max(self._e_top // 2, 4096):  # compact
+        if self._e_dead > max(self._e_top // 2, EDGES_COMPACT_MIN):  # compact
             live = np.flatnonzero(self._e_comp[: self._e_top] >= 0)
             self._edges[: len(live)], self._e_comp[: len(live)] = self._edges[live], self._e_comp[live]
             self._e_top, self._e_dead = len(live), 0
+            self.compactions += 1
         top = self._e_top + len(edges)
         if top > len(self._edges):
             more = max(2 * len(self._edges), top, 4096) - self._e_top
