@@ -244,13 +244,16 @@ def _group_lines(seg: np.ndarray, weight: np.ndarray, group: np.ndarray, n_group
 
 def _split_outliers(seg: np.ndarray, group: np.ndarray, centre, u, cfg: FusionConfig) -> np.ndarray:
     """Groups with members farther than ``outlier_perp_m`` from the fitted line: those members
-    get groups of their own (new labels after the existing ones)."""
-    rel = seg - centre[group][:, None, :]
-    perp = u[group][:, None, 0] * rel[..., 1] - u[group][:, None, 1] * rel[..., 0]
-    out = np.abs(perp).max(axis=1) > cfg.outlier_perp_m
+    get groups of their own (new labels after the existing ones), labels then renumbered densely
+    in the same order (``np.unique``'s inverse, without the sort)."""
+    cx, cy, ux, uy = centre[group, 0], centre[group, 1], u[group, 0], u[group, 1]
+    p0 = np.abs(ux * (seg[:, 0, 1] - cy) - uy * (seg[:, 0, 0] - cx))
+    p1 = np.abs(ux * (seg[:, 1, 1] - cy) - uy * (seg[:, 1, 0] - cx))
+    out = np.maximum(p0, p1) > cfg.outlier_perp_m
     new = group.copy()
     new[out] = group.max(initial=-1) + 1 + np.arange(int(out.sum()))
-    return np.unique(new, return_inverse=True)[1]
+    present = np.bincount(new) > 0
+    return (np.cumsum(present) - 1)[new]
 
 
 def merge_segments(
@@ -297,11 +300,13 @@ def merge_groups(
     group = rank[group]
     centre, u = _group_lines(seg, weight, group, n_groups)
     # extent: the union of the members' endpoint projections on the group's line
-    t = np.sum((seg - centre[group][:, None, :]) * u[group][:, None, :], axis=-1)
+    cx, cy, ux, uy = centre[group, 0], centre[group, 1], u[group, 0], u[group, 1]
+    t0 = (seg[:, 0, 0] - cx) * ux + (seg[:, 0, 1] - cy) * uy
+    t1 = (seg[:, 1, 0] - cx) * ux + (seg[:, 1, 1] - cy) * uy
     lo = np.full(n_groups, np.inf)
     hi = np.full(n_groups, -np.inf)
-    np.minimum.at(lo, group, t.min(axis=1))
-    np.maximum.at(hi, group, t.max(axis=1))
+    np.minimum.at(lo, group, np.minimum(t0, t1))
+    np.maximum.at(hi, group, np.maximum(t0, t1))
     return group, np.stack([centre + lo[:, None] * u, centre + hi[:, None] * u], axis=1)
 
 

@@ -33,6 +33,7 @@ from map_server.fusion import (
     FusionConfig,
     RobotLayer,
     _candidate_pairs,
+    _ranges,
     box_pairs,
     collinear,
     components,
@@ -91,7 +92,10 @@ class MergedMap:
         self._robots: dict[str, int] = {}
         # components: a component's id is its smallest member node id (``_comp`` per node, -1: none
         # yet); the collinear pairs (node ids) and their component (-1: taken out; the rows are
-        # compacted once half of them are), ``_e_top`` rows used
+        # compacted once half of them are), ``_e_top`` rows used, a component's pairs in the rows
+        # ``_c_start[c]`` to ``_c_end[c]`` (by component id)
+        self._c_start = np.zeros(0, np.int64)
+        self._c_end = np.zeros(0, np.int64)
         self._edges = np.zeros((0, 2), np.int64)
         self._e_comp = np.zeros(0, np.int64)
         self._e_top = 0
@@ -200,6 +204,7 @@ class MergedMap:
         self._seg, self._w, self._box = grown(self._seg), grown(self._w), grown(self._box)
         self._slot, self._local, self._comp = grown(self._slot), grown(self._local), grown(self._comp, -1)
         self._alive = grown(self._alive, False)
+        self._c_start, self._c_end = grown(self._c_start), grown(self._c_end)
         self._cap = cap
 
     def _restack(self) -> None:
@@ -222,23 +227,31 @@ class MergedMap:
         mark[0] = False
         return mark
 
-    def _members(self, mark: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The nodes of the marked components, and the rows of the stored pairs that are theirs."""
+    def _members(self, mark: np.ndarray, comps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The nodes of the components ``comps`` (marked in ``mark``) and the rows of their pairs."""
         nodes = np.flatnonzero(mark[self._comp[: self._top] + 1])
-        return nodes, np.flatnonzero(mark[self._e_comp[: self._e_top] + 1])
+        return nodes, _ranges(self._c_start[comps], self._c_end[comps])[1]
 
-    def _add_edges(self, edges: np.ndarray, comp: np.ndarray) -> None:
-        if self._e_dead > max(self._e_top // 2, EDGES_COMPACT_MIN):  # compact
+    def _add_edges(self, edges: np.ndarray, edge_comp: np.ndarray, comps: np.ndarray) -> None:
+        """Store the pairs ``edges`` of the new components ``comps`` (each pair's: ``edge_comp``),
+        each component's pairs in consecutive rows."""
+        if self._e_dead > max(self._e_top // 2, EDGES_COMPACT_MIN):  # compact, the rows kept in order
             live = np.flatnonzero(self._e_comp[: self._e_top] >= 0)
             self._edges[: len(live)], self._e_comp[: len(live)] = self._edges[live], self._e_comp[live]
             self._e_top, self._e_dead = len(live), 0
+            c, first, count = np.unique(self._e_comp[: len(live)], return_index=True, return_counts=True)
+            self._c_start[c], self._c_end[c] = first, first + count
             self.compactions += 1
         top = self._e_top + len(edges)
         if top > len(self._edges):
             more = max(2 * len(self._edges), top, 4096) - self._e_top
             self._edges = np.concatenate([self._edges[: self._e_top], np.zeros((more, 2), np.int64)])
             self._e_comp = np.concatenate([self._e_comp[: self._e_top], np.full(more, -1, np.int64)])
-        self._edges[self._e_top : top], self._e_comp[self._e_top : top] = edges, comp
+        order = np.argsort(edge_comp, kind="stable")
+        self._edges[self._e_top : top], self._e_comp[self._e_top : top] = edges[order], edge_comp[order]
+        self._c_start[comps] = self._c_end[comps] = self._e_top  # none, unless ...
+        c, first, count = np.unique(edge_comp[order], return_index=True, return_counts=True)
+        self._c_start[c], self._c_end[c] = self._e_top + first, self._e_top + first + count
         self._e_top = top
 
     def _edit(self, old: np.ndarray, new: np.ndarray) -> None:
@@ -263,7 +276,7 @@ class MergedMap:
         t = t[t >= 0]
         mark = self._marks(t)
         self._comp[old] = -1
-        nodes, theirs = self._members(mark)  # alive: the old nodes are out of their components now
+        nodes, theirs = self._members(mark, t)  # alive: the old nodes are out of their components now
         nodes = np.concatenate([nodes, new])
         kept = self._edges[theirs]
         kept = kept[self._alive[kept[:, 0]] & self._alive[kept[:, 1]]]
@@ -304,7 +317,7 @@ class MergedMap:
         np.minimum.at(smallest, comp, nodes)
         cid = smallest[comp]
         self._comp[nodes] = cid
-        self._add_edges(edges, cid[first_end])
+        self._add_edges(edges, cid[first_end], smallest)
         g = len(out)
         first = np.full(g, len(nodes))
         np.minimum.at(first, group, np.arange(len(nodes)))
@@ -347,9 +360,10 @@ class MergedMap:
         keep = np.ones(len(self._g_seg), bool)
         parts = []
         if e is not None and len(e.nodes):
-            mark = self._marks(np.unique(self._comp[e.nodes]))
+            touched = np.unique(self._comp[e.nodes])
+            mark = self._marks(touched)
             keep = ~mark[self._g_comp + 1]
-            nodes, theirs = self._members(mark)
+            nodes, theirs = self._members(mark, touched)
             nodes = nodes[self._slot[nodes] != e.slot]
             edges = self._edges[theirs]
             edges = edges[(self._slot[edges[:, 0]] != e.slot) & (self._slot[edges[:, 1]] != e.slot)]

@@ -79,16 +79,9 @@ static PyObject *near(PyObject *self, PyObject *args) {
     const int64_t *order = b_order.buf, *start = b_start.buf;
     double *d_out = b_d.buf, *dang_out = b_dang.buf, *perp_out = b_perp.buf;
     int64_t *j_out = b_j.buf;
-    /* a grid the queries can trust: starts rise from 0 to N, indices within [0, M) */
-    int bad = start[0] != 0 || start[W * H] != N;
-    for (Py_ssize_t c = 0; !bad && c < W * H; c++) bad = start[c + 1] < start[c];
-    for (Py_ssize_t i = 0; !bad && i < N; i++) bad = order[i] < 0 || order[i] >= M;
-    if (bad) {
-        PyErr_SetString(PyExc_ValueError, "near: the grid's starts must rise from 0 to N, its order lie in [0, M)");
-        goto done;
-    }
     double b2 = bound * bound;
     Py_ssize_t outside = 0;
+    int bad = 0; /* a grid the queries cannot trust: a run of cells outside [0, N), an index outside [0, M) */
     Py_BEGIN_ALLOW_THREADS
     double bd[MAX_K];
     int64_t bj[MAX_K];
@@ -102,11 +95,19 @@ static PyObject *near(PyObject *self, PyObject *args) {
             for (int64_t gx = gx0; gx <= gx1; gx++) {
                 /* the cells (gx, gy0..gy1) are one run of points */
                 Py_ssize_t from = start[gx * H + gy0], to = start[gx * H + gy1 + 1];
+                if (from < 0 || to > N || from > to) {
+                    bad = 1;
+                    break;
+                }
                 for (Py_ssize_t i = from; i < to; i++) {
                     double dx = data[S * i] - x, dy = data[S * i + 1] - y;
                     double d2 = dx * dx + dy * dy;
                     if (!(d2 < b2)) continue;
                     int64_t j = order[i];
+                    if (j < 0 || j >= M) {
+                        bad = 1;
+                        break;
+                    }
                     if (m == K && !before(d2, j, bd[K - 1], bj[K - 1])) continue;
                     Py_ssize_t at = m < K ? m++ : K - 1; /* insert, the last one falling off when full */
                     while (at > 0 && before(d2, j, bd[at - 1], bj[at - 1])) {
@@ -148,8 +149,84 @@ static PyObject *near(PyObject *self, PyObject *args) {
         }
     }
     Py_END_ALLOW_THREADS
+    if (bad) {
+        PyErr_SetString(PyExc_ValueError, "near: the grid's starts must rise within [0, N], its order lie in [0, M)");
+        goto done;
+    }
     result = PyLong_FromSsize_t(outside);
 done:
+    release(all, n_buf);
+    return result;
+}
+
+/* grid: the points' cell order for ``near``. ``cols`` (S,N) holds each point's values column by
+ * column, x and y first; a point whose x or y is not finite is left out. Writes the kept points'
+ * rows in cell order to ``data_out`` (N,S) and their indices to ``order_out`` (N,) — a stable
+ * counting sort: within a cell, in index order — and the first of each cell to ``start_out``
+ * (W*H+1,) (cell (cx, cy), cx = floor(x / cell) - x0, is row cx*H + cy); returns how many were
+ * kept. Every kept point's cell must lie within the W x H grid (the caller's extent). */
+static PyObject *grid(PyObject *self, PyObject *args) {
+    Py_buffer b_cols, b_data, b_order, b_start;
+    Py_ssize_t S, N, W, H;
+    long long x0, y0;
+    double cell;
+    if (!PyArg_ParseTuple(args, "y*w*w*w*nnnnLLd", &b_cols, &b_data, &b_order, &b_start, &S, &N, &W, &H, &x0, &y0,
+                          &cell))
+        return NULL;
+    Py_buffer *all[] = {&b_cols, &b_data, &b_order, &b_start};
+    const int n_buf = (int)(sizeof(all) / sizeof(all[0]));
+    PyObject *result = NULL;
+    int64_t *cellof = NULL;
+    if (S < 2 || N < 0 || W < 0 || H < 0 || (W > 0 && H > PY_SSIZE_T_MAX / 8 / W) || !(cell > 0.0) || !isfinite(cell)) {
+        PyErr_Format(PyExc_ValueError, "grid: bad sizes S=%zd N=%zd W=%zd H=%zd or cell %g", S, N, W, H, cell);
+        goto done;
+    }
+    Py_ssize_t need[] = {S * N * 8, N * S * 8, N * 8, (W * H + 1) * 8};
+    if (!sizes_ok("grid", all, need, n_buf)) goto done;
+    const double *cols = b_cols.buf;
+    double *data = b_data.buf;
+    int64_t *order = b_order.buf, *start = b_start.buf;
+    cellof = malloc(sizeof(int64_t) * (size_t)(N > 0 ? N : 1));
+    if (!cellof) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    int outside = 0;
+    Py_ssize_t kept = 0;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t c = 0; c <= W * H; c++) start[c] = 0;
+    for (Py_ssize_t i = 0; i < N; i++) {
+        double x = cols[i], y = cols[N + i];
+        cellof[i] = -1;
+        if (!(isfinite(x) && isfinite(y))) continue;
+        double fx = floor(x / cell) - (double)x0, fy = floor(y / cell) - (double)y0;
+        if (!(fx >= 0.0 && fx < (double)W && fy >= 0.0 && fy < (double)H)) {
+            outside = 1;
+            break;
+        }
+        cellof[i] = (int64_t)fx * H + (int64_t)fy;
+        start[cellof[i] + 1]++;
+        kept++;
+    }
+    if (!outside) {
+        for (Py_ssize_t c = 0; c < W * H; c++) start[c + 1] += start[c];
+        for (Py_ssize_t i = 0; i < N; i++) { /* start[c] counts up to the end of cell c meanwhile */
+            if (cellof[i] < 0) continue;
+            Py_ssize_t at = start[cellof[i]]++;
+            order[at] = i;
+            for (Py_ssize_t k = 0; k < S; k++) data[at * S + k] = cols[k * N + i];
+        }
+        for (Py_ssize_t c = W * H; c > 0; c--) start[c] = start[c - 1]; /* back to the first of each */
+        start[0] = 0;
+    }
+    Py_END_ALLOW_THREADS
+    if (outside) {
+        PyErr_SetString(PyExc_ValueError, "grid: a point lies outside the grid's extent");
+        goto done;
+    }
+    result = PyLong_FromSsize_t(kept);
+done:
+    free(cellof);
     release(all, n_buf);
     return result;
 }
@@ -231,6 +308,9 @@ static PyMethodDef methods[] = {
      "near(data, order, start, q, qf, line0, d_out, j_out, dang_out, perp_out, N, M, W, H, Q, k, x0, y0, "
      "cell, bound, lines, lo_x, lo_y, hi_x, hi_y) -> outside: the k nearest points within bound of each query "
      "(cKDTree.query's answer, ties by index), with lines their facing differences and line distances."},
+    {"grid", grid, METH_VARARGS,
+     "grid(cols, data_out, order_out, start_out, S, N, W, H, x0, y0, cell) -> kept: the points in cell order "
+     "for near()."},
     {"collinear", collinear, METH_VARARGS,
      "collinear(seg, i, j, ok_out, N, K, cos_min, perp_max, gap_max): map_server/fusion.collinear's mask."},
     {NULL, NULL, 0, NULL}};

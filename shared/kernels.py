@@ -71,30 +71,29 @@ class NearIndex:
             return
         if not (np.isfinite(cell_m) and cell_m > 0):
             raise ValueError(f"cell_m must be finite and > 0, got {cell_m}")
-        keep = np.flatnonzero(np.isfinite(pts).all(axis=1))  # a point not finite is nobody's neighbour
+        # the points' values column by column: x, y and (lines) facing, nx, ny, offset
+        cols = np.stack([pts[:, 0], pts[:, 1]] + ([] if self.lines is None else list(self.lines)))
+        x, y = cols[0], cols[1]
+        finite = np.isfinite(x) & np.isfinite(y)  # a point not finite is nobody's neighbour
         w = h = 0
         origin = np.zeros(2, np.int64)
-        self._start, self._order = np.zeros(1, np.int64), np.zeros(0, np.int64)
-        if len(keep):
-            x, y = pts[keep, 0], pts[keep, 1]  # columns apart: reductions along contiguous memory
-            room = MAX_CELLS_PER_POINT * len(keep) + 65_536
-            x0, x1, y0, y1 = x.min(), x.max(), y.min(), y.max()
+        if finite.any():
+            room = MAX_CELLS_PER_POINT * int(finite.sum()) + 65_536
+            xf, yf = (x, y) if finite.all() else (x[finite], y[finite])
+            x0, x1, y0, y1 = xf.min(), xf.max(), yf.min(), yf.max()
             while True:  # cells this large or larger: a box of at most ``room`` of them
                 w = int(np.floor(x1 / cell_m) - np.floor(x0 / cell_m)) + 1
                 h = int(np.floor(y1 / cell_m) - np.floor(y0 / cell_m)) + 1
                 if w * h <= room:
                     break
                 cell_m *= max(1.01, float(np.sqrt(w * h / room)))
-            cx, cy = np.floor(x / cell_m).astype(np.int64), np.floor(y / cell_m).astype(np.int64)
-            origin = np.array([cx.min(), cy.min()])
-            key = (cx - origin[0]) * h + (cy - origin[1])
-            order = np.argsort(key, kind="stable")
-            self._start = np.zeros(w * h + 1, np.int64)
-            np.cumsum(np.bincount(key, minlength=w * h), out=self._start[1:])
-            self._order = keep[order]
-        # the points' rows in cell order: x, y and (lines) facing, nx, ny, offset side by side
-        cols = [pts[:, 0], pts[:, 1]] + ([] if self.lines is None else list(self.lines))
-        self._data = np.stack(cols, axis=-1)[self._order]
+            origin = np.array([np.floor(x0 / cell_m), np.floor(y0 / cell_m)]).astype(np.int64)
+        # the points' rows in cell order (x, y, ... side by side), their indices, each cell's first
+        data, order = np.empty((self.n, len(cols))), np.empty(self.n, np.int64)
+        self._start = np.empty(w * h + 1, np.int64)
+        x0, y0 = int(origin[0]), int(origin[1])
+        kept = _kernels.grid(cols, data, order, self._start, len(cols), self.n, w, h, x0, y0, float(cell_m))
+        self._data, self._order = data[:kept], order[:kept]
         self._line0 = np.array([a[0] for a in self.lines]) if self.lines is not None and self.n else _EMPTY
         self._xy_only: np.ndarray | None = None
         self._origin, self._w, self._h, self.cell_m = origin, int(w), int(h), float(cell_m)
