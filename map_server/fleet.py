@@ -104,12 +104,13 @@ class FleetConfig:
     settle_m: float = 1e-3
     settle_rad: float = 1e-4
     # a settle's refinements are spread over fusions too: at most this many layer segments a
-    # fusion (the first robot always), the sweeps going on where they stopped. A small fleet
-    # settles in the fusion after the departure; 64 robots leaving at once took one fusion of
-    # ~20 s before (every robot refined up to 8 times), in which no new map was fused; a
-    # refinement costs ~20-45 ms whatever its size, so their count is bounded too
-    settle_budget_segments: int = 5000
-    settle_refinements: int = 16
+    # fusion (the first robot always), the sweeps going on where they stopped. 64 robots leaving
+    # at once took one fusion of ~20 s before (every robot refined up to 8 times), in which no
+    # new map was fused; a refinement costs ~6-14 ms (each one re-merges the robot refined before
+    # it), so their count is bounded too: 4 keeps a settle's fusion near a normal one (16 made
+    # fusions of ~220 ms at 64 robots, and seconds while 64 agent processes exited on 2 cores)
+    settle_budget_segments: int = 1000
+    settle_refinements: int = 4
     # a placed robot is refined against the placed map near it (module docstring: "Cost"): the
     # crop reaches this much beyond the robot map's box at its starting pose (plus the gates)
     refine_margin_m: float = 2.0
@@ -118,8 +119,10 @@ class FleetConfig:
     # layer segments (the first one always: its cost grows with its map); the others wait for the
     # next fusion (each waits ``retry_interval_s`` after its own last attempt, so every due robot
     # gets its turn). 100 robots x 1,000 rows: one refinement (~450 segments) per fusion instead
-    # of a round of 100 every ``retry_interval_s``; office-sized maps: several
-    refine_budget_segments: int = 600
+    # of a round of 100 every ``retry_interval_s``; office-sized maps (~140 segments) one or two:
+    # robots placed together fall due together, and 600 made a burst of fusions with 4-5
+    # refinements each (64 agents: the latency tail) where 200 spreads them out
+    refine_budget_segments: int = 200
 
 
 class Fleet:

@@ -8,11 +8,12 @@ One server owns a state directory (:class:`StateLock`: an advisory lock on ``DIR
 for the server's life and released on any exit, naming its holder). Temp files carry their
 writer's process id; only the writer, or anyone once that process is gone, deletes them.
 
-Writes are atomic and ordered: new blobs are written (temp file, fsync, rename) before the index
-that names them replaces the old index (temp file, fsync, rename, fsync of the directory), and
-only then are unreferenced blobs deleted. A crash at any point leaves either the old or the new
-state, never a mix. Loading verifies every checksum: a damaged or foreign state raises
-:class:`StateError` naming the file and the problem — it is never silently loaded or discarded.
+Writes are atomic and ordered: new blobs are written (temp file, fsync, rename; then one fsync of
+the blob directory for all of them) before the index that names them replaces the old index
+(temp file, fsync, rename, fsync of the directory), and only then are unreferenced blobs
+deleted. A crash at any point leaves either the old or the new state, never a mix. Loading
+verifies every checksum: a damaged or foreign state raises :class:`StateError` naming the file
+and the problem — it is never silently loaded or discarded.
 """
 
 from __future__ import annotations
@@ -42,7 +43,9 @@ def _canonical(obj: dict) -> bytes:
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
+def _atomic_write(path: Path, data: bytes, sync_dir: bool = True) -> None:
+    """``data`` to ``path`` through a synced temp file and a rename; the rename itself synced
+    (the directory) unless ``sync_dir`` is False: the caller syncs it once for several."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
@@ -53,7 +56,8 @@ def _atomic_write(path: Path, data: bytes) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    _fsync_dir(path.parent)
+    if sync_dir:
+        _fsync_dir(path.parent)
 
 
 def _fsync_dir(path: Path) -> None:
@@ -141,15 +145,20 @@ class Store:
         """Persist ``meta`` (JSON-able, finite numbers) and the named binary ``blobs`` atomically."""
         self.blob_dir.mkdir(parents=True, exist_ok=True)
         names = {}
+        written = False
         for name, data in blobs.items():
             digest = _sha256(data)
             path = self.blob_dir / f"{digest}.bin"
             if not path.exists():
-                _atomic_write(path, data)
+                _atomic_write(path, data, sync_dir=False)
+                written = True
             names[name] = digest
-        body = {"format": STATE_FORMAT, "meta": meta, "blobs": names}
-        doc = dict(body, sha256=_sha256(_canonical(body)))
-        _atomic_write(self.index, _canonical(doc))
+        if written:  # every new blob's rename durable before the index names it
+            _fsync_dir(self.blob_dir)
+        body = _canonical({"format": STATE_FORMAT, "meta": meta, "blobs": names})
+        # the index is the body with its checksum added: "sha256" sorts last among the keys, so
+        # the canonical document is the body's text with the checksum appended (encoded once)
+        _atomic_write(self.index, body[:-1] + b',"sha256":"' + _sha256(body).encode() + b'"}')
         keep = {f"{d}.bin" for d in names.values()}
         for path in self.blob_dir.glob("*.bin"):
             if path.name not in keep:

@@ -225,9 +225,12 @@ def test_an_aligned_robot_follows_its_rebuilt_map(runs, fused):
     fleet.fuse(401.0)
     err_m, _ = transform_error(fleet.robots["r1"].alignment.transform, expected(d2))
     assert err_m > 0.03
-    # ... until a robot leaves: then at once
+    # ... until a robot leaves: then at once (the settle's sweeps in the next few fusions, a
+    # few refinements each: ``settle_refinements``; well within ``retry_interval_s``)
     fleet.set_online("r2", False)
-    fleet.fuse(402.0)
+    for k in range(4):
+        fleet.fuse(402.0 + 0.1 * k)
+    assert fleet._settling is None
     err_m, err_deg = transform_error(fleet.robots["r1"].alignment.transform, expected(d2))
     assert err_m < 0.01 and err_deg < 0.05, (err_m, err_deg)
 
@@ -245,7 +248,11 @@ def test_a_departure_settles_the_robots_against_each_other(runs, fused, rounds):
         m = runs[name][0]
         fleet.put_map(dataclasses.replace(m, seg=apply_segments(delta, m.seg), seq=m.seq + 200 + k), 400.0)
     fleet.set_online("r0", False)
-    fleet.fuse(400.0)
+    for k in range(50):  # the settle's sweeps, a few refinements a fusion (``settle_refinements``)
+        fleet.fuse(400.0 + 0.01 * k)
+        if fleet._settling is None:
+            break
+    assert fleet._settling is None
     settled = {n: fleet.robots[n].alignment.transform.copy() for n in ROBOTS}
     for r in fleet.robots.values():  # one more sweep, every robot due
         r.attempt_s, r.attempt_placed_key = 401.0 - fleet.cfg.retry_interval_s, ""
@@ -260,13 +267,13 @@ def test_a_departure_settles_the_robots_against_each_other(runs, fused, rounds):
 def test_a_settle_spread_over_fusions_ends_where_one_in_one_fusion_does(runs, fused):
     """With a settle budget of one robot a fusion (``settle_budget_segments`` 1), a departure's
     sweeps go on over the next fusions — each fusion refines one robot — and the frames end
-    where the settle done in one fusion puts them (the same sweeps, in the same order; the prior
-    gauge held between them moves the frames by micrometres), well within the settle's own
-    thresholds (a settle stopped after one sweep is 22 mm off: the test above)."""
+    where the settle done in one fusion (no budget) puts them (the same sweeps, in the same
+    order; the prior gauge held between them moves the frames by micrometres), well within the
+    settle's own thresholds (a settle stopped after one sweep is 22 mm off: the test above)."""
     results = []
-    for budget in (FleetConfig().settle_budget_segments, 1):
+    for budget in (10**9, 1):
         fleet = copy.deepcopy(fused)
-        fleet.cfg = dataclasses.replace(fleet.cfg, settle_budget_segments=budget)
+        fleet.cfg = dataclasses.replace(fleet.cfg, settle_budget_segments=budget, settle_refinements=10**9)
         for k in range(12):
             fleet.fuse(200.0 + 10.0 * k)
         delta = np.array([0.06, -0.04, np.radians(0.5)])

@@ -219,3 +219,20 @@ def test_collinearity_arguments_are_checked():
         kernels.collinear(seg, np.array([0]), np.array([3]), 0.99, 0.1, 0.3)
     with pytest.raises(ValueError, match="segments"):
         kernels.collinear(np.zeros((3, 4)), np.array([0]), np.array([1]), 0.99, 0.1, 0.3)
+
+
+@needs_kernel
+def test_the_grid_refuses_points_outside_its_extent():
+    """The grid's counting sort writes where each point's cell says: a cell outside the extent
+    it was given is an error, not a write past the arrays."""
+    cols = np.array([[0.0, 1.0, 5.0], [0.0, 1.0, 0.5]])
+    data, order, start = np.empty((3, 2)), np.empty(3, np.int64), np.empty(2 * 2 + 1, np.int64)
+    with pytest.raises(ValueError, match="outside the grid"):
+        kernels._kernels.grid(cols, data, order, start, 2, 3, 2, 2, 0, 0, 1.0)
+    # within it: the points in cell order, stable, and each cell's first
+    cols = np.array([[1.5, 0.2, 1.1, np.nan], [0.5, 0.5, 1.5, 0.0]])
+    data, order, start = np.empty((4, 2)), np.empty(4, np.int64), np.empty(2 * 2 + 1, np.int64)
+    kept = kernels._kernels.grid(cols, data, order, start, 2, 4, 2, 2, 0, 0, 1.0)
+    assert kept == 3
+    assert list(order[:kept]) == [1, 0, 2] and list(start) == [0, 1, 1, 2, 3]
+    assert np.array_equal(data[:kept], cols[:, [1, 0, 2]].T)

@@ -17,6 +17,25 @@ def test_round_trip_and_none_when_empty(tmp_path):
     assert blobs == {"a": b"\x00\x01map-a", "b": b"map-b"}
 
 
+def test_the_index_is_the_canonical_document_with_its_checksum(tmp_path):
+    """The index is written from the body's text with the checksum appended (one encoding): the
+    same bytes as encoding the whole document, keys sorted, and what load() verifies."""
+    import hashlib
+
+    meta = {"z": [1.5, -2.25e-7, 3], "a": {"k": "é", "n": None}, "robots": {"r2": 1, "r1": 2}}
+    s = Store(tmp_path)
+    s.save(meta, {"b": b"two", "a": b"one"})
+    blobs = {"a": hashlib.sha256(b"one").hexdigest(), "b": hashlib.sha256(b"two").hexdigest()}
+    body = {"format": 1, "meta": meta, "blobs": blobs}
+
+    def canonical(obj):
+        return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
+
+    doc = dict(body, sha256=hashlib.sha256(canonical(body)).hexdigest())
+    assert (tmp_path / "state.json").read_bytes() == canonical(doc)
+    assert s.load() == (meta, {"a": b"one", "b": b"two"})
+
+
 def test_old_blobs_are_removed_and_shared_blobs_kept(tmp_path):
     s = Store(tmp_path)
     s.save({}, {"a": b"one", "b": b"two"})
@@ -73,10 +92,10 @@ def test_a_crash_before_the_index_is_replaced_leaves_the_old_state(tmp_path, mon
 
     real = store_mod._atomic_write
 
-    def crash_on_index(path, data):
+    def crash_on_index(path, data, **kw):
         if path.name == "state.json":
             raise OSError("simulated crash")
-        real(path, data)
+        real(path, data, **kw)
 
     monkeypatch.setattr(store_mod, "_atomic_write", crash_on_index)
     with pytest.raises(OSError, match="simulated crash"):
