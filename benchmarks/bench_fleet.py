@@ -319,7 +319,8 @@ def fusion_with_priors(maps: list[RobotMap], reps: int) -> dict:
     ``reps`` fusions one (server) second apart, each after one robot's new map (round robin): the
     steady state, and every ``FleetConfig.retry_interval_s`` a round that re-refines the priors
     against the others (``Fleet`` does it while the placed maps change)."""
-    from map_server.fleet import Fleet, FleetConfig
+    from map_server.config import FleetConfig
+    from map_server.fleet import Fleet
 
     fleet = Fleet(FleetConfig(), "bench")
     for m in maps:
@@ -356,7 +357,8 @@ def fusion_without_priors(maps: list[RobotMap], reps: int) -> dict:
     """``reps`` times: a fresh fleet fuses (the first robot becomes the reference; the others'
     maps are too young to be matched), then, once the maps are mature, fuses again: every other
     robot gets one alignment attempt against the reference's map."""
-    from map_server.fleet import Fleet, FleetConfig
+    from map_server.config import FleetConfig
+    from map_server.fleet import Fleet
 
     maps = [dataclasses.replace(m, prior=None, prior_sigma=None) for m in maps]
     cfg = FleetConfig()

@@ -31,75 +31,18 @@ grew enough is searched for such a place (fleet.py), a changed one is refined wh
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from map_server import candidates as cand
 from map_server.candidates import Scored
+from map_server.config import AlignmentConfig
 from map_server.registration import MapIndex, Samples, refine
 from shared.geometry import compose, segment_lengths, transform_points, wrap_angle
-from shared.matching import MatchingConfig
 from shared.messages import ALIGNMENT_STATUSES
 
 RATIO_CAP = 1000.0  # rival ratio reported when there is no rival at all
-
-
-def _server_matching() -> MatchingConfig:
-    # whole maps: corners on both sides (robot pairs gap-limited too), all of them, long walls only
-    return MatchingConfig(max_pair_gap_m=1.0, obs_max_pair_gap_m=1.0, max_obs_pairs=100_000, min_length_m=0.8)
-
-
-@dataclass(frozen=True)
-class AlignmentConfig:
-    matching: MatchingConfig = field(default_factory=_server_matching)
-    vote_cell_m: float = 0.5  # vote bins: map drift spreads a true overlap's votes over ~0.3 m, 2°
-    vote_cell_rad: float = np.radians(3.0)
-    max_peaks: int = 40  # vote peaks pre-scored
-    max_refined: int = 12  # best pre-scored peaks refined and scored strictly
-    sample_step_m: float = 0.10  # maps are sampled this densely for the strict scores ...
-    coarse_step_m: float = 0.25  # ... and this densely for pre-scores and refinement (speed)
-    prescore_perp_m: float = 0.30  # generous tolerances for unrefined candidates (bin size, drift)
-    prescore_angle_rad: float = np.radians(6.0)
-    score_perp_m: float = 0.10  # strict: a robot sample lies on a placed wall within this offset ...
-    score_angle_rad: float = np.radians(5.0)  # ... and facing difference
-    conflict_m: float = 0.30  # a robot sample not on the placed map but this close to a placed wall
-    conflict_weight: float = 1.0  # net score = matched length - this × conflicting length
-    # refinement: one Gauss-Newton iteration per (gate [m], facing tolerance [rad]), gates shrinking
-    refine_stages: tuple[tuple[float, float], ...] = (
-        (0.6, np.radians(8.0)),
-        (0.4, np.radians(6.0)),
-        (0.25, np.radians(5.0)),
-        (0.15, np.radians(5.0)),
-        (0.15, np.radians(5.0)),
-    )
-    point_sigma_m: float = 0.05  # wall-point noise incl. map drift (Huber threshold, information)
-    correlation_m: float = 1.0  # samples closer than this along a wall are not independent
-    # verification
-    min_overlap_m: float = 30.0  # robot-map length on placed walls (a merge rests on this much wall)
-    min_share: float = 0.15  # ... as a share of the robot map's length
-    max_conflict_share: float = 1.0  # conflicting length / matched length (Intel pieces: up to 0.77)
-    min_rival_ratio: float = 1.10  # net score / best distinct rival's net score (office truth vs
-    # half turn once the maps are mature: 1.1-1.3; 1.08 let one mirror image through in 10 runs)
-    distinct_m: float = 0.5  # two poses are distinct places when they move the robot map apart by
-    # more than this on average
-    opposed_perp_m: float = 0.05  # a robot wall this close to a placed wall's line facing the other way
-    max_opposed_share: float = 0.2  # ... may amount to this share of the matched length
-    cross_margin_m: float = 0.25  # a crossing cuts both walls farther than this from their ends ...
-    cross_min_angle_rad: float = np.radians(20.0)  # ... at this angle or more
-    max_crossing_share: float = 1.0  # crossing robot walls' length / matched length (Intel: ~0.9)
-    max_sigma_m: float = 0.10  # a fit this loose (one direction unconstrained: a corridor) is refused
-    max_sigma_rad: float = np.radians(1.0)
-    # the placed map's nearest-sample index searched by the compiled kernel (shared/kernels.py;
-    # False, or not built: scipy's k-d tree, the same answer)
-    compiled: bool = True
-    # prior
-    prior_gate_sigmas: float = 4.0  # refinement may move the prior this far (Mahalanobis, 99.9 %)
-    prior_min_sigma_m: float = 0.01  # floors of the prior's sigma (a zero sigma pins the pose)
-    prior_min_sigma_rad: float = np.radians(0.2)
-    # revision of a current alignment
-    revise_ratio: float = 1.15  # a new place that beats the current one's net score by this factor
-    # takes over (the current one lost its support), if it passes every check
 
 
 @dataclass(frozen=True, eq=False)

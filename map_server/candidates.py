@@ -22,7 +22,7 @@ from shared.geometry import segment_directions, transform_points, wrap_angle
 from shared.matching import cluster_poses, pose_hypotheses
 
 if TYPE_CHECKING:
-    from map_server.alignment import AlignmentConfig
+    from map_server.config import AlignmentConfig
 
 
 @dataclass(frozen=True, eq=False)

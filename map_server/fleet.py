@@ -56,73 +56,27 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from map_server.alignment import (
     Alignment,
-    AlignmentConfig,
     estimate_alignment,
     floored_prior_sigma,
     prior_gauge,
     query_reach,
 )
 from map_server.candidates import mean_displacement
-from map_server.fusion import FusionConfig, fuse_particles
+from map_server.config import FleetConfig
+from map_server.fusion import fuse_particles
 from map_server.incremental import MergedMap, Source
 from map_server.registration import MapIndex, OutsideIndex, Samples
+from map_server.schedule import Around, PlacedKey, global_box
 from map_server.state import RetiredPiece, RobotState
 from shared.geometry import compose, wrap_angle
 from shared.messages import FusedMap, PoseUpdate, RobotMap, RobotStatus
 
 log = logging.getLogger("fleet_slam.fleet")
-
-
-@dataclass(frozen=True)
-class FleetConfig:
-    fusion: FusionConfig = field(default_factory=FusionConfig)
-    alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
-    retry_growth_m: float = 5.0  # re-attempt a robot's alignment when its map grew by this much ...
-    retry_growth_share: float = 0.05  # ... or by this share of its length (whichever is larger)
-    retry_placed_growth_m: float = 10.0  # an unaligned robot is retried when the placed map grew so
-    retry_interval_s: float = 10.0  # ... or when anything changed (or a candidate waits) this long ago
-    confirmations: int = 2  # consecutive attempts that must agree on a new place
-    same_place_m: float = 0.3  # two verdicts agree when they move the robot map this little (mean)
-    # maturity (module docstring). Office, 3 robots, 10 seeds, 180 s: no wrong merge with 0.2-0.3
-    # (placed at 125-170 s), one with 0.4; warehouse: maps never mature below 0.15
-    mature_window_s: float = 30.0
-    mature_growth: float = 0.25
-    # retired pieces (module docstring) kept per robot: a robot that keeps restarting re-maps the
-    # same places, so the oldest piece is mostly covered by the newer ones; bounds memory and state
-    max_retired: int = 3
-    # when a robot leaves, placed robots are refined against each other in rounds until no frame
-    # moves by more than these (one round is one Gauss-Seidel sweep: office, 3 robots, the final
-    # maps: 3.3 cm / 0.19° left after one sweep, converged in 5), at most ``settle_rounds``
-    settle_rounds: int = 8
-    settle_m: float = 1e-3
-    settle_rad: float = 1e-4
-    # a settle's refinements are spread over fusions too: at most this many layer segments a
-    # fusion (the first robot always), the sweeps going on where they stopped. 64 robots leaving
-    # at once took one fusion of ~20 s before (every robot refined up to 8 times), in which no
-    # new map was fused; a refinement costs ~6-14 ms (each one re-merges the robot refined before
-    # it), so their count is bounded too: 4 keeps a settle's fusion near a normal one (16 made
-    # fusions of ~220 ms at 64 robots, and seconds while 64 agent processes exited on 2 cores)
-    settle_budget_segments: int = 1000
-    settle_refinements: int = 4
-    # a placed robot is refined against the placed map near it (module docstring: "Cost"): the
-    # crop reaches this much beyond the robot map's box at its starting pose (plus the gates)
-    refine_margin_m: float = 2.0
-    # refinements of placed robots (not urgent) are spread over the fusions: a fusion refines
-    # due robots, the first in arrival order whose turn it is, until they add up to this many
-    # layer segments (the first one always: its cost grows with its map); the others wait for the
-    # next fusion (each waits ``retry_interval_s`` after its own last attempt, so every due robot
-    # gets its turn). 100 robots x 1,000 rows: one refinement (~450 segments) per fusion instead
-    # of a round of 100 every ``retry_interval_s``; office-sized maps (~140 segments) one or two:
-    # robots placed together fall due together, and 600 made a burst of fusions with 4-5
-    # refinements each (64 agents: the latency tail) where 200 spreads them out
-    refine_budget_segments: int = 200
 
 
 class Fleet:
@@ -144,7 +98,7 @@ class Fleet:
         self._merged = MergedMap(cfg.fusion)  # the merge of the placed layers, kept up to date
         self._budget = cfg.refine_budget_segments  # layer segments left to refine in this fusion
         self._statuses: dict[str, tuple] = {}  # robot -> (what its status is made of, status, key)
-        self._entries: dict[tuple, tuple] = {}  # parts of _placed_key, per robot or retired piece
+        self._entries: dict[tuple, tuple] = {}  # parts of schedule.placed_key, per robot or retired piece
         self._samples: dict[str, tuple] = {}  # robot -> (layer, its samples for alignment attempts)
 
     # -- inputs ------------------------------------------------------------------------------
@@ -278,6 +232,12 @@ class Fleet:
         return bool(np.hypot(d[:, 0], d[:, 1]).max() <= self.cfg.settle_m
                     and np.abs(wrap_angle(d[:, 2])).max() <= self.cfg.settle_rad)  # fmt: skip
 
+    @property
+    def pending_work(self) -> bool:
+        """Whether a fusion now would do work without new input: a settle's sweeps are under way
+        (spread over fusions: ``settle_refinements``) or about to begin (a robot left)."""
+        return self._settling is not None or self._left
+
     def latest(self) -> FusedMap | None:
         return self._latest
 
@@ -370,7 +330,7 @@ class Fleet:
             samples = self._samples[r.robot] = (r.layer, (fine, coarse))
         kw = {"robot_samples": samples[1]}
         if start is not None and len(r.layer):
-            box = _global_box(r.layer.bounds[None], np.asarray(start, float)[None])[0]
+            box = global_box(r.layer.bounds[None], np.asarray(start, float)[None])[0]
             reach = query_reach(c)
             lo, hi = box[:2] - self.cfg.refine_margin_m, box[2:] + self.cfg.refine_margin_m
             near = self._global_segments(r.robot, lo - reach, hi + reach)
@@ -398,13 +358,13 @@ class Fleet:
             self._entries = {(r.robot, None): self._entries[(r.robot, None)] for r in self.robots.values()
                              if (r.robot, None) in self._entries}  # fmt: skip
         placed = self._placed()
-        around = _Around(placed + pieces, self.cfg.refine_margin_m)
+        around = Around(placed + pieces, self.cfg.refine_margin_m)
         pieces_m = sum(p.layer.length_m for p in pieces)
-        keys: dict[int, tuple[float, _Key]] = {}
+        keys: dict[int, tuple[float, PlacedKey]] = {}
         placed_total = sum(p.layer.length_m for p in placed)
         placed_ids = {id(p) for p in placed}
 
-        def key_of(r: RobotState) -> tuple[float, _Key]:
+        def key_of(r: RobotState) -> tuple[float, PlacedKey]:
             if id(r) not in keys:
                 if id(r) in placed_ids:
                     placed_m = placed_total - r.layer.length_m + pieces_m
@@ -412,7 +372,7 @@ class Fleet:
                     placed_m = placed_total + pieces_m
                 keys[id(r)] = (
                     placed_m,
-                    _Key(r, lambda: [p for p in placed if p is not r] + pieces, around, self._entries),
+                    PlacedKey(r, lambda: [p for p in placed if p is not r] + pieces, around, self._entries),
                 )
             return keys[id(r)]
 
@@ -627,73 +587,3 @@ class Fleet:
         if built[0] and meta["stamp_s"] is not None:
             f._keep(built, meta["stamp_s"])
         return f
-
-
-def _global_box(bounds: np.ndarray, transforms: np.ndarray) -> np.ndarray:
-    """Boxes ``(N,4)`` (x0, y0, x1, y1) in the global frame around map-frame boxes ``bounds (N,4)``
-    moved by ``transforms (N,3)``."""
-    corners = bounds[:, [[0, 1], [2, 1], [2, 3], [0, 3]]]  # (N,4,2)
-    c, s = np.cos(transforms[:, 2])[:, None], np.sin(transforms[:, 2])[:, None]
-    x = c * corners[..., 0] - s * corners[..., 1] + transforms[:, 0, None]
-    y = s * corners[..., 0] + c * corners[..., 1] + transforms[:, 1, None]
-    return np.column_stack([x.min(axis=1), y.min(axis=1), x.max(axis=1), y.max(axis=1)])
-
-
-class _Around:
-    """Which placed maps (robots and retired pieces) are near which, from their global boxes at the
-    start of a round (computed once, when first needed): a box grown by ``margin_m`` meets the
-    other's box."""
-
-    def __init__(self, items: list, margin_m: float):
-        self.items, self.margin_m = items, margin_m
-        self._row = {id(x): i for i, x in enumerate(items)}
-        self._meet: np.ndarray | None = None
-
-    def near(self, r: RobotState) -> list | None:
-        """The maps near placed robot ``r`` (itself included), or None if it is not one of them."""
-        i = self._row.get(id(r))
-        if i is None:
-            return None
-        if self._meet is None:
-            bounds = np.array([x.layer.bounds for x in self.items])
-            box = _global_box(bounds, np.array([x.alignment.transform for x in self.items]))
-            grown = box + np.array([-1.0, -1.0, 1.0, 1.0]) * self.margin_m
-            self._meet = (grown[:, None, 0] <= box[None, :, 2]) & (grown[:, None, 2] >= box[None, :, 0])
-            self._meet &= (grown[:, None, 1] <= box[None, :, 3]) & (grown[:, None, 3] >= box[None, :, 1])
-        return [self.items[j] for j in np.flatnonzero(self._meet[i])]
-
-
-class _Key:
-    """What robot ``r`` is aligned against, as a string that changes when that changes (lazily:
-    most checks do not need it): the placed maps — robots and retired pieces — with their lengths
-    and places; for a placed robot only those near it (:class:`_Around`): a map far away does not
-    change where the robot fits."""
-
-    def __init__(self, r: RobotState, against: Callable[[], list], around: _Around, entries: dict):
-        self.r, self.against, self.around, self.entries = r, against, around, entries
-        self._text: str | None = None
-
-    def __call__(self) -> str:
-        if self._text is None:
-            near = self.around.near(self.r) if self.r.alignment.placed else None
-            if near is not None:  # the maps near it at the start of the round but itself
-                near = [p for p in near if p is not self.r]
-            self._text = _placed_key(self.against() if near is None else near, self.entries)
-        return self._text
-
-
-def _placed_key(placed: list, entries: dict | None = None) -> str:
-    """Which maps are placed, how long they are and where. ``entries``: a cache of each map's
-    part, per robot or retired piece (its layer and alignment are replaced on a change, never
-    modified, so the part is formatted again only then)."""
-    out = []
-    for r in placed:
-        k = (r.robot, getattr(r, "session", None))
-        hit = entries.get(k) if entries is not None else None
-        if hit is None or hit[0] is not r.layer or hit[1] is not r.alignment:
-            text = f"{r.robot}:{r.layer.length_m:.3f}:" + ":".join(f"{v:.5f}" for v in r.alignment.transform)
-            hit = (r.layer, r.alignment, text)
-            if entries is not None:
-                entries[k] = hit
-        out.append(hit[2])
-    return ";".join(out)

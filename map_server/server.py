@@ -20,7 +20,8 @@ import uuid
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
-from map_server.fleet import Fleet, FleetConfig
+from map_server.config import FleetConfig
+from map_server.fleet import Fleet
 from map_server.freespace import FreeFusionConfig, FreeSpaces
 from map_server.store import StateError, Store
 from shared import codec
@@ -360,7 +361,8 @@ class MapServer:
             self.tick()
             self._log_status()
             trimmer.maybe()
-            self._wake.wait(self.cfg.idle_period_s)  # a new map (or stop) ends the wait early
+            if not self.fleet.pending_work:  # a settle under way goes on at the fusion pace
+                self._wake.wait(self.cfg.idle_period_s)  # a new map (or stop) ends the wait early
             stop.wait(max(0.0, self.cfg.min_fuse_gap_s - (time.monotonic() - t)))
         self.tick()
 

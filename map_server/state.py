@@ -13,7 +13,7 @@ from map_server.fusion import FusionConfig, RobotLayer, fuse_particles
 from shared.messages import PoseUpdate, RobotMap
 
 if TYPE_CHECKING:
-    from map_server.fleet import FleetConfig
+    from map_server.config import FleetConfig
 
 
 def _unaligned(reason: str) -> Alignment:
@@ -37,7 +37,7 @@ class RobotState:
     first_map_s: float | None = None  # server time of its first non-empty map (picks the reference)
     attempt_len_m: float | None = None
     attempt_placed_m: float = 0.0
-    attempt_placed_key: str = ""  # which placed robots, how long, where (see Fleet._placed_key)
+    attempt_placed_key: str = ""  # which placed robots, how long, where (see schedule.placed_key)
     attempt_s: float = 0.0
     attempt_seq: int = -1  # the map's seq at the last attempt
     pending: Alignment | None = None

@@ -117,6 +117,44 @@ class ImportGraph:
             out.append(parent[out[-1]])
         return " -> ".join(reversed(out))
 
+    def cycles(self, package: str) -> list[list[str]]:
+        """The import cycles among the modules of ``package``: each a strongly connected set of
+        more than one module, sorted. A module's edges to its parent packages count (importing it
+        runs them), so a package ``__init__`` that imports its own submodules closes a cycle."""
+        names = sorted(n for n in self.modules if n == package or n.startswith(package + "."))
+        edges = {n: sorted(d for d in self.modules[n].project if d in names and d != n) for n in names}
+        index: dict[str, int] = {}
+        low: dict[str, int] = {}
+        stack: list[str] = []
+        on: set[str] = set()
+        out: list[list[str]] = []
+
+        def visit(v: str) -> None:  # Tarjan's strongly connected components (recursive: small graphs)
+            index[v] = low[v] = len(index)
+            stack.append(v)
+            on.add(v)
+            for w in edges[v]:
+                if w not in index:
+                    visit(w)
+                    low[v] = min(low[v], low[w])
+                elif w in on:
+                    low[v] = min(low[v], index[w])
+            if low[v] == index[v]:
+                comp = []
+                while True:
+                    w = stack.pop()
+                    on.discard(w)
+                    comp.append(w)
+                    if w == v:
+                        break
+                if len(comp) > 1:
+                    out.append(sorted(comp))
+
+        for n in names:
+            if n not in index:
+                visit(n)
+        return sorted(out)
+
     def forbidden(self, start: str, prefixes: tuple[str, ...]) -> list[str]:
         """Import chains from ``start`` to any project module under one of ``prefixes``."""
         parent = self.reach(start)

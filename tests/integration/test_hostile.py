@@ -31,7 +31,7 @@ import pytest
 
 from fleet_slam.procs import ProcGroup, python_module
 from fleet_slam.watch import FusedWatcher
-from map_server.fleet import FleetConfig
+from map_server.config import FleetConfig
 from map_server.fusion import fuse_particles, merge_segments
 from shared import codec
 from shared.bus import Bus, BusConfig

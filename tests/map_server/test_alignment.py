@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from map_server import candidates, registration
-from map_server.alignment import Alignment, AlignmentConfig, estimate_alignment, prior_gauge
+from map_server.alignment import Alignment, estimate_alignment, prior_gauge
+from map_server.config import AlignmentConfig
 from map_server.fusion import FusionConfig, fuse_particles
 from map_server.registration import Samples
 from shared.geometry import apply_segments, compose, inverse

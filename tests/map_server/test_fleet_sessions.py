@@ -9,7 +9,8 @@ import logging
 
 import numpy as np
 
-from map_server.fleet import Fleet, FleetConfig
+from map_server.config import FleetConfig
+from map_server.fleet import Fleet
 from shared.geometry import relative
 from shared.metrics import map_quality, transform_error
 from tests.map_server.robots import robot_map_from_segments, scan_map

@@ -13,7 +13,8 @@ import pytest
 
 from map_server import incremental
 from map_server.alignment import estimate_alignment
-from map_server.fleet import Fleet, FleetConfig
+from map_server.config import FleetConfig
+from map_server.fleet import Fleet
 from map_server.fusion import FusionConfig, RobotLayer, fuse_particles, merge_segments
 from map_server.incremental import MergedMap, Source
 from map_server.registration import MapIndex, OutsideIndex, Samples

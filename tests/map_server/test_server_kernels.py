@@ -10,7 +10,8 @@ import shutil
 import numpy as np
 import pytest
 
-from map_server.alignment import AlignmentConfig, estimate_alignment
+from map_server.alignment import estimate_alignment
+from map_server.config import AlignmentConfig
 from map_server.fusion import FusionConfig, collinear
 from map_server.registration import MapIndex, OutsideIndex, Samples
 from shared import kernels

@@ -1,0 +1,115 @@
+"""The map server's configuration: alignment (a robot map's frame in the global frame,
+alignment.py, candidates.py, registration.py) and the fleet (scheduling of alignment attempts,
+maturity, confirmations, settling, budgets: fleet.py). Its own module so that those import it and
+not each other."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from map_server.fusion import FusionConfig
+from shared.matching import MatchingConfig
+
+
+def _server_matching() -> MatchingConfig:
+    # whole maps: corners on both sides (robot pairs gap-limited too), all of them, long walls only
+    return MatchingConfig(max_pair_gap_m=1.0, obs_max_pair_gap_m=1.0, max_obs_pairs=100_000, min_length_m=0.8)
+
+
+@dataclass(frozen=True)
+class AlignmentConfig:
+    matching: MatchingConfig = field(default_factory=_server_matching)
+    vote_cell_m: float = 0.5  # vote bins: map drift spreads a true overlap's votes over ~0.3 m, 2°
+    vote_cell_rad: float = np.radians(3.0)
+    max_peaks: int = 40  # vote peaks pre-scored
+    max_refined: int = 12  # best pre-scored peaks refined and scored strictly
+    sample_step_m: float = 0.10  # maps are sampled this densely for the strict scores ...
+    coarse_step_m: float = 0.25  # ... and this densely for pre-scores and refinement (speed)
+    prescore_perp_m: float = 0.30  # generous tolerances for unrefined candidates (bin size, drift)
+    prescore_angle_rad: float = np.radians(6.0)
+    score_perp_m: float = 0.10  # strict: a robot sample lies on a placed wall within this offset ...
+    score_angle_rad: float = np.radians(5.0)  # ... and facing difference
+    conflict_m: float = 0.30  # a robot sample not on the placed map but this close to a placed wall
+    conflict_weight: float = 1.0  # net score = matched length - this × conflicting length
+    # refinement: one Gauss-Newton iteration per (gate [m], facing tolerance [rad]), gates shrinking
+    refine_stages: tuple[tuple[float, float], ...] = (
+        (0.6, np.radians(8.0)),
+        (0.4, np.radians(6.0)),
+        (0.25, np.radians(5.0)),
+        (0.15, np.radians(5.0)),
+        (0.15, np.radians(5.0)),
+    )
+    point_sigma_m: float = 0.05  # wall-point noise incl. map drift (Huber threshold, information)
+    correlation_m: float = 1.0  # samples closer than this along a wall are not independent
+    # verification
+    min_overlap_m: float = 30.0  # robot-map length on placed walls (a merge rests on this much wall)
+    min_share: float = 0.15  # ... as a share of the robot map's length
+    max_conflict_share: float = 1.0  # conflicting length / matched length (Intel pieces: up to 0.77)
+    min_rival_ratio: float = 1.10  # net score / best distinct rival's net score (office truth vs
+    # half turn once the maps are mature: 1.1-1.3; 1.08 let one mirror image through in 10 runs)
+    distinct_m: float = 0.5  # two poses are distinct places when they move the robot map apart by
+    # more than this on average
+    opposed_perp_m: float = 0.05  # a robot wall this close to a placed wall's line facing the other way
+    max_opposed_share: float = 0.2  # ... may amount to this share of the matched length
+    cross_margin_m: float = 0.25  # a crossing cuts both walls farther than this from their ends ...
+    cross_min_angle_rad: float = np.radians(20.0)  # ... at this angle or more
+    max_crossing_share: float = 1.0  # crossing robot walls' length / matched length (Intel: ~0.9)
+    max_sigma_m: float = 0.10  # a fit this loose (one direction unconstrained: a corridor) is refused
+    max_sigma_rad: float = np.radians(1.0)
+    # the placed map's nearest-sample index searched by the compiled kernel (shared/kernels.py;
+    # False, or not built: scipy's k-d tree, the same answer)
+    compiled: bool = True
+    # prior
+    prior_gate_sigmas: float = 4.0  # refinement may move the prior this far (Mahalanobis, 99.9 %)
+    prior_min_sigma_m: float = 0.01  # floors of the prior's sigma (a zero sigma pins the pose)
+    prior_min_sigma_rad: float = np.radians(0.2)
+    # revision of a current alignment
+    revise_ratio: float = 1.15  # a new place that beats the current one's net score by this factor
+    # takes over (the current one lost its support), if it passes every check
+
+
+@dataclass(frozen=True)
+class FleetConfig:
+    fusion: FusionConfig = field(default_factory=FusionConfig)
+    alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
+    retry_growth_m: float = 5.0  # re-attempt a robot's alignment when its map grew by this much ...
+    retry_growth_share: float = 0.05  # ... or by this share of its length (whichever is larger)
+    retry_placed_growth_m: float = 10.0  # an unaligned robot is retried when the placed map grew so
+    retry_interval_s: float = 10.0  # ... or when anything changed (or a candidate waits) this long ago
+    confirmations: int = 2  # consecutive attempts that must agree on a new place
+    same_place_m: float = 0.3  # two verdicts agree when they move the robot map this little (mean)
+    # maturity (module docstring). Office, 3 robots, 10 seeds, 180 s: no wrong merge with 0.2-0.3
+    # (placed at 125-170 s), one with 0.4; warehouse: maps never mature below 0.15
+    mature_window_s: float = 30.0
+    mature_growth: float = 0.25
+    # retired pieces (module docstring) kept per robot: a robot that keeps restarting re-maps the
+    # same places, so the oldest piece is mostly covered by the newer ones; bounds memory and state
+    max_retired: int = 3
+    # when a robot leaves, placed robots are refined against each other in rounds until no frame
+    # moves by more than these (one round is one Gauss-Seidel sweep: office, 3 robots, the final
+    # maps: 3.3 cm / 0.19° left after one sweep, converged in 5), at most ``settle_rounds``
+    settle_rounds: int = 8
+    settle_m: float = 1e-3
+    settle_rad: float = 1e-4
+    # a settle's refinements are spread over fusions too: at most this many layer segments a
+    # fusion (the first robot always), the sweeps going on where they stopped. 64 robots leaving
+    # at once took one fusion of ~20 s before (every robot refined up to 8 times), in which no
+    # new map was fused; a refinement costs ~6-14 ms (each one re-merges the robot refined before
+    # it), so their count is bounded too: 4 keeps a settle's fusion near a normal one (16 made
+    # fusions of ~220 ms at 64 robots, and seconds while 64 agent processes exited on 2 cores)
+    settle_budget_segments: int = 1000
+    settle_refinements: int = 4
+    # a placed robot is refined against the placed map near it (module docstring: "Cost"): the
+    # crop reaches this much beyond the robot map's box at its starting pose (plus the gates)
+    refine_margin_m: float = 2.0
+    # refinements of placed robots (not urgent) are spread over the fusions: a fusion refines
+    # due robots, the first in arrival order whose turn it is, until they add up to this many
+    # layer segments (the first one always: its cost grows with its map); the others wait for the
+    # next fusion (each waits ``retry_interval_s`` after its own last attempt, so every due robot
+    # gets its turn). 100 robots x 1,000 rows: one refinement (~450 segments) per fusion instead
+    # of a round of 100 every ``retry_interval_s``; office-sized maps (~140 segments) one or two:
+    # robots placed together fall due together, and 600 made a burst of fusions with 4-5
+    # refinements each (64 agents: the latency tail) where 200 spreads them out
+    refine_budget_segments: int = 200
