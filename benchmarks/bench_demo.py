@@ -1,13 +1,22 @@
-"""The fleet demo over several seeds: alignment verdicts, transform errors, fused-map quality.
+"""The fleet demo over several seeds (simulated worlds) or over real logs cut into pieces: alignment
+verdicts, transform errors, fused-map quality, relations error across pieces.
 
     .venv/bin/python benchmarks/bench_demo.py [--seeds 0 1 ... 9] [--unknown-starts]
         [--robots 3] [--world office] [--duration 175] [--out out/bench_demo]
+    .venv/bin/python benchmarks/bench_demo.py --logs DIR... [--splits 2 3] [--seeds 0]
 
 Each seed is one full `fleet-slam demo` (router, server, agents as processes on loopback, about
 3 minutes at the default duration). Prints one row per seed — every robot's status and transform
 error (and, in brackets, with fitted map frames: the server's error alone), fused precision and
 completeness, wrong merges — and writes benchmarks/results/bench_demo.json.
 A wrong merge is a merged robot whose transform is off by more than 0.3 m or 3° (fleet_slam/report.py).
+
+``--logs``: each DIR holds a CARMEN log with its reference relations (``<stem>.relations``, as
+bench_logs.py takes them); the log is cut into each of ``--splits`` consecutive pieces, one agent
+each, no priors, replayed as fast as the agents go (``fleet-slam demo --log … --split K``). One row
+per log × split × seed: pieces placed, wrong merges (a pair of pieces whose relations across them
+are off by more than 0.3 m or 3°, median), the relations error over the merged pieces and across
+pieces, and when each piece was first merged (s after the agents started).
 """
 
 from __future__ import annotations
@@ -41,6 +50,63 @@ def row(seed: int, m: dict) -> str:
     return f"{seed:4d}  {quality}  wrong {len(m['wrong_merges'])}  " + "  ".join(robots)
 
 
+def log_row(name: str, split: int, seed: int, m: dict) -> str:
+    placed = sum(r["status"] in ("reference", "prior", "aligned") for r in m["robots"].values())
+    nan = float("nan")
+    e, a = m.get("relations", {}), m.get("relations_across", {})
+    merges = " ".join(
+        f"{n}@{r['time_to_first_merge_s']:.0f}s"
+        if r.get("time_to_first_merge_s") is not None
+        else f"{n}:{r['status'][:3]}"
+        for n, r in m["robots"].items()
+    )
+    return (
+        f"{name:10s} {split:5d} {seed:4d}  {placed}/{split} placed  wrong {len(m['wrong_merges'])}  "
+        f"all {e.get('trans_mean_m', nan):.3f} m {e.get('rot_mean_deg', nan):.2f}° (n={e.get('n', 0)})  "
+        f"across {a.get('trans_mean_m', nan):.3f} m {a.get('rot_mean_deg', nan):.2f}° (n={a.get('n', 0)})  "
+        + merges
+    )
+
+
+def find_log(d: Path) -> tuple[Path, Path]:
+    """A directory's CARMEN log and its relations (or the log file itself, relations beside it)."""
+    logs = [d] if d.is_file() else sorted([*d.glob("*.clf"), *d.glob("*.clf.gz")])
+    if not logs:
+        raise SystemExit(f"{d}: no CARMEN log (*.clf, *.clf.gz)")
+    log = logs[0]
+    stem = log.name.removesuffix(".gz").removesuffix(".clf")
+    rel = log.parent / f"{stem}.relations"
+    if not rel.exists():
+        raise SystemExit(f"{log}: no relations beside it ({rel.name})")
+    return log, rel
+
+
+def main_logs(args) -> int:
+    results = {}
+    print("log        split seed  pieces placed, wrong merges, relations error (all merged, across pieces),")
+    print("                       first merge per piece (s after the agents started)")
+    for d in args.logs:
+        log, rel = find_log(Path(d))
+        name = log.name.split(".")[0]
+        for k in args.splits:
+            for seed in args.seeds:
+                cfg = DemoConfig(
+                    out=f"{args.out}/{name}-split{k}-seed{seed}", log=str(log), split=k, relations=str(rel),
+                    speed=0.0, seed=seed, progress=False,
+                )  # fmt: skip
+                m = run_demo(cfg)
+                results[f"{name}/split{k}/seed{seed}"] = m
+                print(log_row(name, k, seed, m), flush=True)
+    wrong = sum(len(m["wrong_merges"]) for m in results.values())
+    print(f"{len(results)} runs: {wrong} pieces in wrong merges")
+    save_results(
+        ROOT / "benchmarks" / "results" / "bench_demo_logs.json",
+        "bench_demo_logs",
+        {"args": vars(args), "runs": results},
+    )
+    return 0
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
@@ -49,7 +115,13 @@ def main() -> int:
     p.add_argument("--world", default="office")
     p.add_argument("--duration", type=float, default=175.0)
     p.add_argument("--out", default="out/bench_demo")
+    p.add_argument("--logs", nargs="+", default=None, help="real logs (directories or files) cut into pieces")
+    p.add_argument("--splits", type=int, nargs="+", default=[2, 3], help="--logs: pieces per log")
     args = p.parse_args()
+    if args.logs:
+        if args.seeds == list(range(10)):
+            args.seeds = [0]
+        return main_logs(args)
     results = {}
     print("seed  fused precision/completeness, wrong merges, per robot: status transform-error @first-merge")
     for seed in args.seeds:

@@ -20,6 +20,7 @@ from shared.geometry import apply_segments, compose, identity, inverse
 from shared.messages import FusedFree, FusedMap
 from shared.metrics import (
     Relations,
+    RelationsError,
     ate,
     map_quality,
     read_poses,
@@ -114,7 +115,7 @@ def write_report(
             SegmentLayer(apply_segments(inverse(g), world.walls), "#BBBBBB", 0.12, "true walls")
         )
     pic.segments.append(SegmentLayer(final.seg, "#222222", 0.05, "fused map"))
-    robots, all_stamps, all_poses = {}, [], []
+    robots, all_stamps, all_poses, merged_names = {}, [], [], []
     for i, name in enumerate(names):
         status = final.robot(name)
         stamps, own = local[name]
@@ -133,6 +134,7 @@ def write_report(
         if merged:
             all_stamps.append(stamps)
             all_poses.append(poses)
+            merged_names.append(name)
             pic.paths.append(PathLayer(poses[:, :2], robot_colour(i), 0.04, name))
             r["transform"] = status.transform.tolist()
             r["transform_sigma"] = status.sigma.tolist()
@@ -151,11 +153,13 @@ def write_report(
         if g_fit is not None:  # the grid in the world placed by the fitted global frame (see _slam_fits)
             fit = _grid_quality(world, grid, g_fit, true_paths)
             metrics["grid"].update({f"{k}_fit": v for k, v in fit.items() if not k.endswith("_cells")})
-    wrong = [n for n, r in robots.items() if r.get("wrong_merge")]
     metrics["all_merged"] = all(r["status"] in ("reference", "prior", "aligned") for r in robots.values())
-    metrics["wrong_merges"] = wrong
     if split is not None and all_stamps:
-        metrics.update(_log_scores(cfg, out, all_stamps, all_poses, split))
+        metrics.update(_log_scores(cfg, out, all_stamps, all_poses, split, merged_names))
+        for a, b in metrics.get("wrong_piece_pairs", []):
+            for n in (a, b):  # a pair of pieces placed apart from each other: both flagged
+                robots[n]["wrong_merge"] = True
+    metrics["wrong_merges"] = [n for n, r in robots.items() if r.get("wrong_merge")]
     if split is not None and cfg.relations:
         half = _half_time(cfg, agents_dir, names, updates, t0, split)
         if half is not None:
@@ -287,7 +291,12 @@ def _grid_quality(world, grid, g, true_paths: list[np.ndarray]) -> dict:
     return asdict(grid_quality(grid, apply_segments(to_global, world.walls), origins, ends, hit))
 
 
-def _log_scores(cfg, out: Path, all_stamps, all_poses, split) -> dict:
+def _log_scores(cfg, out: Path, all_stamps, all_poses, split, names: list[str]) -> dict:
+    """A real log's pieces (``names``: the merged ones, their stamps and global poses) scored on
+    the reference relations both of whose ends fall in merged pieces: all of them, and those
+    *across* pieces (one end in each: how well the pieces were placed against each other). A pair
+    of pieces whose across relations are off by more than a wrong merge's bounds (median) is
+    listed in ``wrong_piece_pairs``: one was placed apart from the other."""
     stamps = np.concatenate(all_stamps)
     poses = np.concatenate(all_poses)
     write_poses(out / "fleet.poses.txt", stamps, poses)
@@ -297,13 +306,29 @@ def _log_scores(cfg, out: Path, all_stamps, all_poses, split) -> dict:
         # only relations whose both ends fall in a merged piece: the others have no global pose
         spans = [(s.min(), s.max()) for s in all_stamps]
 
-        def covered(t: np.ndarray) -> np.ndarray:
-            return np.any([(t >= a - 0.5) & (t <= b + 0.5) for a, b in spans], axis=0)
+        def piece(t: np.ndarray) -> np.ndarray:
+            at = np.full(len(t), -1)
+            for k, (a, b) in enumerate(spans):
+                at[(at < 0) & (t >= a - 0.5) & (t <= b + 0.5)] = k
+            return at
 
-        keep = covered(rel.t1_s) & covered(rel.t2_s)
+        p1, p2 = piece(rel.t1_s), piece(rel.t2_s)
+        keep = (p1 >= 0) & (p2 >= 0)
         res["relations_total"] = len(rel.t1_s)
         res["relations_scored"] = int(keep.sum())
+        res["wrong_piece_pairs"] = []
         if keep.any():
             sub = Relations(rel.t1_s[keep], rel.t2_s[keep], rel.delta[keep])
-            res["relations"] = relations_error(stamps, poses, sub, *split.log.odometry_track()).summary()
+            err = relations_error(stamps, poses, sub, *split.log.odometry_track())
+            res["relations"] = err.summary()
+            across = p1[keep] != p2[keep]
+            res["relations_across_scored"] = int(across.sum())
+            if across.any():
+                res["relations_across"] = RelationsError(err.trans_m[across], err.rot_deg[across]).summary()
+            lo, hi = np.minimum(p1[keep], p2[keep]), np.maximum(p1[keep], p2[keep])
+            for i, j in sorted({(int(a), int(b)) for a, b in zip(lo[across], hi[across], strict=True)}):
+                pair = across & (lo == i) & (hi == j)
+                dt, dr = float(np.median(err.trans_m[pair])), float(np.median(err.rot_deg[pair]))
+                if dt > WRONG_MERGE_M or dr > WRONG_MERGE_DEG:
+                    res["wrong_piece_pairs"].append([names[i], names[j]])
     return res

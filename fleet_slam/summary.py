@@ -34,6 +34,12 @@ def print_summary(m: dict, cfg) -> None:
             f"relations error (global poses): {e['trans_mean_m']:.3f} m, "
             f"{e['rot_mean_deg']:.2f}° (n={e['n']} of {m['relations_total']} relations: both ends merged)"
         )
+    if "relations_across" in m:
+        e = m["relations_across"]
+        print(
+            f"  across pieces: {e['trans_mean_m']:.3f} m, {e['rot_mean_deg']:.2f}° "
+            f"(n={e['n']}: one end in each of two pieces)"
+        )
     half = m.get("half_time")
     if half is not None:
         line = f"at half time ({half['at_s']:.0f} s, fused v{half['fused_version']}): "
