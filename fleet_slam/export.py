@@ -15,6 +15,35 @@ from shared import codec
 from shared.messages import FusedFree, FusedMap, WireFormatError
 
 
+def describe(f: FusedMap) -> str:
+    robots = " ".join(f"{r.robot}:{r.status}{'' if r.online else '(offline)'}" for r in f.robots)
+    return f"v{f.version} {len(f.seg)} segments, {len(f.robots)} robots [{robots}]"
+
+
+def save(path: str, f: FusedMap) -> None:
+    """``path`` (``.svg``, else GeoJSON) replaced at once by the map: written beside it, then
+    renamed over it, so a reader sees the old file or the new one, never half of one."""
+    import os
+    import tempfile
+
+    from fleet_slam.report import fused_geojson
+    from shared.viz import Picture, SegmentLayer, save_geojson, save_svg
+
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=target.suffix or ".tmp", dir=target.parent)
+    os.close(fd)
+    try:
+        if path.endswith(".svg"):
+            save_svg(tmp, Picture([SegmentLayer(f.seg, "#222222", 0.05, "fused map")], title=describe(f)))
+        else:
+            save_geojson(tmp, fused_geojson(f))
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
 class FreeWatcher:
     """The latest fused free space: by query, then every put (the newest version of the newest
     server session wins; a receiver takes a new session as a restart)."""
@@ -71,7 +100,6 @@ def save_nav2_map(out: str, fused: FusedMap, free: FusedFree | None, resolution_
 
 
 def run(args: argparse.Namespace) -> int:
-    from fleet_slam.subscribe import describe, save
     from fleet_slam.watch import FusedWatcher
     from shared.bus import Bus, client_config, stop_on_signals
     from shared.keys import Keys

@@ -7,40 +7,10 @@ import argparse
 import threading
 from pathlib import Path
 
+from fleet_slam.export import describe, save
 from fleet_slam.watch import FusedWatcher, Update
-from shared.messages import FusedMap
-
-
-def describe(f: FusedMap) -> str:
-    robots = " ".join(f"{r.robot}:{r.status}{'' if r.online else '(offline)'}" for r in f.robots)
-    return f"v{f.version} {len(f.seg)} segments, {len(f.robots)} robots [{robots}]"
-
 
 HISTORY = 16  # updates a subscriber keeps (it prints each as it comes): it may run for days
-
-
-def save(path: str, f: FusedMap) -> None:
-    """``path`` (``.svg``, else GeoJSON) replaced at once by the map: written beside it, then
-    renamed over it, so a reader sees the old file or the new one, never half of one."""
-    import os
-    import tempfile
-
-    from fleet_slam.report import fused_geojson
-    from shared.viz import Picture, SegmentLayer, save_geojson, save_svg
-
-    target = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=target.suffix or ".tmp", dir=target.parent)
-    os.close(fd)
-    try:
-        if path.endswith(".svg"):
-            save_svg(tmp, Picture([SegmentLayer(f.seg, "#222222", 0.05, "fused map")], title=describe(f)))
-        else:
-            save_geojson(tmp, fused_geojson(f))
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def run(args: argparse.Namespace) -> int:

@@ -31,6 +31,7 @@ class Module:
     is_package: bool
     tree: ast.Module
     project: set[str] = field(default_factory=set)  # project modules it imports directly
+    named: set[str] = field(default_factory=set)  # those an import statement names (no implicit parents)
     external: set[str] = field(default_factory=set)  # top-level names of the other imports
 
     def calls(self) -> set[str]:
@@ -76,6 +77,9 @@ class ImportGraph:
             raise UnresolvedImport(f"{m.path}:{line}: {target!r} is no module of the project")
         m.project.update(p for p in [*_parents(target), target] if p in self.modules)
         m.project.update(f"{target}.{s}" for s in submodules if f"{target}.{s}" in self.modules)
+        subs = {f"{target}.{s}" for s in submodules if f"{target}.{s}" in self.modules}
+        # ``from pkg import sub``: the statement names sub; ``from pkg import name``: pkg itself
+        m.named.update(subs if subs and len(subs) == len(submodules) else {target, *subs})
 
     def _read_imports(self, m: Module) -> None:
         m.project.update(p for p in _parents(m.name) if p in self.modules)
@@ -119,10 +123,12 @@ class ImportGraph:
 
     def cycles(self, package: str) -> list[list[str]]:
         """The import cycles among the modules of ``package``: each a strongly connected set of
-        more than one module, sorted. A module's edges to its parent packages count (importing it
-        runs them), so a package ``__init__`` that imports its own submodules closes a cycle."""
+        more than one module, sorted. Edges are the modules an import statement names: a package
+        ``__init__`` that re-exports its submodules closes no cycle with them (Python runs a
+        module's parent packages first, but that is the package's own order), while a submodule
+        that imports names from its package — or two modules that import each other — do."""
         names = sorted(n for n in self.modules if n == package or n.startswith(package + "."))
-        edges = {n: sorted(d for d in self.modules[n].project if d in names and d != n) for n in names}
+        edges = {n: sorted(d for d in self.modules[n].named if d in names and d != n) for n in names}
         index: dict[str, int] = {}
         low: dict[str, int] = {}
         stack: list[str] = []

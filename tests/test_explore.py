@@ -20,7 +20,8 @@ from robot_agent.explore import (
 )
 from robot_agent.sim.lidar import LidarConfig, beam_angles, cast_rays
 from robot_agent.sim.simulate import LiveSim
-from robot_agent.sim.world import builtin_world, free_space, make_world
+from robot_agent.sim.world import free_space, make_world
+from robot_agent.sim.worlds import builtin_world
 from robot_agent.slam.fastslam import FastSLAM, SlamConfig
 from shared.geometry import point_segment_distance
 

@@ -22,7 +22,6 @@ from robot_agent.sim.world import (
     BUILTIN_WORLDS,
     World,
     WorldError,
-    builtin_world,
     free_space,
     from_geojson,
     load_geojson,
@@ -33,6 +32,7 @@ from robot_agent.sim.world import (
     walls_from_geometries,
     walls_geometry,
 )
+from robot_agent.sim.worlds import builtin_world
 
 __all__ = [
     "BUILTIN_WORLDS",

@@ -154,15 +154,6 @@ def free_space(world: World):
     return shapely.union_all(pieces)
 
 
-def builtin_world(name: str) -> World:
-    """One of :data:`BUILTIN_WORLDS`, built fresh (worlds are immutable; build once and reuse)."""
-    from robot_agent.sim.worlds import BUILDERS  # worlds.py imports this module
-
-    if name not in BUILDERS:
-        raise WorldError(f"unknown world {name!r}; valid names: {', '.join(BUILTIN_WORLDS)}")
-    return BUILDERS[name]()
-
-
 # --- GeoJSON ------------------------------------------------------------------------------------
 
 _WALL_TYPES = ("LineString", "MultiLineString", "Polygon", "MultiPolygon")

@@ -13,7 +13,7 @@ import shapely
 from shapely import affinity
 from shapely.geometry import LineString, MultiLineString, Polygon, box
 
-from robot_agent.sim.world import World, make_world
+from robot_agent.sim.world import BUILTIN_WORLDS, World, WorldError, make_world
 
 ROUTE_CLEARANCE_M = 0.5  # promised free distance between any route line and any obstacle
 WALL_THICKNESS_M = 0.15  # interior walls (office)
@@ -315,3 +315,11 @@ def campus() -> World:
 
 
 BUILDERS = {"office": office, "warehouse": warehouse, "campus": campus}
+
+
+def builtin_world(name: str) -> World:
+    """One of :data:`~robot_agent.sim.world.BUILTIN_WORLDS`, built fresh (worlds are immutable;
+    build once and reuse)."""
+    if name not in BUILDERS:
+        raise WorldError(f"unknown world {name!r}; valid names: {', '.join(BUILTIN_WORLDS)}")
+    return BUILDERS[name]()

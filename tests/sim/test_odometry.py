@@ -13,7 +13,7 @@ from robot_agent.sim.odometry import (
     integrate_odometry,
 )
 from robot_agent.sim.robot import RobotConfig, drive_route
-from robot_agent.sim.world import builtin_world
+from robot_agent.sim.worlds import builtin_world
 from shared.geometry import compose, identity, relative, wrap_angle
 
 

@@ -8,7 +8,8 @@ from shapely.geometry import LineString, Point, box
 
 from robot_agent.sim.robot import RobotConfig, RouteFollower, drive_route, integrate_pose, limit_velocity
 from robot_agent.sim.simulate import LiveSim, SimConfig, simulate_robot
-from robot_agent.sim.world import builtin_world, make_world, walls_geometry
+from robot_agent.sim.world import make_world, walls_geometry
+from robot_agent.sim.worlds import builtin_world
 
 
 def test_defaults():

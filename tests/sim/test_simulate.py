@@ -8,7 +8,7 @@ import pytest
 from robot_agent.sim.lidar import LidarConfig, cast_rays
 from robot_agent.sim.odometry import OdometryNoise
 from robot_agent.sim.simulate import SimConfig, simulate_robot
-from robot_agent.sim.world import builtin_world
+from robot_agent.sim.worlds import builtin_world
 from robot_agent.sources.base import Scan
 from shared.geometry import relative
 

@@ -14,7 +14,6 @@ from robot_agent.sim.robot import RobotConfig, RouteFollower, drive_route
 from robot_agent.sim.world import (
     BUILTIN_WORLDS,
     WorldError,
-    builtin_world,
     free_space,
     from_geojson,
     load_geojson,
@@ -24,7 +23,7 @@ from robot_agent.sim.world import (
     walls_from_geometries,
     walls_geometry,
 )
-from robot_agent.sim.worlds import BUILDERS, ROUTE_CLEARANCE_M
+from robot_agent.sim.worlds import BUILDERS, ROUTE_CLEARANCE_M, builtin_world
 
 
 @cache
