@@ -59,6 +59,7 @@ import logging
 
 import numpy as np
 
+from map_server import policy
 from map_server.alignment import (
     Alignment,
     estimate_alignment,
@@ -66,7 +67,6 @@ from map_server.alignment import (
     prior_gauge,
     query_reach,
 )
-from map_server.candidates import mean_displacement
 from map_server.config import FleetConfig
 from map_server.fusion import fuse_particles
 from map_server.incremental import MergedMap, Source
@@ -390,9 +390,11 @@ class Fleet:
                 continue
             key = key()
             others = [p for p in placed if p is not r]
-            if prior is None and not r.alignment.placed and not self._mature([r, *others], now_s):
+            if prior is None and not r.alignment.placed and not policy.mature([r, *others], now_s, self.cfg):
                 if r.alignment.score_m == 0.0:  # no candidate to report yet: say why
-                    r.alignment = Alignment("unaligned", np.zeros(3), np.zeros(3), reason=self._waiting)
+                    r.alignment = Alignment(
+                        "unaligned", np.zeros(3), np.zeros(3), reason=policy.waiting(self.cfg)
+                    )
                 continue  # not even attempted: a young map's match is not evidence yet
             current = r.alignment if r.alignment.status == "aligned" else None
             sigma = r.map.prior_sigma if prior is not None else None
@@ -403,8 +405,8 @@ class Fleet:
                 fresh.append((r, a, placed_m, key))
                 continue
             r.attempted(placed_m, key, now_s)
-            if a.status == "aligned" and current is not None and self._moved(r, current, a):
-                a = self._confirm(r, a, current)  # a revision: not before it is confirmed
+            if a.status == "aligned" and current is not None and policy.moved(r, current, a, self.cfg):
+                a = policy.confirm(r, a, current, self.cfg)  # a revision: not before it is confirmed
             else:
                 r.pending, r.pending_count = None, 0
             was_placed = r.alignment.placed
@@ -419,7 +421,7 @@ class Fleet:
         for f in fresh:
             f[0].attempted(f[2], f[3], now_s)
         r, a = max(fresh, key=lambda f: f[1].rival_ratio)[:2]
-        r.alignment = self._confirm(r, a, None)
+        r.alignment = policy.confirm(r, a, None, self.cfg)
         if r.alignment.placed:
             r.mark_placed(now_s - self.epoch_s)
             return True
@@ -451,35 +453,6 @@ class Fleet:
             else:
                 r.alignment = a
         self._merged.moved(g, self._sources())
-
-    @property
-    def _waiting(self) -> str:
-        c = self.cfg
-        return f"waiting for mature maps (grown by at most {c.mature_growth:.0%} in {c.mature_window_s:g} s)"
-
-    def _mature(self, robots: list[RobotState], now_s: float) -> bool:
-        c = self.cfg
-        return all(r.mature(now_s, c.mature_window_s, c.mature_growth) for r in robots)
-
-    def _moved(self, r: RobotState, a: Alignment, b: Alignment) -> bool:
-        """Whether ``a`` and ``b`` put the robot's map at different places."""
-        pts = 0.5 * (r.layer.seg[:, 0] + r.layer.seg[:, 1])
-        return mean_displacement(a.transform, b.transform, pts) > self.cfg.same_place_m
-
-    def _confirm(self, r: RobotState, a: Alignment, current: Alignment | None) -> Alignment:
-        """A new alignment (or a revision) counts once ``confirmations`` attempts in a row put the
-        robot at the same place; until then the robot stays unaligned (or where it was)."""
-        same = r.pending is not None and not self._moved(r, r.pending, a)
-        r.pending_count = r.pending_count + 1 if same else 1
-        r.pending = a
-        if r.pending_count >= self.cfg.confirmations:
-            r.pending, r.pending_count = None, 0
-            return a
-        why = f"awaiting confirmation ({r.pending_count}/{self.cfg.confirmations}) of {a.reason}"
-        if current is not None:
-            c = current
-            return Alignment("aligned", c.transform, c.sigma, c.score_m, c.inlier_share, c.rival_ratio, why)
-        return Alignment("unaligned", a.transform, a.sigma, a.score_m, a.inlier_share, a.rival_ratio, why)
 
     # -- output --------------------------------------------------------------------------------
 

@@ -1,0 +1,52 @@
+"""The merge policy: when a robot's alignment verdict is acted on. Conservative, since a wrong
+merge ruins the fused map while "unaligned" only delays it (fleet.py's module docstring): a robot
+without a prior is matched only once the maps involved are mature, and a new place (or a
+revision of one) counts only once ``confirmations`` attempts in a row put the robot there. Fleet
+(fleet.py) decides *which* robots get an attempt and in what order (the most decisive first);
+this module decides what an attempt's verdict means."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from map_server.alignment import Alignment
+from map_server.candidates import mean_displacement
+
+if TYPE_CHECKING:
+    from map_server.config import FleetConfig
+    from map_server.state import RobotState
+
+
+def waiting(cfg: FleetConfig) -> str:
+    """The reason an unplaced robot without a prior shows while the maps are not mature."""
+    return f"waiting for mature maps (grown by at most {cfg.mature_growth:.0%} in {cfg.mature_window_s:g} s)"
+
+
+def mature(robots: list[RobotState], now_s: float, cfg: FleetConfig) -> bool:
+    """Whether every one of ``robots``' maps grew by at most ``mature_growth`` over the last
+    ``mature_window_s`` (a young map's match is not evidence yet)."""
+    return all(r.mature(now_s, cfg.mature_window_s, cfg.mature_growth) for r in robots)
+
+
+def moved(r: RobotState, a: Alignment, b: Alignment, cfg: FleetConfig) -> bool:
+    """Whether ``a`` and ``b`` put the robot's map at different places (its segments' midpoints
+    moved more than ``same_place_m`` on average)."""
+    pts = 0.5 * (r.layer.seg[:, 0] + r.layer.seg[:, 1])
+    return mean_displacement(a.transform, b.transform, pts) > cfg.same_place_m
+
+
+def confirm(r: RobotState, a: Alignment, current: Alignment | None, cfg: FleetConfig) -> Alignment:
+    """A new alignment (or a revision) counts once ``confirmations`` attempts in a row put the
+    robot at the same place; until then the robot stays unaligned (or where it was, ``current``).
+    Keeps the count on ``r`` (``pending``, ``pending_count``)."""
+    same = r.pending is not None and not moved(r, r.pending, a, cfg)
+    r.pending_count = r.pending_count + 1 if same else 1
+    r.pending = a
+    if r.pending_count >= cfg.confirmations:
+        r.pending, r.pending_count = None, 0
+        return a
+    why = f"awaiting confirmation ({r.pending_count}/{cfg.confirmations}) of {a.reason}"
+    if current is not None:
+        c = current
+        return Alignment("aligned", c.transform, c.sigma, c.score_m, c.inlier_share, c.rival_ratio, why)
+    return Alignment("unaligned", a.transform, a.sigma, a.score_m, a.inlier_share, a.rival_ratio, why)
