@@ -29,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from _results import save_results  # noqa: E402
+from bench_logs import discover  # noqa: E402
 
 from fleet_slam.demo import DemoConfig, run_demo  # noqa: E402
 
@@ -68,48 +69,45 @@ def log_row(name: str, split: int, seed: int, m: dict) -> str:
     )
 
 
-def find_log(d: Path) -> tuple[Path, Path]:
-    """A directory's CARMEN log and its relations (or the log file itself, relations beside it)."""
-    logs = [d] if d.is_file() else sorted([*d.glob("*.clf"), *d.glob("*.clf.gz")])
-    if not logs:
-        raise SystemExit(f"{d}: no CARMEN log (*.clf, *.clf.gz)")
-    log = logs[0]
-    stem = log.name.removesuffix(".gz").removesuffix(".clf")
-    rel = log.parent / f"{stem}.relations"
-    if not rel.exists():
-        raise SystemExit(f"{log}: no relations beside it ({rel.name})")
-    return log, rel
+def run_cases(cases: list, result_name: str, args) -> dict:
+    """Run every ``(key, DemoConfig, row)`` case as a demo, print ``row(metrics)`` as each ends,
+    and save all metrics under ``result_name``."""
+    results = {}
+    for key, cfg, row_of in cases:
+        results[key] = run_demo(cfg)
+        print(row_of(results[key]), flush=True)
+    save_results(
+        ROOT / "benchmarks" / "results" / f"{result_name}.json",
+        result_name,
+        {"args": vars(args), "runs": results},
+    )
+    return results
 
 
 def main_logs(args) -> int:
-    results = {}
+    entries, skipped = discover(args.logs)  # bench_logs.py's: a log with its relations beside it
+    for why in skipped:
+        print(f"skipped: {why}")
+    if not entries:
+        raise SystemExit("no log with relations to cut into pieces")
     print("log        split seed  pieces placed, wrong merges, relations error (all merged, across pieces),")
     print("                       first merge per piece (s after the agents started)")
-    for d in args.logs:
-        log, rel = find_log(Path(d))
-        name = log.name.split(".")[0]
-        for k in args.splits:
-            for seed in args.seeds:
-                cfg = DemoConfig(
-                    out=f"{args.out}/{name}-split{k}-seed{seed}", log=str(log), split=k, relations=str(rel),
-                    speed=0.0, seed=seed, progress=False,
-                )  # fmt: skip
-                m = run_demo(cfg)
-                results[f"{name}/split{k}/seed{seed}"] = m
-                print(log_row(name, k, seed, m), flush=True)
+    cases = [
+        (f"{e.name}/split{k}/seed{seed}",
+         DemoConfig(out=f"{args.out}/{e.name}-split{k}-seed{seed}", log=str(e.log), split=k,
+                    relations=str(e.relations), speed=0.0, seed=seed, progress=False),
+         lambda m, e=e, k=k, seed=seed: log_row(e.name, k, seed, m))
+        for e in entries for k in args.splits for seed in args.seeds
+    ]  # fmt: skip
+    results = run_cases(cases, "bench_demo_logs", args)
     wrong = sum(len(m["wrong_merges"]) for m in results.values())
     print(f"{len(results)} runs: {wrong} pieces in wrong merges")
-    save_results(
-        ROOT / "benchmarks" / "results" / "bench_demo_logs.json",
-        "bench_demo_logs",
-        {"args": vars(args), "runs": results},
-    )
     return 0
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
+    p.add_argument("--seeds", type=int, nargs="+", default=None, help="0-9 (--logs: 0)")
     p.add_argument("--unknown-starts", action="store_true")
     p.add_argument("--robots", type=int, default=3)
     p.add_argument("--world", default="office")
@@ -118,28 +116,22 @@ def main() -> int:
     p.add_argument("--logs", nargs="+", default=None, help="real logs (directories or files) cut into pieces")
     p.add_argument("--splits", type=int, nargs="+", default=[2, 3], help="--logs: pieces per log")
     args = p.parse_args()
+    if args.seeds is None:
+        args.seeds = [0] if args.logs else list(range(10))
     if args.logs:
-        if args.seeds == list(range(10)):
-            args.seeds = [0]
         return main_logs(args)
-    results = {}
     print("seed  fused precision/completeness, wrong merges, per robot: status transform-error @first-merge")
-    for seed in args.seeds:
-        cfg = DemoConfig(
-            out=f"{args.out}/seed{seed}", robots=args.robots, world=args.world, duration_s=args.duration,
-            seed=seed, unknown_starts=args.unknown_starts, progress=False,
-        )  # fmt: skip
-        m = run_demo(cfg)
-        results[seed] = m
-        print(row(seed, m), flush=True)
+    cases = [
+        (seed,
+         DemoConfig(out=f"{args.out}/seed{seed}", robots=args.robots, world=args.world,
+                    duration_s=args.duration, seed=seed, unknown_starts=args.unknown_starts, progress=False),
+         lambda m, seed=seed: row(seed, m))
+        for seed in args.seeds
+    ]  # fmt: skip
+    results = run_cases(cases, "bench_demo", args)
     wrong = sum(len(m["wrong_merges"]) for m in results.values())
     unaligned = sum(r["status"] == "unaligned" for m in results.values() for r in m["robots"].values())
     print(f"{len(results)} runs: {wrong} wrong merges, {unaligned} robots left unaligned")
-    save_results(
-        ROOT / "benchmarks" / "results" / "bench_demo.json",
-        "bench_demo",
-        {"args": vars(args), "runs": results},
-    )
     return 0
 
 

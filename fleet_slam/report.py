@@ -194,12 +194,7 @@ def _half_time(cfg, agents_dir: Path, names, updates: list[Update], t0: float, s
     if not merged:
         return out
     rel = read_relations(cfg.relations)
-    spans = [(s.min(), s.max()) for s in stamps]
-
-    def covered(t: np.ndarray) -> np.ndarray:
-        return np.any([(t >= a - 0.5) & (t <= b + 0.5) for a, b in spans], axis=0)
-
-    keep = covered(rel.t1_s) & covered(rel.t2_s)
+    keep = (_piece_of(rel.t1_s, stamps) >= 0) & (_piece_of(rel.t2_s, stamps) >= 0)
     out["relations_scored"] = int(keep.sum())
     if keep.any():
         sub = Relations(rel.t1_s[keep], rel.t2_s[keep], rel.delta[keep])
@@ -291,6 +286,15 @@ def _grid_quality(world, grid, g, true_paths: list[np.ndarray]) -> dict:
     return asdict(grid_quality(grid, apply_segments(to_global, world.walls), origins, ends, hit))
 
 
+def _piece_of(t: np.ndarray, stamps: list[np.ndarray]) -> np.ndarray:
+    """Which of the pieces (their ``stamps``) each time ``t`` falls in, within half a second of
+    its span (the first such piece); -1 for none."""
+    at = np.full(len(t), -1)
+    for k, s in enumerate(stamps):
+        at[(at < 0) & (t >= s.min() - 0.5) & (t <= s.max() + 0.5)] = k
+    return at
+
+
 def _log_scores(cfg, out: Path, all_stamps, all_poses, split, names: list[str]) -> dict:
     """A real log's pieces (``names``: the merged ones, their stamps and global poses) scored on
     the reference relations both of whose ends fall in merged pieces: all of them, and those
@@ -304,15 +308,7 @@ def _log_scores(cfg, out: Path, all_stamps, all_poses, split, names: list[str]) 
     if cfg.relations:
         rel = read_relations(cfg.relations)
         # only relations whose both ends fall in a merged piece: the others have no global pose
-        spans = [(s.min(), s.max()) for s in all_stamps]
-
-        def piece(t: np.ndarray) -> np.ndarray:
-            at = np.full(len(t), -1)
-            for k, (a, b) in enumerate(spans):
-                at[(at < 0) & (t >= a - 0.5) & (t <= b + 0.5)] = k
-            return at
-
-        p1, p2 = piece(rel.t1_s), piece(rel.t2_s)
+        p1, p2 = _piece_of(rel.t1_s, all_stamps), _piece_of(rel.t2_s, all_stamps)
         keep = (p1 >= 0) & (p2 >= 0)
         res["relations_total"] = len(rel.t1_s)
         res["relations_scored"] = int(keep.sum())

@@ -82,7 +82,7 @@ class MapIndex:
         self.tree = NearIndex(ps.points, INDEX_CELL_M, lines, compiled) if len(ps) else None
         self.inner = inner
         self.box = np.concatenate([self.seg.min(axis=1), self.seg.max(axis=1)], axis=1)  # (P,4)
-        self._last: tuple | None = None  # the last _near() (robot, pose, bound, d, answer)
+        self._last: tuple | None = None  # the last _near() (robot, pose, bound, answer)
 
     def _near(self, pose: np.ndarray, robot: Samples, bound: float) -> tuple:
         """The nearest placed samples (at most NEIGHBOURS) within ``bound`` of ``robot``'s samples
@@ -95,10 +95,7 @@ class MapIndex:
         if last is not None and last[0] is robot and bound <= last[2] and np.array_equal(last[1], pose):
             valid, j, d, dang, perp = last[3]
             return (valid if bound == last[2] else valid & (d <= bound)), j, d, dang, perp
-        q = transform_points(pose, robot.points)
-        near = self.tree.query(q, NEIGHBOURS, bound, robot.facing + pose[2], self.inner)
-        if near.outside:
-            raise OutsideIndex
+        near = self._query(pose, robot, bound)
         answer = near.j < len(self.samples), near.j, near.d, near.dang, np.abs(near.perp)
         self._last = (robot, np.array(pose, float), bound, answer)
         return answer
@@ -112,15 +109,22 @@ class MapIndex:
         k = len(robot)
         if self.tree is None or k == 0:
             return np.zeros(k, bool), np.zeros(k, int), np.zeros(k)
-        q = transform_points(pose, robot.points)
-        near = self.tree.query(q, NEIGHBOURS, gate_m, robot.facing + pose[2], self.inner)
-        if near.outside:
-            raise OutsideIndex
+        near = self._query(pose, robot, gate_m)
         good = (near.j < len(self.samples)) & (near.dang <= angle_rad)
         first = np.argmax(good, axis=1)
         rows = np.arange(k)
-        idx = np.where(near.j[rows, first] < len(self.samples), near.j[rows, first], 0)
-        return _any_row(good), idx, near.perp[rows, first]
+        idx = near.j[rows, first]
+        return _any_row(good), np.where(idx < len(self.samples), idx, 0), near.perp[rows, first]
+
+    def _query(self, pose: np.ndarray, robot: Samples, bound: float):
+        """The index's answer (shared.kernels.Near) for ``robot``'s samples moved by ``pose``:
+        their NEIGHBOURS nearest within ``bound``, with the facing differences and line distances;
+        :class:`OutsideIndex` when a sample lies outside a crop's inner box."""
+        q = transform_points(pose, robot.points)
+        near = self.tree.query(q, NEIGHBOURS, bound, robot.facing + pose[2], self.inner)
+        if near.outside:
+            raise OutsideIndex
+        return near
 
     def _inside(self, q: np.ndarray) -> None:
         if self.inner is None or len(q) == 0:

@@ -38,36 +38,38 @@ static int cell_range(double v, double bound, double cell, int64_t origin, int64
 /* near: for each query point, the k nearest points nearer than ``bound`` (squared distance
  * below bound²), nearest first, the lower index first among equals; missing neighbours get
  * distance inf and index M. The N points come sorted by grid cell: ``data`` (N,S) their rows in
- * that order, x and y first; ``order`` (N,) their indices in [0, M) (points left out of the grid
+ * that order, x and y first (S >= 2 columns); ``order`` (N,) their indices in [0, M) (points left out of the grid
  * keep theirs); ``start`` (W*H+1,) the first of each cell: cell (cx, cy) is row cx*H + cy relative
  * to the grid's origin cell (x0, y0); a point's cell is floor(x / cell).
  *
- * With ``lines`` (S = 6) the points are samples of directed lines, each row x, y, facing, unit
+ * With ``lines`` (S >= 6) the points are samples of directed lines, each row x, y, facing, unit
  * normal nx, ny and offset (nx x + ny y = offset on the line), and each query has a facing ``qf``
  * (Q,): for every neighbour slot the facing difference |wrap(qf - facing)| and the signed distance
  * of the query to the line nx x + ny y - offset, the slots of missing neighbours with point 0's
- * line ``line0`` (facing, nx, ny, offset), as map_server/registration.py computes them; without
- * (S = 2), ``qf``, ``line0`` and the two outputs are empty. Returns how many queries lie outside
+ * line ``line0`` (facing, nx, ny, offset), as map_server/registration.py computes them; without,
+ * ``qf``, ``line0`` and the two outputs are empty. Returns how many queries lie outside
  * the box lo_x, lo_y, hi_x, hi_y. */
 static PyObject *near(PyObject *self, PyObject *args) {
     Py_buffer b_data, b_order, b_start, b_q, b_qf, b_line0, b_d, b_j, b_dang, b_perp;
-    Py_ssize_t N, M, W, H, Q, K;
+    Py_ssize_t N, S, M, W, H, Q, K;
     long long x0, y0;
     int lines;
     double cell, bound, lo_x, lo_y, hi_x, hi_y;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*w*w*w*w*nnnnnnLLddpdddd", &b_data, &b_order, &b_start, &b_q, &b_qf,
-                          &b_line0, &b_d, &b_j, &b_dang, &b_perp, &N, &M, &W, &H, &Q, &K, &x0, &y0, &cell, &bound,
-                          &lines, &lo_x, &lo_y, &hi_x, &hi_y))
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*w*w*w*w*nnnnnnnLLddpdddd", &b_data, &b_order, &b_start, &b_q, &b_qf,
+                          &b_line0, &b_d, &b_j, &b_dang, &b_perp, &N, &S, &M, &W, &H, &Q, &K, &x0, &y0, &cell,
+                          &bound, &lines, &lo_x, &lo_y, &hi_x, &hi_y))
         return NULL;
     Py_buffer *all[] = {&b_data, &b_order, &b_start, &b_q, &b_qf, &b_line0, &b_d, &b_j, &b_dang, &b_perp};
     const int n_buf = (int)(sizeof(all) / sizeof(all[0]));
     PyObject *result = NULL;
-    if (N < 0 || M < N || W < 0 || H < 0 || Q < 0 || K < 1 || K > MAX_K || (W > 0 && H > PY_SSIZE_T_MAX / 8 / W)) {
-        PyErr_Format(PyExc_ValueError, "near: bad sizes N=%zd M=%zd W=%zd H=%zd Q=%zd k=%zd (k in 1..%d)", N, M, W, H,
-                     Q, K, MAX_K);
+    if (N < 0 || S < (lines ? 6 : 2) || M < N || W < 0 || H < 0 || Q < 0 || K < 1 || K > MAX_K ||
+        (W > 0 && H > PY_SSIZE_T_MAX / 8 / W)) {
+        PyErr_Format(PyExc_ValueError,
+                     "near: bad sizes N=%zd S=%zd M=%zd W=%zd H=%zd Q=%zd k=%zd (k in 1..%d; S >= 6 with lines)", N, S,
+                     M, W, H, Q, K, MAX_K);
         goto done;
     }
-    const Py_ssize_t S = lines ? 6 : 2, L = lines ? 1 : 0;
+    const Py_ssize_t L = lines ? 1 : 0;
     Py_ssize_t need[] = {N * S * 8, N * 8, (W * H + 1) * 8, Q * 2 * 8, L * Q * 8, L * 4 * 8, Q * K * 8, Q * K * 8,
                          L * Q * K * 8, L * Q * K * 8};
     if (!sizes_ok("near", all, need, n_buf)) goto done;
@@ -305,7 +307,7 @@ done:
 
 static PyMethodDef methods[] = {
     {"near", near, METH_VARARGS,
-     "near(data, order, start, q, qf, line0, d_out, j_out, dang_out, perp_out, N, M, W, H, Q, k, x0, y0, "
+     "near(data, order, start, q, qf, line0, d_out, j_out, dang_out, perp_out, N, S, M, W, H, Q, k, x0, y0, "
      "cell, bound, lines, lo_x, lo_y, hi_x, hi_y) -> outside: the k nearest points within bound of each query "
      "(cKDTree.query's answer, ties by index), with lines their facing differences and line distances."},
     {"grid", grid, METH_VARARGS,

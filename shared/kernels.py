@@ -67,7 +67,6 @@ class NearIndex:
         self.compiled = bool(compiled and AVAILABLE)
         if not self.compiled:
             self._tree = cKDTree(pts) if self.n else None
-            self._pts = pts
             return
         if not (np.isfinite(cell_m) and cell_m > 0):
             raise ValueError(f"cell_m must be finite and > 0, got {cell_m}")
@@ -95,7 +94,6 @@ class NearIndex:
         kept = _kernels.grid(cols, data, order, self._start, len(cols), self.n, w, h, x0, y0, float(cell_m))
         self._data, self._order = data[:kept], order[:kept]
         self._line0 = np.array([a[0] for a in self.lines]) if self.lines is not None and self.n else _EMPTY
-        self._xy_only: np.ndarray | None = None
         self._origin, self._w, self._h, self.cell_m = origin, int(w), int(h), float(cell_m)
 
     def query(
@@ -125,19 +123,13 @@ class NearIndex:
             qf = np.ascontiguousarray(facing, dtype=np.float64)
             dang, perp = np.empty((nq, k)), np.empty((nq, k))
         x0, y0 = (int(v) for v in self._origin)
-        data = self._data if facing is not None or self.lines is None else self._xy()
+        n_grid, stride = self._data.shape
         outside = _kernels.near(
-            data, self._order, self._start, q, qf, self._line0 if facing is not None else _EMPTY,
-            d, j, dang, perp, len(self._order), self.n, self._w, self._h, nq, int(k), x0, y0, self.cell_m,
+            self._data, self._order, self._start, q, qf, self._line0 if facing is not None else _EMPTY,
+            d, j, dang, perp, n_grid, stride, self.n, self._w, self._h, nq, int(k), x0, y0, self.cell_m,
             float(bound), facing is not None, float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]),
         )  # fmt: skip
         return Near(d, j, None if facing is None else dang, None if facing is None else perp, outside > 0)
-
-    def _xy(self) -> np.ndarray:
-        """The sorted rows' x and y alone (a query without facings of an index with lines)."""
-        if self._xy_only is None:
-            self._xy_only = np.ascontiguousarray(self._data[:, :2])
-        return self._xy_only
 
     def _reference(self, q, k, bound, facing, lo, hi) -> Near:
         """The numpy answer: a k-d tree, its ties reordered by index."""

@@ -72,6 +72,9 @@ def test_line_terms_and_the_box_as_numpy_computes_them():
         for x, y in zip(a[:4], b[:4], strict=True):
             assert np.array_equal(x, y)
         assert a.outside == b.outside == (box is not None and box[0][0] == 0.0)
+    # the same index asked without facings: the neighbours alone (its rows read at their full width)
+    a, b = fast.query(q, 8, 0.4), ref.query(q, 8, 0.4)
+    assert np.array_equal(a.d, b.d) and np.array_equal(a.j, b.j) and a.dang is None
 
 
 @needs_kernel
@@ -124,7 +127,7 @@ def test_bad_arguments_are_named():
                 np.zeros((2, 2)), np.zeros(2, np.int64), np.array([0, 5], np.int64), np.zeros((1, 2)),
                 np.zeros(0), np.zeros(0), np.zeros((1, 1)), np.zeros((1, 1), np.int64),
                 np.zeros(0), np.zeros(0),
-                2, 2, 1, 1, 1, 1, 0, 0, 0.3, 0.3, False, 0.0, 0.0, 0.0, 0.0,
+                2, 2, 2, 1, 1, 1, 1, 0, 0, 0.3, 0.3, False, 0.0, 0.0, 0.0, 0.0,
             )  # fmt: skip
 
 
