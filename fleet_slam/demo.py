@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from fleet_slam.procs import ProcGroup, free_port, python_module
-from fleet_slam.watch import FusedWatcher, Update
+from fleet_slam.watch import FusedWatcher, Update, fetch_paths
 
 STARTUP_TIMEOUT_S = 60.0
 SETTLE_QUIET_S = 3.0  # after the agents end: the fused map is final when quiet this long
@@ -155,13 +155,14 @@ def run_demo(cfg: DemoConfig) -> dict:
                 watcher.wait_for(lambda f: sum(r.merged for r in f.robots) == everyone, LOG_LINGER_S)
             final = watcher.wait_quiet(SETTLE_QUIET_S, SETTLE_TIMEOUT_S)
             final = watcher.fetch(2.0) or final
+            paths = fetch_paths(bus, Keys(cfg.fleet))
             updates = list(watcher.updates)
             free = _settled_free(bus, Keys(cfg.fleet))
         server.stop()
         router.stop()
     if final is None:
         raise RuntimeError(f"no fused map was received; see {out / 'logs' / 'server.log'}")
-    metrics = write_report(cfg, out, final, updates, t_agents, agents_dir, split, free)
+    metrics = write_report(cfg, out, final, updates, t_agents, agents_dir, split, free, paths)
     metrics["wall_time_s"] = time.monotonic() - t_start
     metrics["config"] = asdict(cfg)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))

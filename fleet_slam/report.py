@@ -94,7 +94,7 @@ def fused_geojson(final: FusedMap) -> dict:
 
 def write_report(
     cfg, out: Path, final: FusedMap, updates: list[Update], t0: float, agents_dir: Path, split,
-    free: FusedFree | None = None,
+    free: FusedFree | None = None, paths: dict | None = None,
 ):  # fmt: skip
     names = cfg.robot_names()
     first = _first_merges(updates, t0)
@@ -127,7 +127,11 @@ def write_report(
             "bytes_per_s": _bytes_per_s(info),
         }
         merged = status is not None and status.merged
-        poses = compose(status.transform, own) if merged else own
+        path = (paths or {}).get(name)
+        if path is not None and path.robot_session == status.session and merged and len(own):
+            poses = path.apply(stamps, own)  # each pose moved with its keyframe (the fleet's graph)
+        else:
+            poses = compose(status.transform, own) if merged else own
         r["frame"] = "global" if merged else "local (unaligned)"
         write_poses(out / f"{name}.poses.txt", stamps, poses)
         write_tum(out / f"{name}.tum", stamps, poses)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 from shared import codec
 from shared.keys import Keys
-from shared.messages import FusedMap, WireFormatError
+from shared.messages import FusedMap, RobotPath, WireFormatError
 
 # a server publishes a new version per fusion, its fusions spaced (--min-gap, 0.05 s by default):
 # a version further ahead of the last one taken than this allows for the time since is not its
@@ -119,3 +119,16 @@ class FusedWatcher:
                     break
                 self.changed.wait(min(quiet_s, max(0.0, end - time.monotonic())))
             return self.latest
+
+
+def fetch_paths(bus, keys, timeout_s: float = 2.0) -> dict[str, RobotPath]:
+    """Where the server's fleet graph puts each placed robot's keyframes (robot -> RobotPath);
+    replies that do not decode are skipped."""
+    out = {}
+    for _key, payload in bus.get(keys.all_paths, timeout_s=timeout_s):
+        try:
+            p = codec.decode(payload, expect=RobotPath)
+        except WireFormatError:
+            continue
+        out[p.robot] = p
+    return out

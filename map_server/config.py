@@ -1,7 +1,7 @@
 """The map server's configuration: alignment (a robot map's frame in the global frame,
-alignment.py, candidates.py, registration.py) and the fleet (scheduling of alignment attempts,
-maturity, confirmations, settling, budgets: fleet.py). Its own module so that those import it and
-not each other."""
+alignment.py, candidates.py, registration.py), the fleet's pose graph (posegraph.py) and the
+fleet (scheduling of alignment attempts, maturity, confirmations, settling, budgets: fleet.py).
+Its own module so that those import it and not each other."""
 
 from __future__ import annotations
 
@@ -71,9 +71,64 @@ class AlignmentConfig:
 
 
 @dataclass(frozen=True)
+class GraphConfig:
+    """The fleet's pose graph (map_server/posegraph.py)."""
+
+    enabled: bool = True
+    every_keyframes: int = 3  # a constraint is sought around every this many keyframes ...
+    crop_radius_m: float = 6.0  # ... from the robot's elements this near it (where the graph puts them)
+    window_keyframes: int = 10  # ... and anchored this many keyframes before or after it
+    min_submap_m: float = 4.0  # a submap with less wall than this is not matched
+    min_matched_m: float = 2.0  # a constraint rests on this much matched wall ...
+    min_matched_share: float = 0.4  # ... and this share of the submap
+    # registration (registration.refine): one iteration per (gate [m], facing tolerance [rad]);
+    # a keyframe's first match searches wide (the rigid placement may be off by decimetres where
+    # the robots' paths bent), later ones narrow around where the graph put it
+    first_stages: tuple[tuple[float, float], ...] = (
+        (1.0, np.radians(8.0)),
+        (0.7, np.radians(7.0)),
+        (0.5, np.radians(6.0)),
+        (0.35, np.radians(6.0)),
+        (0.25, np.radians(5.0)),
+        (0.15, np.radians(5.0)),
+        (0.1, np.radians(5.0)),
+        (0.1, np.radians(5.0)),
+    )
+    first_shift_m: float = 1.5  # the fit may move the keyframe this far (first match) ...
+    first_turn_rad: float = np.radians(8.0)
+    stages: tuple[tuple[float, float], ...] = (
+        (0.4, np.radians(6.0)),
+        (0.25, np.radians(5.0)),
+        (0.15, np.radians(5.0)),
+        (0.1, np.radians(5.0)),
+        (0.1, np.radians(5.0)),
+    )
+    max_shift_m: float = 0.5  # ... and this far later
+    max_turn_rad: float = np.radians(4.0)
+    rematch_m: float = 0.05  # a keyframe the graph moved this much since its match is matched again
+    rematch_rad: float = np.radians(0.5)
+    sample_step_m: float = 0.1
+    point_sigma_m: float = 0.05
+    correlation_m: float = 1.0
+    floor_sigma_m: float = 0.03  # added to a constraint's fit (the submaps' own errors)
+    floor_sigma_rad: float = np.radians(0.5)
+    robust_k: float = 3.0  # Cauchy kernel on constraints (normalized residual units)
+    max_chi: float = 5.0  # constraints beyond this after the solve are dropped
+    iterations: int = 8
+    reference_sigma_m: float = 1e-4  # the reference robot's placement edge (the gauge)
+    reference_sigma_rad: float = 1e-5
+    placement_sigma_m: float = 2.0  # an aligned robot's placement edge (weak)
+    placement_sigma_rad: float = np.radians(10.0)
+    moved_m: float = 0.005  # a robot's elements are moved again when a keyframe moved this much
+    moved_rad: float = np.radians(0.05)
+    budget_keyframes: int = 40  # keyframes matched per fusion (the rest in the next ones)
+
+
+@dataclass(frozen=True)
 class FleetConfig:
     fusion: FusionConfig = field(default_factory=FusionConfig)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
+    graph: GraphConfig = field(default_factory=GraphConfig)
     retry_growth_m: float = 5.0  # re-attempt a robot's alignment when its map grew by this much ...
     retry_growth_share: float = 0.05  # ... or by this share of its length (whichever is larger)
     retry_placed_growth_m: float = 10.0  # an unaligned robot is retried when the placed map grew so

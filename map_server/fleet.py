@@ -57,6 +57,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 
+import msgpack
 import numpy as np
 
 from map_server import policy
@@ -70,11 +71,12 @@ from map_server.alignment import (
 from map_server.config import FleetConfig
 from map_server.fusion import fuse_particles
 from map_server.incremental import MergedMap, Source
+from map_server.posegraph import FleetGraph, Placed, RobotGraph
 from map_server.registration import MapIndex, OutsideIndex, Samples
 from map_server.schedule import Around, PlacedKey, global_box
 from map_server.state import RetiredPiece, RobotState
-from shared.geometry import compose, wrap_angle
-from shared.messages import FusedMap, PoseUpdate, RobotMap, RobotStatus
+from shared.geometry import apply_segments, compose, inverse, relative, wrap_angle
+from shared.messages import FusedMap, PoseUpdate, RobotMap, RobotPath, RobotStatus
 
 log = logging.getLogger("fleet_slam.fleet")
 
@@ -100,6 +102,8 @@ class Fleet:
         self._statuses: dict[str, tuple] = {}  # robot -> (what its status is made of, status, key)
         self._entries: dict[tuple, tuple] = {}  # parts of schedule.placed_key, per robot or retired piece
         self._samples: dict[str, tuple] = {}  # robot -> (layer, its samples for alignment attempts)
+        self.graph = FleetGraph(cfg.graph)  # the placed robots' keyframes solved together
+        self._graph_key: tuple | None = None  # what the graph's last solve held
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -174,6 +178,7 @@ class Fleet:
         for r in self.robots.values():
             if r.map is not None and r.layer is None:
                 r.layer = fuse_particles(r.map, self.cfg.fusion)
+                r.graph = RobotGraph.of(r.map, r.layer)
                 r.record_length(now_s, self.cfg.mature_window_s)
         self._choose_frame(now_s)
         while self._align_round(now_s):
@@ -185,7 +190,55 @@ class Fleet:
             self._settle(now_s)
         if self.frame == "prior":
             self._hold_prior_gauge()
+        self._bend()
         return self._publish(now_s)
+
+    def _bend(self) -> None:
+        """The fleet's pose graph (posegraph.py) over the placed robots: constraints sought for
+        this fusion's share of keyframes, the graph solved again when anything it holds changed,
+        and each robot's rows moved with its keyframes where they moved (``moved_m`` /
+        ``moved_rad``). Without a constraint between robots every map stays rigid."""
+        cfg = self.cfg.graph
+        placed = [r for r in self._placed() if r.map is not None and r.graph is not None]
+        ids = {id(r) for r in placed if not r.graph.rigid}
+        for r in self.robots.values():
+            if id(r) not in ids:
+                r.bent = r.bent_x = r.bent_of = None
+        if not cfg.enabled or len(placed) < 2 or not ids:
+            for r in placed:
+                r.bent = r.bent_x = r.bent_of = None
+            return
+        items = [_graph_item(r) for r in placed]
+        tried = self.graph.match(items)
+        key = tuple(
+            (r.robot, id(r.graph), r.alignment.transform.tobytes(), r.alignment.status) for r in placed
+        )
+        if not tried and key == self._graph_key:
+            return
+        self._graph_key = key
+        x = self.graph.solve(items)
+        if not self.graph.stats.get("constraints_kept"):
+            for r in placed:
+                r.bent = r.bent_x = r.bent_of = None
+            return
+        for r, p in zip(placed, items, strict=True):
+            if r.graph.rigid:
+                continue
+            xr = x[r.robot]
+            if r.bent is not None and r.bent_of is r.layer and len(r.bent_x) == len(xr):
+                d = relative(r.bent_x, xr)
+                if np.hypot(d[:, 0], d[:, 1]).max(initial=0.0) < cfg.moved_m and (
+                    np.abs(d[:, 2]).max(initial=0.0) < cfg.moved_rad
+                ):
+                    continue
+            r.bent = dataclasses.replace(r.layer, seg=self.graph.rows(p, xr))
+            r.bent_x, r.bent_of = xr, r.layer
+
+    def bent_transform(self, r: RobotState) -> np.ndarray | None:
+        """Where the graph puts the robot's map frame now: its newest keyframe's correction."""
+        if r.bent is None or r.graph is None:
+            return None
+        return compose(r.bent_x[-1], inverse(r.graph.pose[-1]))
 
     def _settle(self, now_s: float) -> None:
         """Refinement sweeps of every placed robot against the others until the frames stop
@@ -235,11 +288,29 @@ class Fleet:
     @property
     def pending_work(self) -> bool:
         """Whether a fusion now would do work without new input: a settle's sweeps are under way
-        (spread over fusions: ``settle_refinements``) or about to begin (a robot left)."""
-        return self._settling is not None or self._left
+        (spread over fusions: ``settle_refinements``) or about to begin (a robot left), or
+        keyframes wait to be matched for the fleet's graph (spread over fusions too)."""
+        return self._settling is not None or self._left or self.graph.pending
 
     def latest(self) -> FusedMap | None:
         return self._latest
+
+    def paths(self, version: int, session: str = "") -> list[RobotPath]:
+        """Where each placed robot's keyframes are (the graph's solution, or its rigid placement;
+        one keyframe at the map frame's origin for a map without a graph)."""
+        out = []
+        for r in self._placed():
+            if r.map is None:
+                continue
+            g = r.graph
+            if g is None or g.rigid:
+                stamps, local, pose = np.zeros(1), np.zeros((1, 3)), r.alignment.transform[None]
+            else:
+                stamps, local = r.map.kf_stamp, g.pose
+                pose = r.bent_x if r.bent is not None else compose(r.alignment.transform, g.pose)
+            ids = (self.server_id, session, version, r.robot, r.map.session)
+            out.append(RobotPath(*ids, stamps, local, pose))
+        return out
 
     def placements(self) -> dict[tuple[str, str], np.ndarray]:
         """Where each placed map is: ``(robot, session) -> transform (3,)`` (its map frame in
@@ -275,7 +346,12 @@ class Fleet:
         """What the fused map merges, in the order of the merge: the placed robots by name, then
         the retired pieces."""
         robots = sorted(self._placed(), key=lambda r: r.robot)
-        out = [Source(("robot", r.robot), r.robot, r.layer, r.alignment.transform) for r in robots]
+        out = [
+            Source(("robot", r.robot), r.robot, r.layer, r.alignment.transform)
+            if r.bent is None
+            else Source(("robot", r.robot), r.robot, r.bent, np.zeros(3))
+            for r in robots
+        ]
         pieces = self._pieces()
         return out + [
             Source(("piece", p.robot, p.session), p.robot, p.layer, p.alignment.transform) for p in pieces
@@ -445,6 +521,7 @@ class Fleet:
         if moved < 1e-3 and abs(g[2]) < 1e-4:
             return
         self._synced()
+        bent = False
         for r in placed:
             a = dataclasses.replace(r.alignment, transform=compose(g, r.alignment.transform))
             if isinstance(r, RetiredPiece):
@@ -452,7 +529,15 @@ class Fleet:
                 pieces[pieces.index(r)] = dataclasses.replace(r, alignment=a)
             else:
                 r.alignment = a
-        self._merged.moved(g, self._sources())
+                if r.bent is not None:  # the graph's solution moves along
+                    r.bent = dataclasses.replace(r.bent, seg=apply_segments(g, r.bent.seg))
+                    r.bent_x = compose(g, r.bent_x)
+                    self.graph.shift(r.robot, g)
+                    bent = True
+        if bent:
+            self._synced()  # (new layers: merged again)
+        else:
+            self._merged.moved(g, self._sources())
 
     # -- output --------------------------------------------------------------------------------
 
@@ -462,6 +547,9 @@ class Fleet:
             return None
         a = r.alignment
         transform = a.transform if a.placed else np.zeros(3)
+        bent = self.bent_transform(r) if a.placed else None
+        if bent is not None:
+            transform = bent
         sigma = a.sigma if a.placed else np.zeros(3)
         local, stamp = None, 0.0
         if r.pose is not None and r.pose.session == session:
@@ -477,7 +565,7 @@ class Fleet:
     def _status_row(self, r: RobotState) -> tuple[RobotStatus | None, tuple]:
         """The robot's status and its part of the content key, made again only when what they are
         made of changed (those objects are replaced on a change, never modified)."""
-        made_of = (r.map, r.pose, r.alignment, r.layer, r.online, r.aligned_at_s)
+        made_of = (r.map, r.pose, r.alignment, r.layer, r.online, r.aligned_at_s, r.bent)
         cached = self._statuses.get(r.robot)
         if cached is not None and all(a is b for a, b in zip(cached[0], made_of, strict=True)):
             return cached[1], cached[2]
@@ -531,6 +619,23 @@ class Fleet:
 
     # -- persistence ---------------------------------------------------------------------------
 
+    def _restore_graph(self, blob: bytes | None) -> None:
+        """The bent robots as the graph left them (see :meth:`graph_blob`); a robot whose map
+        is not the one its solution was of stays rigid until the graph is solved again."""
+        if blob is None:
+            return
+        for robot, (session, seq, raw) in msgpack.unpackb(blob, raw=False).items():
+            r = self.robots.get(robot)
+            if r is None or r.map is None or (r.map.session, r.map.seq) != (session, seq) or r.graph is None:
+                continue
+            x = np.frombuffer(raw, "<f8").reshape(-1, 3)
+            if len(x) != len(r.graph) or not r.alignment.placed:
+                continue
+            p = _graph_item(r)
+            self.graph.solution[robot] = (r.graph, x)
+            r.bent = dataclasses.replace(r.layer, seg=self.graph.rows(p, x))
+            r.bent_x, r.bent_of = x, r.layer
+
     def snapshot(self) -> tuple[dict, dict[str, RobotMap]]:
         """Everything needed to resume: a JSON-able dict and the latest map of every robot."""
         meta = dict(
@@ -543,10 +648,28 @@ class Fleet:
         maps.update((p.blob, p.map) for p in self._pieces())
         return meta, maps
 
+    def graph_blob(self) -> bytes | None:
+        """Where the fleet's graph put each bent robot's keyframes, as bytes (None: none bent):
+        restored with the maps, the same fused map comes back."""
+        bent = {
+            r.robot: [r.map.session, r.map.seq, np.asarray(r.bent_x, "<f8").tobytes()]
+            for r in self.robots.values()
+            if r.bent is not None and r.map is not None
+        }
+        return msgpack.packb(bent, use_bin_type=True) if bent else None
+
     @classmethod
-    def restore(cls, meta: dict, maps: dict[str, RobotMap], cfg: FleetConfig, server_id: str) -> Fleet:
+    def restore(
+        cls,
+        meta: dict,
+        maps: dict[str, RobotMap],
+        cfg: FleetConfig,
+        server_id: str,
+        graph: bytes | None = None,
+    ) -> Fleet:
         """A fleet that fuses to the same map, same version (no alignment is re-attempted until
-        a map changes). ``maps`` holds the robots' maps and the retired pieces' (see snapshot)."""
+        a map changes). ``maps`` holds the robots' maps and the retired pieces' (see snapshot);
+        ``graph`` the graph's solution (:meth:`graph_blob`)."""
         f = cls(cfg, server_id)
         f.version, f.epoch_s, f.reference = int(meta["version"]), meta["epoch_s"], meta["reference"]
         f.frame, f._arrivals = meta["frame"], int(meta["arrivals"])
@@ -554,9 +677,16 @@ class Fleet:
             r = f.robots[name] = RobotState.from_dict(name, d, maps.get(name))
             if r.map is not None:
                 r.layer = fuse_particles(r.map, cfg.fusion)
+                r.graph = RobotGraph.of(r.map, r.layer)
         for name, pieces in meta.get("retired", {}).items():
             f.retired[name] = [RetiredPiece.from_dict(name, d, maps, cfg.fusion) for d in pieces]
+        f._restore_graph(graph)
         built = f._build()
         if built[0] and meta["stamp_s"] is not None:
             f._keep(built, meta["stamp_s"])
         return f
+
+
+def _graph_item(r: RobotState) -> Placed:
+    """What the fleet's graph takes of a placed robot."""
+    return Placed(r.robot, r.graph, r.layer, r.alignment.transform, r.alignment.status, r.map.prior_sigma)

@@ -60,6 +60,7 @@ class RobotLayer:
     trust: np.ndarray
     hits: np.ndarray
     element: np.ndarray
+    anchor: np.ndarray | None = None  # (N,) the keyframe id each row moves with (None: rigid map)
 
     def __len__(self) -> int:
         return len(self.seg)
@@ -115,6 +116,7 @@ def fuse_particles(m: RobotMap, cfg: FusionConfig) -> RobotLayer:
         trust=m.trust[win],
         hits=m.hits[win],
         element=ids[keep],
+        anchor=None if m.anchor is None else m.anchor[win],
     )
 
 

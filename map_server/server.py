@@ -27,7 +27,16 @@ from map_server.store import StateError, Store
 from shared import codec
 from shared.keys import Keys
 from shared.memory import Trimmer
-from shared.messages import MAX_ROBOTS, FreeSpace, FusedFree, FusedMap, PoseUpdate, RobotMap, WireFormatError
+from shared.messages import (
+    MAX_ROBOTS,
+    FreeSpace,
+    FusedFree,
+    FusedMap,
+    PoseUpdate,
+    RobotMap,
+    RobotPath,
+    WireFormatError,
+)
 
 log = logging.getLogger("fleet_slam.server")
 
@@ -46,6 +55,7 @@ class ServerConfig:
 
 
 FREE_BLOB = "free~"  # a robot session's free space in a snapshot: free~<robot>~<session>
+GRAPH_BLOB = "graph~"  # the fleet graph's solution (Fleet.graph_blob)
 
 
 class MapServer:
@@ -83,6 +93,7 @@ class MapServer:
         self.maps_applied = 0  # complete maps applied (>= fusions: a burst is coalesced into one fusion)
         self._last_status_s = time.monotonic()
         self._latest: list[bytes] = []
+        self._paths: list[RobotPath] = []  # where the fleet's graph put each placed robot (on query)
         self._stored: dict[str, tuple[tuple[str, int], bytes]] = {}  # robot -> ((session, seq), blob)
         self.fusions = 0
         self.session = uuid.uuid4().hex[:16]  # this process: receivers see a restart, not stale versions
@@ -103,13 +114,14 @@ class MapServer:
         meta, blobs = loaded
         try:  # the checksums hold, but the content must be a state this build reads too
             frees = {n: b for n, b in blobs.items() if n.startswith(FREE_BLOB)}
+            graph = blobs.pop(GRAPH_BLOB, None)
             blobs = {n: b for n, b in blobs.items() if n not in frees}
             maps = {name: codec.decode_stored_map(blob) for name, blob in blobs.items()}
             for name, blob in frees.items():
                 m = codec.decode(blob, expect=FreeSpace)
                 self.free.put(m)
                 self._stored_free[name] = (m.seq, blob)
-            self.fleet = Fleet.restore(meta["fleet"], maps, self.fleet_cfg, self.server_id)
+            self.fleet = Fleet.restore(meta["fleet"], maps, self.fleet_cfg, self.server_id, graph)
             self._time_offset = float(meta.get("now_s", 0.0))
         except (KeyError, TypeError, ValueError) as exc:
             raise StateError(f"{self.store.index}: cannot be restored ({type(exc).__name__}: {exc})") from exc
@@ -118,6 +130,7 @@ class MapServer:
         latest = self.fleet.latest()
         if latest is not None:
             self._latest = self._payloads(latest)
+            self._paths = self.fleet.paths(latest.version, self.session)
         if self.free.latest:  # the fleet's free space as the restored placements put it
             self._latest_free = [self._free_payload(self._fuse_free(force=True))]
         log.info(
@@ -142,6 +155,9 @@ class MapServer:
         for gone in set(self._stored_free) - set(frees):
             del self._stored_free[gone]
         blobs.update({name: b for name, (_, b) in self._stored_free.items()})
+        graph = self.fleet.graph_blob()
+        if graph is not None:
+            blobs[GRAPH_BLOB] = graph
         self.store.save({"fleet": meta, "now_s": self.now_s(), "server": self.server_id}, blobs)
 
     # -- bus callbacks (zenoh threads): decode, validate, queue ----------------------------------
@@ -233,6 +249,15 @@ class MapServer:
         with self._lock:
             return [(self.keys.fused, b) for b in self._latest]
 
+    def answer_paths(self, key: str) -> list[tuple[str, bytes]]:
+        """Each asked placed robot's keyframes where the fleet's graph puts them (RobotPath)."""
+        with self._lock:
+            paths = list(self._paths)
+        asked = str(key).rsplit("/", 1)[-1]
+        return [
+            (self.keys.robot_path(p.robot), codec.encode(p)) for p in paths if asked in ("*", "**", p.robot)
+        ]
+
     # -- the loop ----------------------------------------------------------------------------------
 
     def start(self) -> None:
@@ -243,6 +268,7 @@ class MapServer:
         self.bus.subscribe(self.keys.all_free, self.on_free)
         self.bus.serve(self.keys.fused, self.answer_fused)
         self.bus.serve(self.keys.fused_free, self.answer_free)
+        self.bus.serve(self.keys.all_paths, self.answer_paths)
         for key, payload in self.bus.get(self.keys.all_maps, timeout_s=self.cfg.pull_timeout_s):
             self.on_map(key, payload, pulled=True)
         for key, payload in self.bus.get(self.keys.all_free, timeout_s=self.cfg.pull_timeout_s):
@@ -283,8 +309,9 @@ class MapServer:
         self._persist()  # before publishing: what anyone has seen survives a crash
         self.fuse_ms.append((time.perf_counter() - t0) * 1e3)
         payloads = self._payloads(fused)
+        paths = self.fleet.paths(fused.version, self.session)
         with self._lock:
-            self._latest = payloads
+            self._latest, self._paths = payloads, paths
         for p in payloads:
             self.bus.put(self.keys.fused, p, reliable=True)
         self._tick_free(now)

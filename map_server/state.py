@@ -10,6 +10,7 @@ import numpy as np
 
 from map_server.alignment import Alignment
 from map_server.fusion import FusionConfig, RobotLayer, fuse_particles
+from map_server.posegraph import RobotGraph
 from shared.messages import PoseUpdate, RobotMap
 
 if TYPE_CHECKING:
@@ -43,11 +44,17 @@ class RobotState:
     pending: Alignment | None = None
     pending_count: int = 0
     lengths: list[tuple[float, float]] = field(default_factory=list)  # (server time, map length)
+    graph: RobotGraph | None = None  # the map's pose graph (posegraph.RobotGraph), with the layer
+    bent: RobotLayer | None = None  # the layer's rows in the global frame as the fleet's graph
+    # moved them (None: the map is placed rigidly by its alignment's transform)
+    bent_x: np.ndarray | None = None  # the keyframe poses (global) ``bent`` was moved with
+    bent_of: RobotLayer | None = None  # the layer ``bent`` was made of
 
     def new_session(self) -> None:
         """The robot restarted: its map frame is a new one, nothing of the old alignment holds."""
         self.alignment = _unaligned("new session")
         self.layer, self.aligned_at_s, self.first_map_s = None, None, None
+        self.graph = self.bent = self.bent_x = self.bent_of = None
         self.attempt_len_m, self.attempt_placed_m, self.attempt_placed_key = None, 0.0, ""
         self.attempt_seq = -1
         self.pending, self.pending_count = None, 0

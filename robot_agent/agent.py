@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robot_agent.backend.live import LiveCorrector
+from robot_agent.backend.live import LiveCorrector, graph_fields
 from robot_agent.freespace import FreeSpaceConfig, FreeSpaceViews
 from robot_agent.health import LaserHealth
 from robot_agent.publish import MapArrays, PublishConfig, top_particle_maps
@@ -76,6 +76,8 @@ class AgentCore:
         self.scans = 0
         self.estimate: Estimate | None = None
         self._fingerprint: bytes | None = None
+        self._graph: dict = {}  # the pose graph of the map being published (LiveCorrector.graph_fields)
+        self._rebuilt_graph: tuple | None = None  # the graph of a map rebuilt along it (rebuilt())
         self._next_pose_s = -np.inf
         self._next_map_s = -np.inf
         self._last_stamp_s = 0.0
@@ -153,7 +155,7 @@ class AgentCore:
         self.session = uuid.uuid4().hex[:16]
         self.first_scan = self.scans
         self.prior = self.prior_sigma = None  # the new frame is nowhere known
-        self._fingerprint = None
+        self._fingerprint, self._rebuilt_graph = None, None
         self._next_map_s = -np.inf
         self.free = FreeSpaceViews(self.cfg.free)  # (the ended session's went out with its map)
         self.free_seq, self._free_fingerprint, self._next_free_s = 0, None, -np.inf
@@ -167,11 +169,15 @@ class AgentCore:
         pose = self.estimate.pose
         return pose if self.corrector is None else self.corrector.pose(pose)
 
-    def rebuilt(self, slam: FastSLAM, pose: np.ndarray) -> None:
+    def rebuilt(self, slam: FastSLAM, pose: np.ndarray, graph: tuple | None = None) -> None:
         """The back end corrected the path and ``slam`` holds the map rebuilt along it: publish
-        that map and ``pose (3,)``, the corrected current pose, next (both due at once)."""
+        that map and ``pose (3,)``, the corrected current pose, next (both due at once).
+        ``graph``: ``(correction, gauge, first)``, the back end's last correction, whose graph
+        goes out with the map (its frame moved by ``gauge``; ``slam``'s scan ``i`` is this
+        session's scan ``first + i``)."""
         self.slam = slam
         self.corrector = None  # the rebuilt map and pose are in the corrected frame already
+        self._rebuilt_graph = graph
         if self.estimate is not None:
             self.estimate = dataclasses.replace(self.estimate, pose=np.asarray(pose, float).copy())
         self._next_pose_s = self._next_map_s = self._next_free_s = -np.inf
@@ -204,14 +210,21 @@ class AgentCore:
             return None  # the back end's corrections meanwhile may follow the robot's path elsewhere
         self._next_map_s = self._last_stamp_s + self.cfg.map_period_s
         arrays = top_particle_maps(self.slam, self.cfg.publish)
+        self._graph = {}
+        born = self.slam.step_index - arrays.age
         if self.corrector is not None:  # every element moved with the keyframe it was made from
+            self._graph = self.corrector.graph_fields(born)
             arrays = dataclasses.replace(
                 arrays,
-                seg=self.corrector.segments(arrays.seg, self.slam.step_index - arrays.age),
+                seg=self.corrector.segments(arrays.seg, born),
                 particle_poses=np.array([self.corrector.pose(p) for p in arrays.particle_poses]).reshape(
                     -1, 3
                 ),
             )
+        elif self._rebuilt_graph is not None:
+            c, gauge, first = self._rebuilt_graph
+            scans = first + self.slam.trajectory.scan_of_step(np.maximum(born, 1))
+            self._graph = graph_fields(c, scans, gauge)
         fp = arrays.fingerprint()
         if fp == self._fingerprint and not force:
             return None
@@ -258,7 +271,7 @@ class AgentCore:
         return codec.robot_map_chunks(
             self.robot, self.session, self.map_seq, self._last_stamp_s,
             a.particle_weights, a.particle_poses, a.seg, a.element, a.members, a.trust, a.hits, a.age,
-            prior=self.prior, prior_sigma=self.prior_sigma,
+            prior=self.prior, prior_sigma=self.prior_sigma, **self._graph,
         )  # fmt: skip
 
 

@@ -482,7 +482,8 @@ def run(args: argparse.Namespace) -> int:
 
                 start = compose(filter_poses[0], inverse(poses[0]))  # the start gauge: the map frame
                 poses = compose(start, poses)  # stays the robot's start frame (what a prior gives)
-                core.rebuilt(remap(scan_log, first, poses, cfg), poses[-1])
+                graph = (corrector.correction, start, slam.trajectory.first_scan)
+                core.rebuilt(remap(scan_log, first, poses, cfg), poses[-1], graph)
                 pub.publish(force_map=True)
                 print(f"agent {args.robot}: published the map rebuilt along the corrected path", flush=True)
             elif scan_log is None and len(poses) and not stop.is_set():  # a long simulated run

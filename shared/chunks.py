@@ -16,6 +16,7 @@ from collections import Counter, OrderedDict, deque
 import numpy as np
 
 from shared.messages import (
+    GRAPH_FIELDS,
     MAX_CHUNK_ELEMENTS,
     MAX_CHUNKS,
     MAX_ROBOTS,
@@ -30,7 +31,11 @@ from shared.messages import (
 MAX_SENDERS = MAX_ROBOTS * 4  # senders an Assembler / SeqFilter remembers (least recently heard go first)
 MAX_RETIRED_SESSIONS = 8  # replaced sessions remembered per sender, so their late messages are refused
 # RobotMap arrays with one row per element (sliced by split, concatenated by join)
-PER_ELEMENT = ("seg", "element", "members", "trust", "hits", "age")
+PER_ELEMENT = ("seg", "element", "members", "trust", "hits", "age", "anchor")
+
+
+def _rows(value: np.ndarray | None, a: int, b: int) -> np.ndarray | None:
+    return None if value is None else value[a:b]
 
 
 def split(msg: RobotMap | FusedMap, max_elements: int = MAX_CHUNK_ELEMENTS) -> list[RobotMap | FusedMap]:
@@ -58,7 +63,9 @@ def split_fused_map(msg: FusedMap, max_elements: int = MAX_CHUNK_ELEMENTS) -> li
 
 def _slice(msg: RobotMap | FusedMap, i: int, n_chunks: int, a: int, b: int) -> RobotMap | FusedMap:
     if isinstance(msg, RobotMap):
-        per_element = {f: getattr(msg, f)[a:b] for f in PER_ELEMENT}
+        per_element = {f: _rows(getattr(msg, f), a, b) for f in PER_ELEMENT}
+        if i > 0:  # the graph travels in chunk 0 only
+            per_element.update(dict.fromkeys(GRAPH_FIELDS))
         return dataclasses.replace(msg, chunk=i, n_chunks=n_chunks, **per_element)
     pa, pb = msg.prov_offsets[a], msg.prov_offsets[b]
     return dataclasses.replace(
@@ -72,12 +79,13 @@ def robot_map_chunks(
     particle_weights: np.ndarray, particle_poses: np.ndarray,
     seg: np.ndarray, element: np.ndarray, members: np.ndarray, trust: np.ndarray, hits: np.ndarray,
     age: np.ndarray, prior: np.ndarray | None = None, prior_sigma: np.ndarray | None = None,
-    max_elements: int = MAX_CHUNK_ELEMENTS,
+    max_elements: int = MAX_CHUNK_ELEMENTS, **graph: np.ndarray | None,
 ) -> list[RobotMap]:  # fmt: skip
-    """One robot map snapshot as validated chunks (fields as in :class:`RobotMap`)."""
+    """One robot map snapshot as validated chunks (fields as in :class:`RobotMap`; ``graph``:
+    its graph fields and ``anchor``)."""
     whole = RobotMap(
         robot, session, seq, stamp_s, 0, 1, particle_weights, particle_poses, seg, element, members, trust,
-        hits, age, prior, prior_sigma,
+        hits, age, prior, prior_sigma, **graph,
     )  # fmt: skip
     return split(whole, max_elements)
 
@@ -101,8 +109,13 @@ def join(parts: list[RobotMap | FusedMap]) -> RobotMap | FusedMap:
     if len(parts) == 1 and first.n_chunks == 1:
         return first
 
-    def cat(name: str) -> np.ndarray:
-        return np.concatenate([getattr(p, name) for p in parts])
+    def cat(name: str) -> np.ndarray | None:
+        arrays = [getattr(p, name) for p in parts]
+        if any(v is None for v in arrays):
+            if not all(v is None for v in arrays):
+                raise WireFormatError(f"{name}: some chunks carry it, some do not")
+            return None
+        return np.concatenate(arrays)
 
     if isinstance(first, RobotMap):
         per_element = {f: cat(f) for f in PER_ELEMENT}

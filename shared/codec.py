@@ -32,6 +32,8 @@ from shared.chunks import (
 )
 from shared.messages import (
     MAX_CHUNK_ELEMENTS,
+    MAX_GRAPH_EDGES,
+    MAX_KEYFRAMES,
     MAX_MAP_ELEMENTS,
     MAX_PARTICLES,
     MAX_ROBOTS,
@@ -43,6 +45,7 @@ from shared.messages import (
     Message,
     PoseUpdate,
     RobotMap,
+    RobotPath,
     RobotStatus,
     WireFormatError,
 )
@@ -60,7 +63,7 @@ __all__ = [
 
 KINDS = {
     RobotMap: "robot_map", PoseUpdate: "pose", FusedMap: "fused_map", FreeSpace: "free_space",
-    FusedFree: "fused_free",
+    FusedFree: "fused_free", RobotPath: "robot_path",
 }  # fmt: skip
 
 # Fixed wire dtype of every array field, by field name (the same name has the same dtype everywhere).
@@ -69,6 +72,10 @@ WIRE_DTYPES = {
     "pose": "<f8", "transform": "<f8", "sigma": "<f8",
     "seg": "<f4", "trust": "<f4",  # float32: 8 µm at 100 m, 8 mm at the 100 km coordinate limit
     "element": "<i8", "members": "<u8", "hits": "<u4", "age": "<u4",
+    # a robot's pose graph: ids as they come, poses in float64 (the keyframes' are what the server
+    # optimizes from), information in float32 (seven digits of a weight)
+    "kf_id": "<i8", "kf_stamp": "<f8", "kf_pose": "<f8", "edge_ids": "<i8", "edge_z": "<f8",
+    "edge_info": "<f4", "anchor": "<i8", "local": "<f8",
     "support": "<u4", "prov_offsets": "<u4", "prov_robot": "<u2",
     # free space: a robot's views in centimetres around each view's pose (±327 m), the fused
     # polygons in float32 metres
@@ -81,7 +88,8 @@ KEYS = {
     "robot_map": (
         "robot", "session", "seq", "stamp_s", "chunk", "n_chunks", "n_particles", "n_elements",
         "particle_weights", "particle_poses", "seg", "element", "members", "trust", "hits", "age",
-        "prior", "prior_sigma",
+        "prior", "prior_sigma", "n_keyframes", "n_edges", "kf_id", "kf_stamp", "kf_pose", "edge_ids",
+        "edge_z", "edge_info", "anchor",
     ),
     "pose": ("robot", "session", "seq", "stamp_s", "pose", "status"),
     "fused_map": (
@@ -96,6 +104,9 @@ KEYS = {
         "server", "session", "version", "map_version", "stamp_s", "tolerance_m", "n_rings", "n_vertices",
         "n_walls", "ring_offsets", "ring_hole", "vertices", "walls",
     ),
+    "robot_path": (
+        "server", "session", "version", "robot", "robot_session", "n_keyframes", "kf_stamp", "local", "pose",
+    ),
     "robot_status": (
         "robot", "status", "online", "session", "map_seq", "n_elements", "transform", "sigma", "pose",
         "pose_stamp_s", "aligned_at_s",
@@ -103,10 +114,18 @@ KEYS = {
 }  # fmt: skip
 
 
-# What schemas 2 and 3 carried: their messages are still decoded (3 had no free space; 2 no pose status).
-KEYS_SCHEMA_3 = {k: v for k, v in KEYS.items() if k not in ("free_space", "fused_free")}
+# What schemas 2 to 4 carried: their messages are still decoded (4 had no robot graph; 3 no free
+# space; 2 no pose status).
+_GRAPH_KEYS = (
+    "n_keyframes", "n_edges", "kf_id", "kf_stamp", "kf_pose", "edge_ids", "edge_z", "edge_info", "anchor",
+)  # fmt: skip
+KEYS_SCHEMA_4 = dict(
+    {k: v for k, v in KEYS.items() if k != "robot_path"},
+    robot_map=tuple(k for k in KEYS["robot_map"] if k not in _GRAPH_KEYS),
+)
+KEYS_SCHEMA_3 = {k: v for k, v in KEYS_SCHEMA_4.items() if k not in ("free_space", "fused_free")}
 KEYS_SCHEMA_2 = dict(KEYS_SCHEMA_3, pose=tuple(k for k in KEYS["pose"] if k != "status"))
-_KEYS_BY_SCHEMA = {2: KEYS_SCHEMA_2, 3: KEYS_SCHEMA_3, SCHEMA_VERSION: KEYS}
+_KEYS_BY_SCHEMA = {2: KEYS_SCHEMA_2, 3: KEYS_SCHEMA_3, 4: KEYS_SCHEMA_4, SCHEMA_VERSION: KEYS}
 
 
 @dataclass(frozen=True)
@@ -175,7 +194,10 @@ def _encode_robot_map(m: RobotMap) -> dict:
         "chunk": int(m.chunk), "n_chunks": int(m.n_chunks),
         "n_particles": m.n_particles, "n_elements": len(m.seg),
         **_arrays(m, "particle_weights", "particle_poses", "seg", "element", "members", "trust", "hits",
-                  "age", "prior", "prior_sigma"),
+                  "age", "prior", "prior_sigma", "kf_id", "kf_stamp", "kf_pose", "edge_ids", "edge_z",
+                  "edge_info", "anchor"),
+        "n_keyframes": 0 if m.kf_id is None else len(m.kf_id),
+        "n_edges": 0 if m.edge_ids is None else len(m.edge_ids),
     }  # fmt: skip
 
 
@@ -223,9 +245,17 @@ def _encode_fused_free(m: FusedFree) -> dict:
     }  # fmt: skip
 
 
+def _encode_robot_path(m: RobotPath) -> dict:
+    return {
+        "server": m.server, "session": m.session, "version": int(m.version), "robot": m.robot,
+        "robot_session": m.robot_session, "n_keyframes": len(m.kf_stamp),
+        **_arrays(m, "kf_stamp", "local", "pose"),
+    }  # fmt: skip
+
+
 _ENCODERS = {
     "robot_map": _encode_robot_map, "pose": _encode_pose, "fused_map": _encode_fused_map,
-    "free_space": _encode_free_space, "fused_free": _encode_fused_free,
+    "free_space": _encode_free_space, "fused_free": _encode_fused_free, "robot_path": _encode_robot_path,
 }  # fmt: skip
 
 
@@ -371,7 +401,21 @@ def _decode_robot_map(r: _Reader) -> RobotMap:
         seg=r.array("seg", (n, 2, 2)), element=r.array("element", (n,)), members=r.array("members", (n,)),
         trust=r.array("trust", (n,)), hits=r.array("hits", (n,)), age=r.array("age", (n,)),
         prior=r.array("prior", (3,), optional=True), prior_sigma=r.array("prior_sigma", (3,), optional=True),
+        **_decode_graph(r, n),
     )  # fmt: skip
+
+
+def _decode_graph(r: _Reader, n: int) -> dict:
+    """A robot map's graph fields (schema 5; none before)."""
+    if "kf_id" not in r.fields:
+        return {}
+    k = r.count("n_keyframes", MAX_KEYFRAMES)
+    e = r.count("n_edges", MAX_GRAPH_EDGES)
+    shapes = dict(
+        kf_id=(k,), kf_stamp=(k,), kf_pose=(k, 3), edge_ids=(e, 2), edge_z=(e, 3), edge_info=(e, 6),
+        anchor=(n,),
+    )  # fmt: skip
+    return {name: r.array(name, shape, optional=True) for name, shape in shapes.items()}
 
 
 def _decode_pose(r: _Reader) -> PoseUpdate:
@@ -439,7 +483,16 @@ def _decode_fused_free(r: _Reader) -> FusedFree:
     )  # fmt: skip
 
 
+def _decode_robot_path(r: _Reader) -> RobotPath:
+    k = r.count("n_keyframes", MAX_KEYFRAMES)
+    return RobotPath(
+        server=r.text("server"), session=r.text("session"), version=r.integer("version"),
+        robot=r.text("robot"), robot_session=r.text("robot_session"), kf_stamp=r.array("kf_stamp", (k,)),
+        local=r.array("local", (k, 3)), pose=r.array("pose", (k, 3)),
+    )  # fmt: skip
+
+
 _DECODERS = {
     "robot_map": _decode_robot_map, "pose": _decode_pose, "fused_map": _decode_fused_map,
-    "free_space": _decode_free_space, "fused_free": _decode_fused_free,
+    "free_space": _decode_free_space, "fused_free": _decode_fused_free, "robot_path": _decode_robot_path,
 }  # fmt: skip

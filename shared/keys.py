@@ -7,7 +7,8 @@
 - ``robots/<id>/free``  the space a robot's laser saw free, per view (put on change, every 15 s at
   most; queryable like the map);
 - ``map/fused``         the fused map (put on change; the server's queryable answers with the latest);
-- ``map/free``          the fleet's free space in the global frame (put on change; queryable).
+- ``map/free``          the fleet's free space in the global frame (put on change; queryable);
+- ``map/paths/<id>``    where the fleet's pose graph puts a robot's keyframes (queryable).
 """
 
 from __future__ import annotations
@@ -59,6 +60,13 @@ class Keys:
     @property
     def fused(self) -> str:
         return f"{self.prefix}/map/fused"
+
+    def robot_path(self, robot: str) -> str:
+        return f"{self.prefix}/map/paths/{check_id('robot', robot)}"
+
+    @property
+    def all_paths(self) -> str:
+        return f"{self.prefix}/map/paths/*"
 
     def robot_of(self, key: str) -> str:
         """The robot id in a concrete ``.../robots/<id>/...`` key; raises if the key is not one."""

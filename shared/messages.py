@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-SCHEMA_VERSION = 4  # 2: FusedMap.session; 3: PoseUpdate.status; 4: free space (2 and 3 still read: codec)
+SCHEMA_VERSION = 5  # 2: FusedMap.session; 3: PoseUpdate.status; 4: free space; 5: RobotMap keyframes
+# and graph (2 to 4 still read: codec)
 
 MAX_CHUNK_ELEMENTS = 2048  # elements (segments) per chunk: ~64 KB per message
 MAX_CHUNKS = 64  # chunks per map
@@ -39,6 +40,8 @@ ID_PATTERN = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")  # robot ids are key-expressi
 
 ALIGNMENT_STATUSES = ("reference", "prior", "aligned", "unaligned")
 
+MAX_KEYFRAMES = 4096  # keyframes of one robot's pose graph in a map message
+MAX_GRAPH_EDGES = 2 * MAX_KEYFRAMES  # its edges (chain, loops, carried over): a full graph ~0.7 MB
 MAX_VIEWS = 4096  # free-space views (keyframes) in one robot's FreeSpace
 MAX_RINGS = 16384  # polygon rings in one free-space message
 MAX_VERTICES = 131072  # polygon vertices in one free-space message (robot: 512 kB of int16 pairs)
@@ -142,7 +145,14 @@ class RobotMap:
       ``trust (N,)`` in [0, 1] (match quality × age × confirmation, report §5), ``hits (N,)``
       observations merged, ``age (N,)`` filter steps since the element was born;
     - ``prior (3,)`` the robot's map frame in the global frame when known (a start-pose prior),
-      with ``prior_sigma (3,)`` [m, m, rad]; ``None`` when the server must estimate it.
+      with ``prior_sigma (3,)`` [m, m, rad]; ``None`` when the server must estimate it;
+    - the robot's pose graph as its back end last solved it (schema 5; ``None`` from a robot
+      without one, whose map moves rigidly): keyframes ``kf_id (K,)`` (increasing identities),
+      ``kf_stamp (K,)`` [s], ``kf_pose (K,3)`` in the map frame; edges ``edge_ids (E,2)`` (keyframe
+      ids a, b) measuring ``edge_z (E,3)`` (b's pose in a's frame) with information
+      ``edge_info (E,6)`` (upper triangle: xx, xy, xθ, yy, yθ, θθ); ``anchor (N,)`` the keyframe
+      each element moves with. Only chunk 0 carries the graph; every chunk carries its rows'
+      anchors.
     """
 
     robot: str
@@ -161,6 +171,13 @@ class RobotMap:
     age: np.ndarray
     prior: np.ndarray | None = None
     prior_sigma: np.ndarray | None = None
+    kf_id: np.ndarray | None = None
+    kf_stamp: np.ndarray | None = None
+    kf_pose: np.ndarray | None = None
+    edge_ids: np.ndarray | None = None
+    edge_z: np.ndarray | None = None
+    edge_info: np.ndarray | None = None
+    anchor: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         check_id("robot", self.robot)
@@ -194,11 +211,78 @@ class RobotMap:
         if self.prior is not None:
             arrays["prior"] = _pose("prior", self.prior)
             arrays["prior_sigma"] = check_array("prior_sigma", self.prior_sigma, (3,), lo=0.0, hi=MAX_COORD_M)
+        arrays.update(self._graph(n))
         _freeze(self, **arrays)
+
+    def _graph(self, n: int) -> dict:
+        given = [getattr(self, f) is not None for f in GRAPH_FIELDS]
+        if any(given) and not all(given):
+            missing = GRAPH_FIELDS[given.index(False)]
+            raise WireFormatError(f"{missing}: missing (the graph's fields come together)")
+        out = {}
+        if all(given):
+            if self.chunk != 0:
+                raise WireFormatError("kf_id: only chunk 0 carries the graph")
+            ids = check_array("kf_id", self.kf_id, (None,), "i", 0, 2**62)
+            k = len(ids)
+            if not 1 <= k <= MAX_KEYFRAMES:
+                raise WireFormatError(f"kf_id: {k} keyframes, expected 1..{MAX_KEYFRAMES}")
+            if np.any(np.diff(ids) <= 0):
+                raise WireFormatError("kf_id: must increase")
+            out["kf_id"] = ids
+            out["kf_stamp"] = check_array("kf_stamp", self.kf_stamp, (k,), lo=0.0)
+            out["kf_pose"] = check_array("kf_pose", self.kf_pose, (k, 3), lo=-MAX_COORD_M, hi=MAX_COORD_M)
+            e = check_array("edge_ids", self.edge_ids, (None, 2), "i", 0, 2**62)
+            if len(e) > MAX_GRAPH_EDGES:
+                raise WireFormatError(f"edge_ids: {len(e)} edges, at most {MAX_GRAPH_EDGES}")
+            if not np.isin(e, ids).all():
+                raise WireFormatError("edge_ids: an edge names a keyframe not in kf_id")
+            if np.any(e[:, 0] == e[:, 1]):
+                raise WireFormatError("edge_ids: an edge joins a keyframe to itself")
+            out["edge_ids"] = e
+            out["edge_z"] = check_array("edge_z", self.edge_z, (len(e), 3), lo=-MAX_COORD_M, hi=MAX_COORD_M)
+            info = check_array("edge_info", self.edge_info, (len(e), 6), lo=-1e12, hi=1e12)
+            if len(info) and np.linalg.eigvalsh(info_matrices(info)).min(axis=1).min() < -1e-6 * max(
+                1.0, float(np.abs(info).max())
+            ):
+                raise WireFormatError("edge_info: not positive semi-definite")
+            out["edge_info"] = info
+        if self.anchor is not None:
+            anchor = check_array("anchor", self.anchor, (n,), "i", 0, 2**62)
+            if all(given) and not np.isin(anchor, out["kf_id"]).all():
+                raise WireFormatError("anchor: names a keyframe not in kf_id")
+            out["anchor"] = anchor
+        elif all(given) and n:
+            raise WireFormatError("anchor: required with a graph (the keyframe of every element)")
+        return out
 
     @property
     def n_particles(self) -> int:
         return len(self.particle_weights)
+
+    @property
+    def has_graph(self) -> bool:
+        return self.kf_id is not None
+
+
+GRAPH_FIELDS = ("kf_id", "kf_stamp", "kf_pose", "edge_ids", "edge_z", "edge_info")
+_UPPER = ([0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2])
+
+
+def info_matrices(upper: np.ndarray) -> np.ndarray:
+    """Symmetric ``(E,3,3)`` from upper triangles ``(E,6)`` (xx, xy, xθ, yy, yθ, θθ)."""
+    upper = np.asarray(upper, float)
+    out = np.zeros((len(upper), 3, 3))
+    out[:, _UPPER[0], _UPPER[1]] = upper
+    out[:, _UPPER[1], _UPPER[0]] = upper
+    return out
+
+
+def info_upper(info: np.ndarray) -> np.ndarray:
+    """Upper triangles ``(E,6)`` of symmetric ``(E,3,3)`` (averaged with the transpose)."""
+    info = np.asarray(info, float)
+    sym = 0.5 * (info + np.swapaxes(info, 1, 2))
+    return sym[:, _UPPER[0], _UPPER[1]]
 
 
 def check_named_numbers(name: str, value: object) -> dict:
@@ -499,4 +583,48 @@ class FusedFree:
         return out
 
 
-Message = RobotMap | PoseUpdate | FusedMap | FreeSpace | FusedFree
+@dataclass(frozen=True, eq=False)
+class RobotPath:
+    """Where the fleet's pose graph puts one robot's keyframes (the server answers it on query):
+    ``server`` and its ``session``, the fused map ``version`` it goes with, ``robot`` and its map's
+    ``robot_session``; keyframes ``kf_stamp (K,)`` [s], their poses in the robot's map frame
+    ``local (K,3)`` and in the global frame ``pose (K,3)``. A robot placed as a whole: one keyframe
+    at its map frame's origin (stamp 0) at its transform. Any pose ``p`` of the robot at time
+    ``t``: ``pose[k] ∘ local[k]⁻¹ ∘ p``, ``k`` the last keyframe at or before ``t`` (the first
+    before it): :meth:`apply`."""
+
+    server: str
+    session: str
+    version: int
+    robot: str
+    robot_session: str
+    kf_stamp: np.ndarray
+    local: np.ndarray
+    pose: np.ndarray
+
+    def __post_init__(self) -> None:
+        check_id("server", self.server)
+        if self.session != "":
+            check_id("session", self.session)
+        check_int("version", self.version)
+        check_id("robot", self.robot)
+        check_id("robot_session", self.robot_session)
+        t = check_array("kf_stamp", self.kf_stamp, (None,), lo=0.0)
+        if not 1 <= len(t) <= MAX_KEYFRAMES:
+            raise WireFormatError(f"kf_stamp: {len(t)} keyframes, expected 1..{MAX_KEYFRAMES}")
+        k = len(t)
+        local = check_array("local", self.local, (k, 3), lo=-MAX_COORD_M, hi=MAX_COORD_M)
+        pose = check_array("pose", self.pose, (k, 3), lo=-MAX_COORD_M, hi=MAX_COORD_M)
+        _freeze(self, kf_stamp=t, local=local, pose=pose)
+
+    def apply(self, stamps_s: np.ndarray, poses: np.ndarray) -> np.ndarray:
+        """The robot's poses ``(S,3)`` at ``stamps_s (S,)`` in its map frame, in the global frame."""
+        from shared.geometry import compose, inverse  # (geometry imports nothing of this module)
+
+        order = np.argsort(self.kf_stamp, kind="stable")  # (a log's clock may step back)
+        at = np.searchsorted(self.kf_stamp[order], np.asarray(stamps_s), side="right") - 1
+        k = order[np.maximum(at, 0)]
+        return compose(compose(self.pose[k], inverse(self.local[k])), np.asarray(poses, float))
+
+
+Message = RobotMap | PoseUpdate | FusedMap | FreeSpace | FusedFree | RobotPath

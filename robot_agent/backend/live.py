@@ -27,6 +27,7 @@ from robot_agent.slam.fastslam import FastSLAM, SlamConfig
 from robot_agent.slam.trajectory import keyframe_of
 from shared.geometry import apply_points, compose, inverse
 from shared.memory import release_free_memory
+from shared.messages import MAX_GRAPH_EDGES, MAX_KEYFRAMES, info_upper
 
 
 @dataclass(frozen=True)
@@ -212,6 +213,24 @@ class Frame:
         self.adoptions += 1
 
 
+def graph_fields(c: Correction, scans: np.ndarray, gauge: np.ndarray | None = None) -> dict:
+    """Correction ``c``'s pose graph as a map message's fields (``kf_id`` ... ``anchor``,
+    :class:`shared.messages.RobotMap`) for elements made from ``scans (N,)``; ``gauge (3,)``: the
+    published map frame is the correction's moved by it (a rebuilt map's start gauge). Empty
+    without a graph, or with more keyframes than a message may hold (the map then moves
+    rigidly); edges beyond a message's bound: the last loops are left out (the chain and the
+    edges carried over come first)."""
+    g = c.graph
+    if g is None or len(g.scan) > MAX_KEYFRAMES:
+        return {}
+    e = min(len(g.a), MAX_GRAPH_EDGES)
+    return dict(
+        kf_id=g.scan, kf_stamp=g.stamp_s, kf_pose=g.pose if gauge is None else compose(gauge, g.pose),
+        edge_ids=np.column_stack([g.a[:e], g.b[:e]]), edge_z=g.z[:e], edge_info=info_upper(g.info[:e]),
+        anchor=c.anchors(scans),
+    )  # fmt: skip
+
+
 class LiveCorrector:
     """Feeds the online back end from a running filter and holds its latest correction.
 
@@ -332,6 +351,12 @@ class LiveCorrector:
         out[..., 0] = cos[:, None] * x - sin[:, None] * y + move[:, 0, None]
         out[..., 1] = sin[:, None] * x + cos[:, None] * y + move[:, 1, None]
         return out
+
+    def graph_fields(self, born_step: np.ndarray) -> dict:
+        """:func:`graph_fields` of the latest correction, for elements born at ``born_step (N,)``
+        (each anchored to the graph keyframe its scan's keyframe moves with)."""
+        scan = self.slam.trajectory.scan_of_step(np.maximum(np.asarray(born_step), 1))
+        return graph_fields(self.correction, scan)
 
     # --- the hand-over ---------------------------------------------------------------------
 

@@ -34,6 +34,7 @@ from robot_agent.slam.backend import (
     BackendConfig,
     Loop,
     follow_keyframes,
+    held_edges,
     match_loop,
     near_old_keyframes,
     optimize,
@@ -71,6 +72,22 @@ class Track:
 
 
 @dataclass(frozen=True)
+class Graph:
+    """The back end's pose graph as last solved: keyframes ``scan (K,)`` (their identities: scan
+    indices of the run), ``stamp_s (K,)``, solved poses ``pose (K,3)``; edges ``a, b (E,)``
+    between keyframe scans, each measuring ``z (E,3)`` (b's pose in a's frame) with information
+    ``info (E,3,3)``."""
+
+    scan: np.ndarray
+    stamp_s: np.ndarray
+    pose: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    z: np.ndarray
+    info: np.ndarray
+
+
+@dataclass(frozen=True)
 class Correction:
     """What the back end says about the path: scans ``kf_scan (K,)`` were at ``filter (K,3)`` on
     the filter's path and are at ``corrected (K,3)``. Every scan moves rigidly with the last
@@ -82,6 +99,17 @@ class Correction:
     loops: int = 0
     graph_scan: np.ndarray | None = None  # the keyframes still in the graph (default: kf_scan),
     # whose poses on the filter's path the back end asks for at its next update
+    follows: np.ndarray | None = None  # (K,) the scan of the keyframe in the graph each keyframe
+    # moves with (itself, or the one it retired onto; default: itself)
+    graph: Graph | None = None  # the graph as solved (what the server's fleet graph takes in)
+
+    def anchors(self, scans: np.ndarray) -> np.ndarray:
+        """The graph keyframe (its scan) that each of ``scans`` moves with; -1 with no keyframes."""
+        scans = np.asarray(scans)
+        if len(self.kf_scan) == 0:
+            return np.full(scans.shape, -1, np.int64)
+        k = np.maximum(np.searchsorted(self.kf_scan, scans, side="right") - 1, 0)
+        return (self.kf_scan if self.follows is None else self.follows)[k].astype(np.int64)
 
     def apply(self, poses: np.ndarray, first: int = 0) -> np.ndarray:
         """The corrected path ``(S,3)`` of the filter's path ``poses (S,3)`` (of this run: scan
@@ -141,14 +169,20 @@ class OnlineBackend:
         """The keyframes in the graph and the retired ones (each following the keyframe it
         retired to), in scan order."""
         active = np.asarray(self.kf_scan, int)
+        graph = self.graph()
         if not len(self._ret_scan):
-            return Correction(active, self._ref.copy(), self._x.copy(), len(self.loops), active)
+            return Correction(
+                active, self._ref.copy(), self._x.copy(), len(self.loops), active, active, graph
+            )
         anchor = np.searchsorted(np.asarray(self.kf_id), self._ret_anchor)
         scans = np.concatenate([active, self._ret_scan])
         filt = np.vstack([self._ref, self._ret_filter])
         corr = np.vstack([self._x, compose(self._x[anchor], self._ret_rel)])
+        follows = np.concatenate([active, active[anchor]])
         order = np.argsort(scans, kind="stable")
-        return Correction(scans[order], filt[order], corr[order], len(self.loops), active)
+        return Correction(
+            scans[order], filt[order], corr[order], len(self.loops), active, follows[order], graph
+        )
 
     def update(
         self,
@@ -261,6 +295,20 @@ class OnlineBackend:
         carried over to the keyframes they retired to), the jumps, the loops; from ``est``, by the
         narrow kernel alone when ``warm`` (the new loops agree with it), within
         online_optimize_s when ``bounded`` (not at the end of the run)."""
+        jumps, keep, extra = self._held()
+        limit = self.cfg.online_optimize_s
+        stop = None
+        if limit > 0 and bounded:
+            deadline = time.perf_counter() + limit
+            stop = lambda: time.perf_counter() > deadline  # noqa: E731
+        return optimize(
+            f, self.loops, self.cfg, self.stats, jumps, x0=est, chain_keep=keep, extra=extra, warm=warm,
+            stop=stop,
+        )  # fmt: skip
+
+    def _held(self) -> tuple[dict, np.ndarray, tuple | None]:
+        """What the graph holds like the chain, in keyframe positions: the jumps' edges, which
+        chain edges stay (``chain_keep``), the edges carried over from retired keyframes."""
         pos = {k: p for p, k in enumerate(self.kf_id)}
         jumps = {pos[k] - 1: motion for k, motion in self._jump_edges.items() if k in pos and pos[k] > 0}
         keep = np.array([k not in self._broken_in for k in self.kf_id[1:]], bool)
@@ -272,15 +320,27 @@ class OnlineBackend:
             z = np.array([v[0] for _, v in pairs]).reshape(-1, 3)
             info = np.linalg.inv(np.array([v[1] for _, v in pairs]).reshape(-1, 3, 3))
             extra = (a, b, z, info)
-        limit = self.cfg.online_optimize_s
-        stop = None
-        if limit > 0 and bounded:
-            deadline = time.perf_counter() + limit
-            stop = lambda: time.perf_counter() > deadline  # noqa: E731
-        return optimize(
-            f, self.loops, self.cfg, self.stats, jumps, x0=est, chain_keep=keep, extra=extra, warm=warm,
-            stop=stop,
-        )  # fmt: skip
+        return jumps, keep, extra
+
+    def graph(self) -> Graph | None:
+        """The graph as last solved (None before the first update): its keyframes, their solved
+        poses, every edge held like the chain and the loops that the solution keeps (normalized
+        residual within max_loop_chi)."""
+        if len(self._ref) != len(self.kf_scan) or not len(self.kf_scan):
+            return None
+        a, b, z, info = held_edges(self._ref, self.cfg, *self._held())
+        if self.loops:
+            la = np.array([lp.old for lp in self.loops], int)
+            lb = np.array([lp.new for lp in self.loops], int)
+            lz = np.array([lp.z for lp in self.loops], float).reshape(-1, 3)
+            li = np.array([lp.info for lp in self.loops], float).reshape(-1, 3, 3)
+            r = relative(self._x[la], self._x[lb]) - lz
+            r[:, 2] = wrap_angle(r[:, 2])
+            ok = np.sqrt(posegraph.mahalanobis2(r, li) / 3.0) <= self.cfg.max_loop_chi
+            a, b = np.concatenate([a, la[ok]]), np.concatenate([b, lb[ok]])
+            z, info = np.vstack([z, lz[ok]]), np.vstack([info, li[ok]])
+        scan = np.asarray(self.kf_scan, np.int64)
+        return Graph(scan, np.asarray(self.kf_stamp, float), self._x.copy(), scan[a], scan[b], z, info)
 
     def _retire(self) -> None:
         """Keyframes older than the window leave the graph (:meth:`_retire_onto`): those that the

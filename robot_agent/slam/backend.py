@@ -341,6 +341,29 @@ def hinted_loops(
     return loops
 
 
+def held_edges(
+    kf_poses: np.ndarray,
+    cfg: BackendConfig,
+    jump_edges: dict | None = None,
+    chain_keep: np.ndarray | None = None,
+    extra: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The edges :func:`optimize` holds like the chain (no robust kernel): ``a, b (E,)`` keyframe
+    indices, ``z (E,3)``, ``info (E,3,3)`` — the chain on ``kf_poses`` (but ``chain_keep``), the
+    jumps' odometry, the ``extra`` edges."""
+    a, b, z, info = posegraph.chain_edges(kf_poses, cfg.chain)
+    for e, motion in (jump_edges or {}).items():
+        z[e] = motion
+        info[e] = 1.0 / np.array([cfg.jump_sigma_xy_m, cfg.jump_sigma_xy_m, cfg.jump_sigma_theta_rad]) ** 2
+    info = posegraph.full_information(info)
+    if chain_keep is not None:
+        a, b, z, info = a[chain_keep], b[chain_keep], z[chain_keep], info[chain_keep]
+    if extra is not None and len(extra[0]):
+        a, b = np.concatenate([a, extra[0]]), np.concatenate([b, extra[1]])
+        z, info = np.vstack([z, extra[2]]), np.vstack([info, extra[3]])
+    return a, b, z, info
+
+
 def optimize(
     kf_poses: np.ndarray,
     loops: list[Loop],
@@ -361,16 +384,7 @@ def optimize(
     that agree with it too (an online update's new loops): the narrow kernel alone, no wide one
     first. No Gauss-Newton iteration starts once ``stop()`` says so (the caller's clock): the
     solution so far is returned, and ``stats["optimize_cut"]`` counts it."""
-    a, b, z, info = posegraph.chain_edges(kf_poses, cfg.chain)
-    for e, motion in (jump_edges or {}).items():
-        z[e] = motion
-        info[e] = 1.0 / np.array([cfg.jump_sigma_xy_m, cfg.jump_sigma_xy_m, cfg.jump_sigma_theta_rad]) ** 2
-    info = posegraph.full_information(info)
-    if chain_keep is not None:
-        a, b, z, info = a[chain_keep], b[chain_keep], z[chain_keep], info[chain_keep]
-    if extra is not None and len(extra[0]):
-        a, b = np.concatenate([a, extra[0]]), np.concatenate([b, extra[1]])
-        z, info = np.vstack([z, extra[2]]), np.vstack([info, extra[3]])
+    a, b, z, info = held_edges(kf_poses, cfg, jump_edges, chain_keep, extra)
     start = kf_poses if x0 is None else x0
     if not loops and not jump_edges and extra is None:
         return start.copy()

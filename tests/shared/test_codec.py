@@ -511,8 +511,8 @@ def test_refuses_a_top_level_that_is_not_a_map(obj, what):
 @pytest.mark.parametrize(
     "schema, match",
     [
-        (5, "schema: unknown schema version 5, this build speaks 4 \\(and reads 2, 3, 4\\)"),
-        (1, "schema: unknown schema version 1, this build speaks 4"),
+        (6, "schema: unknown schema version 6, this build speaks 5 \\(and reads 2, 3, 4, 5\\)"),
+        (1, "schema: unknown schema version 1, this build speaks 5"),
         (0, "schema: unknown schema version 0"),
         ("1", "schema: unknown schema version '1'"),
         (True, "schema: unknown schema version True"),

@@ -1,0 +1,358 @@
+"""The fleet's pose graph: every placed robot's keyframes optimized together, so that robots'
+maps bend to agree where they overlap instead of only shifting as a whole.
+
+A robot's map message carries its back end's graph (keyframes, their poses in its map frame,
+its edges with their information: chain, jumps, loops) and the keyframe each map element moves
+with (``shared/messages.py``, RobotMap). The server joins them:
+
+- **nodes**: a fixed origin (the global frame) and every placed robot's keyframes. A robot
+  without a graph (an agent without a back end, or an old one) is one keyframe at its map
+  frame's origin, its whole map anchored there, held where its alignment placed it (as before
+  the graph): the others bend against it.
+- **each robot's own edges**, as its back end measured them.
+- **placement edges**: origin → the robot's first keyframe at its rigid placement
+  (``alignment.py``). The reference robot's holds the gauge (stiff, as a rigid robot's); a
+  prior's holds with the prior's sigma; an aligned robot's is weak — only what keeps a robot
+  with no constraint yet where its verified placement put it.
+- **constraints between robots**: around every few keyframes of a robot, the part of its map
+  anchored to its neighbouring keyframes (a local submap, in that keyframe's frame) is
+  registered (registration.refine: point-to-line Gauss-Newton, shrinking gates) against the
+  other robots' maps where the graph puts them now. The robot was placed by the rigid alignment
+  first — the candidates, the verification by overlap, the refusal of ambiguous places are
+  that module's; a constraint only says how a neighbourhood of an already verified placement
+  fits, and is kept only when it moved the keyframe little, and enough of the submap lies on the
+  others' walls. It ties the keyframe to the other robot's keyframe whose elements it matched
+  most (the pose in that keyframe's frame), with the fit's information (floored: the submaps'
+  own errors) — narrow across a corridor, nothing along it.
+- **solve**: sparse Gauss-Newton (``shared/posegraph.py``), a Cauchy kernel on the constraints,
+  warm-started from the last solution; constraints that still disagree (normalized residual
+  above ``max_chi``) are dropped and the graph solved again.
+
+Each element then moves with its keyframe: ``global = X[k] ∘ P[k]⁻¹ ∘ local`` (``X`` the solved
+pose, ``P`` the robot's own).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from map_server.config import GraphConfig
+from map_server.fusion import RobotLayer
+from map_server.registration import MapIndex, Samples, refine
+from shared import posegraph
+from shared.geometry import compose, inverse, relative, segment_lengths, transform_points, wrap_angle
+from shared.messages import RobotMap, info_matrices
+
+
+@dataclass(frozen=True, eq=False)
+class RobotGraph:
+    """One robot's graph: keyframe ids ``ids (K,)``, its poses ``pose (K,3)`` in its map frame,
+    edges between keyframe positions ``a, b (E,)`` measuring ``z (E,3)`` with ``info (E,3,3)``,
+    and each layer row's keyframe position ``row_kf (N,)``."""
+
+    ids: np.ndarray
+    pose: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    z: np.ndarray
+    info: np.ndarray
+    row_kf: np.ndarray
+    rigid: bool = False  # no graph came: one keyframe at the origin, held where the alignment put it
+
+    @classmethod
+    def of(cls, m: RobotMap, layer: RobotLayer) -> RobotGraph:
+        """From a map message and its layer; one keyframe at the origin when it has no graph."""
+        if not m.has_graph or layer.anchor is None:
+            z3 = np.zeros((0, 3))
+            e = np.zeros(0, np.int64)
+            return cls(np.zeros(1, np.int64), np.zeros((1, 3)), e, e, z3, np.zeros((0, 3, 3)),
+                       np.zeros(len(layer), np.int64), rigid=True)  # fmt: skip
+        ids = np.asarray(m.kf_id, np.int64)
+        pos = np.searchsorted(ids, m.edge_ids)
+        return cls(
+            ids, np.asarray(m.kf_pose, float), pos[:, 0], pos[:, 1], np.asarray(m.edge_z, float),
+            info_matrices(m.edge_info), np.searchsorted(ids, layer.anchor),
+        )  # fmt: skip
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+@dataclass(frozen=True)
+class Constraint:
+    """Keyframe ``b_id`` of the robot seen at ``z`` in the frame of keyframe ``a_id`` of robot
+    ``other``, with information ``info (3,3)``."""
+
+    b_id: int
+    other: str
+    a_id: int
+    z: np.ndarray
+    info: np.ndarray
+
+
+@dataclass
+class Placed:
+    """What the graph needs of a placed robot."""
+
+    robot: str
+    graph: RobotGraph
+    layer: RobotLayer
+    transform: np.ndarray  # its rigid placement
+    status: str  # reference / prior / aligned
+    sigma: np.ndarray | None = None  # a prior's sigma (status prior)
+
+
+@dataclass
+class FleetGraph:
+    cfg: GraphConfig = field(default_factory=GraphConfig)
+    solution: dict = field(default_factory=dict)  # robot -> (graph, X (K,3)): the last solve
+    constraints: dict = field(default_factory=dict)  # robot -> {keyframe id: Constraint}
+    stats: dict = field(default_factory=dict)
+    pending: bool = False  # keyframes wait to be matched (more than one fusion's budget)
+    _matched: dict = field(default_factory=dict)  # robot -> {keyframe id: its pose when matched}
+
+    def shift(self, robot: str, g: np.ndarray) -> None:
+        """The robot's solution moved by the rigid motion ``g`` (the prior gauge moved every frame)."""
+        if robot in self.solution:
+            graph, x = self.solution[robot]
+            self.solution[robot] = (graph, compose(g, x))
+        if robot in self._matched:
+            self._matched[robot] = {k: compose(g, v) for k, v in self._matched[robot].items()}
+
+    def poses(self, p: Placed) -> np.ndarray:
+        """The robot's keyframes in the global frame: solved, or (new ones) carried from the last
+        solution by the nearest solved keyframe's correction, or at its rigid placement."""
+        old = self.solution.get(p.robot)
+        g = p.graph
+        if old is None:
+            return compose(p.transform, g.pose)
+        og, ox = old
+        if og is g:
+            return ox
+        at = np.clip(np.searchsorted(og.ids, g.ids), 0, len(og.ids) - 1)
+        prev = np.clip(at - 1, 0, len(og.ids) - 1)
+        closer = np.abs(og.ids[prev] - g.ids) < np.abs(og.ids[at] - g.ids)
+        at = np.where(closer, prev, at)
+        correction = compose(ox[at], inverse(og.pose[at]))
+        return compose(correction, g.pose)
+
+    def rows(self, p: Placed, x: np.ndarray | None = None) -> np.ndarray:
+        """The robot's layer rows in the global frame, each moved with its keyframe."""
+        x = self.poses(p) if x is None else x
+        move = compose(x, inverse(p.graph.pose))[p.graph.row_kf]  # (N,3)
+        return transform_points(move[:, None, :], p.layer.seg)
+
+    # -- constraints ---------------------------------------------------------------------------
+
+    def _due(self, p: Placed) -> tuple[np.ndarray, np.ndarray]:
+        """The robot's keyframes (positions) due for matching, the first time first (searched
+        wide), then those the graph moved since they were matched (narrow), the most moved first;
+        and whether each is a first time."""
+        cfg = self.cfg
+        g = p.graph
+        cand = np.arange(0, len(g), cfg.every_keyframes)
+        if p.graph.rigid or not len(cand):
+            return np.zeros(0, int), np.zeros(0, bool)
+        x = self.poses(p)[cand]
+        seen = self._matched.setdefault(p.robot, {})
+        new = np.array([int(i) not in seen for i in g.ids[cand]], bool)
+        before = np.array([seen.get(int(i), np.zeros(3)) for i in g.ids[cand]]).reshape(-1, 3)
+        d = relative(before, x)
+        size = np.hypot(d[:, 0], d[:, 1]) / cfg.rematch_m + np.abs(d[:, 2]) / cfg.rematch_rad
+        moved = ~new & (size >= 1.0)
+        order = np.concatenate([np.flatnonzero(new), np.flatnonzero(moved)[np.argsort(-size[moved])]])
+        return cand[order], new[order]
+
+    def match(self, placed: list[Placed]) -> int:
+        """Seek constraints for the keyframes due (:meth:`_due`), at most ``budget_keyframes``
+        of them, the robots in turn; how many were tried."""
+        cfg = self.cfg
+        names = {p.robot for p in placed}
+        for gone in (set(self.constraints) | set(self._matched)) - names:
+            self.constraints.pop(gone, None)
+            self._matched.pop(gone, None)
+        self.pending = False
+        if len(placed) < 2:
+            return 0
+        due = [(p, *self._due(p)) for p in placed]
+        total = sum(len(k) for _, k, _ in due)
+        if not total:
+            return 0
+        share = max(1, cfg.budget_keyframes // max(1, sum(1 for _, k, _ in due if len(k))))
+        tried = 0
+        for p, ks, first in due:
+            if not len(ks):
+                continue
+            ks, first = ks[:share], first[:share]
+            others = [o for o in placed if o.robot != p.robot]
+            x = self.poses(p)
+            found = self._match_robot(p, ks, first, others)
+            cons = self.constraints.setdefault(p.robot, {})
+            seen = self._matched[p.robot]
+            for k in ks:
+                kid = int(p.graph.ids[k])
+                cons.pop(kid, None)
+                seen[kid] = x[k]
+            for c in found:
+                cons[c.b_id] = c
+            tried += len(ks)
+        self.pending = tried < total
+        self.stats["matched_keyframes"] = self.stats.get("matched_keyframes", 0) + tried
+        return tried
+
+    def _match_robot(
+        self, p: Placed, ks: np.ndarray, first: np.ndarray, others: list[Placed]
+    ) -> list[Constraint]:
+        """Constraints for keyframes ``ks`` of robot ``p`` against the ``others``: searched wide
+        where ``first``, narrow otherwise."""
+        cfg = self.cfg
+        x = self.poses(p)
+        mine = self.rows(p, x)
+        if not len(mine):
+            return []
+        # the others' rows where the graph puts them, near this robot's
+        lo, hi = mine.reshape(-1, 2).min(axis=0) - 2.0, mine.reshape(-1, 2).max(axis=0) + 2.0
+        segs, owner_robot, owner_kf = [], [], []
+        for j, o in enumerate(others):
+            if not len(o.layer):
+                continue
+            rows = self.rows(o)
+            near = np.all((rows.max(axis=1) >= lo) & (rows.min(axis=1) <= hi), axis=1)
+            segs.append(rows[near])
+            owner_robot.append(np.full(int(near.sum()), j))
+            owner_kf.append(o.graph.row_kf[near])
+        if not segs or not sum(len(s) for s in segs):
+            return []
+        seg = np.concatenate(segs)
+        own_r, own_k = np.concatenate(owner_robot), np.concatenate(owner_kf)
+        index = MapIndex(seg, cfg.sample_step_m)
+        g = p.graph
+        out = []
+        mid = cKDTree(0.5 * (mine[:, 0] + mine[:, 1]))
+        for k, wide in zip(ks, first, strict=True):
+            stages = cfg.first_stages if wide else cfg.stages
+            shift_m, turn_rad = (
+                (cfg.first_shift_m, cfg.first_turn_rad) if wide else (cfg.max_shift_m, cfg.max_turn_rad)
+            )
+            near = np.asarray(mid.query_ball_point(x[k, :2], cfg.crop_radius_m), int)
+            near = near[np.abs(g.row_kf[near] - k) <= cfg.window_keyframes]  # (those moving with it)
+            if not len(near):
+                self._count("small")
+                continue
+            local = transform_points(inverse(x[k])[None, None, :], mine[near])
+            if segment_lengths(local).sum() < cfg.min_submap_m:
+                self._count("small")
+                continue
+            sub = Samples.of(local, cfg.sample_step_m)
+            fit = refine(index, sub, x[k], stages, cfg.point_sigma_m, cfg.correlation_m)
+            d = fit.pose - x[k]
+            if np.hypot(d[0], d[1]) > shift_m or abs(wrap_angle(d[2])) > turn_rad:
+                self._count("moved")
+                continue
+            gate, angle = cfg.stages[-1]
+            ok, idx, perp = index.match(fit.pose, sub, gate, angle)
+            ok &= np.abs(perp) <= gate
+            matched = float(sub.length[ok].sum())
+            if matched < max(cfg.min_matched_m, cfg.min_matched_share * float(sub.length.sum())):
+                self._count("unmatched")
+                continue
+            owners = index.samples.owner[idx[ok]]
+            j = np.bincount(own_r[owners]).argmax()
+            from_j = own_r[owners] == j
+            a = int(np.bincount(own_k[owners][from_j]).argmax())
+            o = others[j]
+            xa = self.poses(o)[a]
+            cov = np.linalg.inv(fit.info + 1e-9 * np.eye(3)) + np.diag(
+                [cfg.floor_sigma_m**2, cfg.floor_sigma_m**2, cfg.floor_sigma_rad**2]
+            )
+            rot = np.eye(3)
+            c, s = np.cos(xa[2]), np.sin(xa[2])
+            rot[:2, :2] = [[c, -s], [s, c]]
+            info = rot.T @ np.linalg.inv(cov) @ rot
+            info = 0.5 * (info + info.T)
+            out.append(Constraint(int(g.ids[k]), o.robot, int(o.graph.ids[a]), relative(xa, fit.pose), info))
+        return out
+
+    def _count(self, why: str) -> None:
+        self.stats[f"refused_{why}"] = self.stats.get(f"refused_{why}", 0) + 1
+
+    # -- the solve -----------------------------------------------------------------------------
+
+    def solve(self, placed: list[Placed]) -> dict[str, np.ndarray]:
+        """Every placed robot's keyframes in the global frame (robot -> X (K,3)), solved together."""
+        cfg = self.cfg
+        start, x0 = {}, [np.zeros((1, 3))]
+        n = 1
+        for p in placed:
+            start[p.robot] = n
+            x0.append(self.poses(p))
+            n += len(p.graph)
+        x0 = np.vstack(x0)
+        a, b, z, info = [], [], [], []
+        for p in placed:  # each robot's own edges
+            s, g = start[p.robot], p.graph
+            a.append(g.a + s)
+            b.append(g.b + s)
+            z.append(g.z)
+            info.append(g.info)
+        for p in placed:  # placement edges: origin -> first keyframe
+            if p.status == "reference" or p.graph.rigid:  # the gauge, or a map placed as a whole
+                sig = np.array([cfg.reference_sigma_m, cfg.reference_sigma_m, cfg.reference_sigma_rad])
+            elif p.status == "prior" and p.sigma is not None:
+                sig = np.maximum(p.sigma, [1e-3, 1e-3, 1e-4])
+            else:
+                sig = np.array([cfg.placement_sigma_m, cfg.placement_sigma_m, cfg.placement_sigma_rad])
+            a.append(np.array([0]))
+            b.append(np.array([start[p.robot]]))
+            z.append(compose(p.transform, p.graph.pose[0])[None])
+            info.append(np.diag(1.0 / sig**2)[None])
+        robust_from = sum(len(v) for v in a)
+        cons = []
+        graphs = {p.robot: p.graph for p in placed}
+        for p in placed:
+            for c in self.constraints.get(p.robot, {}).values():
+                if c.other not in start:
+                    continue
+                og = graphs[c.other]
+                ai, bi = int(np.searchsorted(og.ids, c.a_id)), int(np.searchsorted(p.graph.ids, c.b_id))
+                if ai >= len(og.ids) or og.ids[ai] != c.a_id:
+                    continue  # (that keyframe left the other robot's graph)
+                if bi >= len(p.graph.ids) or p.graph.ids[bi] != c.b_id:
+                    continue
+                cons.append((start[c.other] + ai, start[p.robot] + bi, c.z, c.info))
+        self.stats["constraints"] = len(cons)
+        if cons:
+            a.append(np.array([c[0] for c in cons]))
+            b.append(np.array([c[1] for c in cons]))
+            z.append(np.array([c[2] for c in cons]))
+            info.append(np.array([c[3] for c in cons]))
+        a, b = np.concatenate(a).astype(int), np.concatenate(b).astype(int)
+        z, info = np.vstack(z), np.concatenate(info)
+        keep = np.ones(len(a), bool)
+        x = x0
+        for _round in range(3):
+            x = posegraph.optimize(
+                x0, a[keep], b[keep], z[keep], info[keep], iterations=cfg.iterations, tol=1e-5,
+                robust_from=int(keep[:robust_from].sum()), robust_k=cfg.robust_k,
+            )  # fmt: skip
+            if not cons:
+                break
+            r = relative(x[a[robust_from:]], x[b[robust_from:]]) - z[robust_from:]
+            r[:, 2] = wrap_angle(r[:, 2])
+            chi = np.sqrt(posegraph.mahalanobis2(r, info[robust_from:]) / 3.0)
+            new = np.concatenate([np.ones(robust_from, bool), chi <= cfg.max_chi])
+            if np.array_equal(new, keep):
+                break
+            keep = new
+        self.stats["constraints_kept"] = int(keep[robust_from:].sum())
+        out = {}
+        for p in placed:
+            s = start[p.robot]
+            out[p.robot] = x[s : s + len(p.graph)]
+            self.solution[p.robot] = (p.graph, out[p.robot])
+        for gone in set(self.solution) - set(start):
+            del self.solution[gone]
+        return out

@@ -1,0 +1,111 @@
+"""A 2D pose graph, optimized by sparse Gauss-Newton (scipy.sparse): the solver the robots'
+back ends (robot_agent/slam/backend.py) and the server's fleet graph (map_server/posegraph.py)
+share.
+
+Residual of an edge ``(a, b, z)``: ``r = [Rₐᵀ(t_b − t_a) − z_xy, θ_b − θ_a − z_θ]``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from shared.geometry import wrap_angle
+
+
+def _residuals_and_jacobians(x: np.ndarray, a: np.ndarray, b: np.ndarray, z: np.ndarray):
+    xa, xb = x[a], x[b]
+    c, s = np.cos(xa[:, 2]), np.sin(xa[:, 2])
+    dx, dy = xb[:, 0] - xa[:, 0], xb[:, 1] - xa[:, 1]
+    r = np.column_stack(
+        [c * dx + s * dy - z[:, 0], -s * dx + c * dy - z[:, 1], wrap_angle(xb[:, 2] - xa[:, 2] - z[:, 2])]
+    )
+    ja = np.zeros((len(a), 3, 3))
+    ja[:, 0, 0], ja[:, 0, 1], ja[:, 0, 2] = -c, -s, -s * dx + c * dy
+    ja[:, 1, 0], ja[:, 1, 1], ja[:, 1, 2] = s, -c, -c * dx - s * dy
+    ja[:, 2, 2] = -1.0
+    jb = np.zeros((len(a), 3, 3))
+    jb[:, 0, 0], jb[:, 0, 1] = c, s
+    jb[:, 1, 0], jb[:, 1, 1] = -s, c
+    jb[:, 2, 2] = 1.0
+    return r, ja, jb
+
+
+def optimize(
+    x0: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    z: np.ndarray,
+    info: np.ndarray,
+    iterations: int = 5,
+    tol: float = 1e-6,
+    robust_from: int | None = None,
+    robust_k: float = 3.0,
+    stop: Callable[[], bool] | None = None,
+) -> np.ndarray:
+    """Poses ``(N,3)`` minimizing ``Σ rᵀ Ω r`` over edges ``a, b (E,)`` with measured motions
+    ``z (E,3)`` and information ``Ω``: ``info (E,3,3)``, or ``(E,3)`` for a diagonal one, from
+    ``x0 (N,3)``; node 0 is held fixed (the map frame). Edges from index ``robust_from`` on get a
+    Cauchy kernel of width ``robust_k`` (in normalized residual units), by iteratively
+    reweighting. No iteration starts once ``stop()`` says so (the caller's clock: the core keeps
+    none; the first iteration always runs)."""
+    x = np.array(x0, dtype=float, copy=True)
+    n = len(x)
+    if n < 2 or len(a) == 0:
+        return x
+    a, b = np.asarray(a, int), np.asarray(b, int)
+    omega = full_information(info)
+    for _ in range(iterations):
+        r, ja, jb = _residuals_and_jacobians(x, a, b, z)
+        w = omega
+        if robust_from is not None and robust_from < len(a):
+            chi2 = mahalanobis2(r[robust_from:], omega[robust_from:])
+            w = omega.copy()
+            w[robust_from:] *= (1.0 / (1.0 + chi2 / robust_k**2))[:, None, None]
+        # H = Σ Jᵀ Ω J over blocks (a,a), (a,b), (b,a), (b,b); g = Σ Jᵀ Ω r
+        wa, wb = w @ ja, w @ jb
+        ja_t, jb_t = np.swapaxes(ja, 1, 2), np.swapaxes(jb, 1, 2)
+        blocks = {(0, 0): ja_t @ wa, (0, 1): ja_t @ wb, (1, 0): jb_t @ wa, (1, 1): jb_t @ wb}
+        nodes = (a, b)
+        rows, cols, vals = [], [], []
+        ii, jj = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
+        for (p, q), blk in blocks.items():
+            rows.append((3 * nodes[p][:, None, None] + ii).ravel())
+            cols.append((3 * nodes[q][:, None, None] + jj).ravel())
+            vals.append(blk.ravel())
+        h = sp.csc_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n)
+        )
+        g = np.zeros(3 * n)
+        wr = (w @ r[..., None])[..., 0]
+        np.add.at(g, (3 * a[:, None] + np.arange(3)).ravel(), (ja_t @ wr[..., None]).ravel())
+        np.add.at(g, (3 * b[:, None] + np.arange(3)).ravel(), (jb_t @ wr[..., None]).ravel())
+        # hold node 0: drop its rows and columns
+        free = np.arange(3, 3 * n)
+        # H is symmetric: ordered by minimum degree on its own pattern (H + Hᵀ = 2H), the sparse LU
+        # of a pose graph's H is ~5x faster than with the default COLAMD ordering (3,000 keyframes:
+        # 57 against 307 ms), the same solution to 1e-11
+        step = spla.spsolve(h[free][:, free].tocsc(), -g[free], permc_spec="MMD_AT_PLUS_A")
+        x[1:] += step.reshape(-1, 3)
+        x[:, 2] = wrap_angle(x[:, 2])
+        if np.max(np.abs(step)) < tol or (stop is not None and stop()):
+            break
+    return x
+
+
+def full_information(info: np.ndarray) -> np.ndarray:
+    """Information matrices ``(E,3,3)`` from ``(E,3,3)`` or diagonals ``(E,3)``."""
+    info = np.asarray(info, dtype=float)
+    if info.ndim == 3:
+        return info
+    out = np.zeros((len(info), 3, 3))
+    out[:, [0, 1, 2], [0, 1, 2]] = info
+    return out
+
+
+def mahalanobis2(r: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    """``rᵀ Ω r`` per row of residuals ``r (E,3)`` with information ``omega (E,3,3)``."""
+    return np.einsum("ei,eij,ej->e", r, omega, r)
