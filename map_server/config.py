@@ -114,7 +114,7 @@ class GraphConfig:
     floor_sigma_rad: float = np.radians(0.5)
     robust_k: float = 3.0  # Cauchy kernel on constraints (normalized residual units)
     max_chi: float = 5.0  # constraints beyond this after the solve are dropped
-    iterations: int = 8
+    iterations: int = 4  # Gauss-Newton iterations a solve (warm-started from the last one)
     reference_sigma_m: float = 1e-4  # the reference robot's placement edge (the gauge)
     reference_sigma_rad: float = 1e-5
     placement_sigma_m: float = 2.0  # an aligned robot's placement edge (weak)

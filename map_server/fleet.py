@@ -98,6 +98,7 @@ class Fleet:
         # every placed robot's transform when it began
         self._settling: tuple[int, list[str], dict[str, np.ndarray]] | None = None
         self._merged = MergedMap(cfg.fusion)  # the merge of the placed layers, kept up to date
+        self._rigid_merged = MergedMap(cfg.fusion)  # ... each placed as a whole (_global_segments)
         self._budget = cfg.refine_budget_segments  # layer segments left to refine in this fusion
         self._statuses: dict[str, tuple] = {}  # robot -> (what its status is made of, status, key)
         self._entries: dict[tuple, tuple] = {}  # parts of schedule.placed_key, per robot or retired piece
@@ -342,13 +343,13 @@ class Fleet:
         first.alignment = Alignment("reference", np.zeros(3), np.zeros(3), reason="first non-empty map")
         first.mark_placed(now_s - self.epoch_s)
 
-    def _sources(self) -> list[Source]:
-        """What the fused map merges, in the order of the merge: the placed robots by name, then
-        the retired pieces."""
+    def _sources(self, rigid: bool = False) -> list[Source]:
+        """What the fused map merges, in the order of the merge: the placed robots by name (as
+        the fleet's graph bent them, unless ``rigid``), then the retired pieces."""
         robots = sorted(self._placed(), key=lambda r: r.robot)
         out = [
             Source(("robot", r.robot), r.robot, r.layer, r.alignment.transform)
-            if r.bent is None
+            if r.bent is None or rigid
             else Source(("robot", r.robot), r.robot, r.bent, np.zeros(3))
             for r in robots
         ]
@@ -384,13 +385,22 @@ class Fleet:
                 self._budget -= len(r.layer)
         return turn
 
-    def _global_segments(self, exclude: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None):
+    def _global_segments(
+        self, exclude: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None, rigid: bool = False
+    ):
         """The fused map of the placed robots except ``exclude``, with every retired piece (its
         own too): what a robot is aligned to (only the segments whose box meets ``lo``-``hi``
-        when given)."""
+        when given). ``rigid``: every placed map where its alignment put it as a whole, not as
+        the fleet's graph bent it — what a robot not placed yet is searched against: the graph
+        bends the placed maps towards each other where they disagree, which a newcomer that agrees
+        with one of them as it was cannot follow before it is placed (and in the graph itself)."""
         # the robot's own changes need not be merged for this: the next merge takes them with its
         # new place at once
-        return self._synced(hold=exclude).without(("robot", exclude), lo, hi)
+        hold = ("robot", exclude)
+        if rigid and any(r.bent is not None for r in self.robots.values()):
+            self._rigid_merged.update(self._sources(rigid=True), hold=hold)
+            return self._rigid_merged.without(hold, lo, hi)
+        return self._synced(hold=exclude).without(hold, lo, hi)
 
     def _estimate(self, r: RobotState, prior, sigma, current: Alignment | None, search: bool) -> Alignment:
         """An alignment attempt. A refinement where the robot is (from its prior, or from its
@@ -409,7 +419,7 @@ class Fleet:
             box = global_box(r.layer.bounds[None], np.asarray(start, float)[None])[0]
             reach = query_reach(c)
             lo, hi = box[:2] - self.cfg.refine_margin_m, box[2:] + self.cfg.refine_margin_m
-            near = self._global_segments(r.robot, lo - reach, hi + reach)
+            near = self._global_segments(r.robot, lo - reach, hi + reach, rigid=not r.alignment.placed)
             if len(near):
                 index = MapIndex(near, c.sample_step_m, inner=(lo, hi), compiled=c.compiled)
                 try:
@@ -418,9 +428,8 @@ class Fleet:
                     )
                 except OutsideIndex:
                     log.debug("%s: refinement left its crop; done against the whole placed map", r.robot)
-        return estimate_alignment(
-            r.layer.seg, self._global_segments(r.robot), c, prior, sigma, current, search, **kw
-        )
+        placed_map = self._global_segments(r.robot, rigid=not r.alignment.placed)
+        return estimate_alignment(r.layer.seg, placed_map, c, prior, sigma, current, search, **kw)
 
     def _align_round(self, now_s: float, urgent: bool = False, only: set[int] | None = None) -> bool:
         """One pass over the robots that deserve an attempt; True if a robot got placed.

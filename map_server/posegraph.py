@@ -9,7 +9,8 @@ with (``shared/messages.py``, RobotMap). The server joins them:
   without a graph (an agent without a back end, or an old one) is one keyframe at its map
   frame's origin, its whole map anchored there, held where its alignment placed it (as before
   the graph): the others bend against it.
-- **each robot's own edges**, as its back end measured them.
+- **each robot's own edges**, with the information its back end gave them, holding the relative
+  poses of its own solution (its graph is taken as solved: alone, it stays as the robot put it).
 - **placement edges**: origin → the robot's first keyframe at its rigid placement
   (``alignment.py``). The reference robot's holds the gauge (stiff, as a rigid robot's); a
   prior's holds with the prior's sigma; an aligned robot's is weak — only what keeps a robot
@@ -72,10 +73,13 @@ class RobotGraph:
                        np.zeros(len(layer), np.int64), rigid=True)  # fmt: skip
         ids = np.asarray(m.kf_id, np.int64)
         pos = np.searchsorted(ids, m.edge_ids)
-        return cls(
-            ids, np.asarray(m.kf_pose, float), pos[:, 0], pos[:, 1], np.asarray(m.edge_z, float),
-            info_matrices(m.edge_info), np.searchsorted(ids, layer.anchor),
-        )  # fmt: skip
+        pose = np.asarray(m.kf_pose, float)
+        # the robot's own solution is taken as solved: each edge holds the relative pose that
+        # solution gives (not the edge's measurement, which the robot's robust solve may have
+        # outvoted), with the edge's information — alone, the graph stays where the robot put it
+        z = relative(pose[pos[:, 0]], pose[pos[:, 1]])
+        info = info_matrices(m.edge_info)
+        return cls(ids, pose, pos[:, 0], pos[:, 1], z, info, np.searchsorted(ids, layer.anchor))
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -148,9 +152,10 @@ class FleetGraph:
     # -- constraints ---------------------------------------------------------------------------
 
     def _due(self, p: Placed) -> tuple[np.ndarray, np.ndarray]:
-        """The robot's keyframes (positions) due for matching, the first time first (searched
-        wide), then those the graph moved since they were matched (narrow), the most moved first;
-        and whether each is a first time."""
+        """The robot's keyframes (positions) due for matching: never tried first, then those the
+        graph moved since they were tried, the most moved first; and whether each is searched
+        wide (it has no constraint yet: never tried, or refused — the graph may have brought it
+        within reach since)."""
         cfg = self.cfg
         g = p.graph
         cand = np.arange(0, len(g), cfg.every_keyframes)
@@ -158,13 +163,15 @@ class FleetGraph:
             return np.zeros(0, int), np.zeros(0, bool)
         x = self.poses(p)[cand]
         seen = self._matched.setdefault(p.robot, {})
+        cons = self.constraints.get(p.robot, {})
         new = np.array([int(i) not in seen for i in g.ids[cand]], bool)
         before = np.array([seen.get(int(i), np.zeros(3)) for i in g.ids[cand]]).reshape(-1, 3)
         d = relative(before, x)
         size = np.hypot(d[:, 0], d[:, 1]) / cfg.rematch_m + np.abs(d[:, 2]) / cfg.rematch_rad
         moved = ~new & (size >= 1.0)
         order = np.concatenate([np.flatnonzero(new), np.flatnonzero(moved)[np.argsort(-size[moved])]])
-        return cand[order], new[order]
+        wide = np.array([int(i) not in cons for i in g.ids[cand[order]]], bool)
+        return cand[order], wide
 
     def match(self, placed: list[Placed]) -> int:
         """Seek constraints for the keyframes due (:meth:`_due`), at most ``budget_keyframes``
