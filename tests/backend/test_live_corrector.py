@@ -299,3 +299,21 @@ def test_an_update_that_fails_leaves_the_back_end_running():
     c = LiveCorrector(slam)
     assert c._collect(Failure("ValueError: x")) is False
     assert c.failures == 1 and c.last_failure == "ValueError: x" and len(c.correction.kf_scan) == 0
+
+
+def test_the_published_map_carries_the_back_ends_graph(office_run):
+    """What the fleet's graph takes in (map_server/posegraph.py): the keyframes as the back end
+    solved them, its edges (the chain and the loops it keeps), each element's keyframe — the one
+    whose scan made it, seen from there."""
+    _, _, _, maps, _ = office_run
+    m = codec.join(maps[-1])
+    assert m.has_graph
+    assert len(m.kf_id) >= 150  # measured 228
+    assert len(m.edge_ids) > len(m.kf_id) + 20  # the chain and the loops: measured 266 edges
+    assert np.isin(m.anchor, m.kf_id).all()
+    # each element seen from its keyframe: its nearest point within the laser's reach (30 m)
+    p = m.kf_pose[np.searchsorted(m.kf_id, m.anchor), :2]
+    a, ab = m.seg[:, 0], m.seg[:, 1] - m.seg[:, 0]
+    u = np.clip(np.sum((p - a) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-12), 0.0, 1.0)
+    gap = np.hypot(*(a + u[:, None] * ab - p).T)
+    assert gap.max() < 30.0 and np.median(gap) < 8.0  # measured 21.9 m, 4.8 m

@@ -32,11 +32,14 @@ from shared.messages import (
     FusedMap,
     PoseUpdate,
     RobotMap,
+    RobotPath,
     WireFormatError,
 )
 from tests.shared.test_codec import robot_map, robot_map_fields, samples, unpacked
+from tests.shared.test_graph_wire import graph_map, robot_path
 
-SAMPLES = samples()
+# one of each kind, and a robot map with a pose graph (schema 5)
+SAMPLES = [*samples(), codec.encode(graph_map(n=6, k=5)), codec.encode(robot_path())]
 STORED = codec.encode_stored_map(robot_map(np.random.default_rng(3), n=MAX_CHUNK_ELEMENTS + 5, k=4))
 FAST = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow], database=None)
 
@@ -64,7 +67,7 @@ def check(data: object) -> None:
         event("refused: " + str(e).split(":")[0])
         return
     event("decoded")
-    assert isinstance(msg, RobotMap | PoseUpdate | FusedMap | FreeSpace | FusedFree)
+    assert isinstance(msg, RobotMap | PoseUpdate | FusedMap | FreeSpace | FusedFree | RobotPath)
     assert isinstance(codec.decode(codec.encode(msg)), type(msg))
 
 
