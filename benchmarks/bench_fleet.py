@@ -85,7 +85,7 @@ PRIOR_SIGMA = np.array([0.05, 0.05, np.radians(1.0)])  # = robot_agent.agent.DEF
 STARTUP_TIMEOUT_S = 60.0
 FIRST_REPLAYED_MAP = 10  # load agents replay their recorded maps from the 10th (about 10 s in)
 PROFILE_RATE_HZ = 200  # py-spy samples per second (--profile)
-CACHE_FORMAT = 2  # of the recordings in --cache (in their file names)
+CACHE_FORMAT = 3  # of the recordings in --cache (in their file names); 3: maps with the pose graph
 
 
 # -- recorded agent runs ----------------------------------------------------------------------------
@@ -121,8 +121,10 @@ class Recording:
 
 def record_run(world_name: str, route: int, seed: int, duration_s: float, path: Path) -> Path:
     """Run one simulated robot's agent core (its default cadence: maps at 1 Hz when changed,
-    poses at 5 Hz, K top particles) and save what it would publish to ``path`` (npz, no pickle)."""
+    poses at 5 Hz, K top particles; its online back end beside it, in this process: the maps
+    carry its pose graph) and save what it would publish to ``path`` (npz, no pickle)."""
     from robot_agent.agent import AgentCore
+    from robot_agent.backend.live import InlineRunner, LiveCorrector
     from robot_agent.sim import LiveSim, builtin_world
     from robot_agent.slam.fastslam import FastSLAM, SlamConfig
 
@@ -130,7 +132,8 @@ def record_run(world_name: str, route: int, seed: int, duration_s: float, path: 
     start = np.asarray(world.starts[route], float)
     sim = LiveSim(world, route, seed=seed)
     slam = FastSLAM(SlamConfig(), np.random.default_rng([seed, route, 7]))
-    core = AgentCore(f"{world_name}{route}", slam, prior=start)  # priors travel in every map
+    corrector = LiveCorrector(slam, InlineRunner(slam.cfg))
+    core = AgentCore(f"{world_name}{route}", slam, prior=start, corrector=corrector)  # priors in every map
     blobs, map_bytes, map_scans, pose_bytes, poses, ranges = [], [], [], [], [], []
     for scan in sim.scans(duration_s):
         est = core.step(scan)
