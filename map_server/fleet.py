@@ -76,7 +76,7 @@ from map_server.registration import MapIndex, OutsideIndex, Samples
 from map_server.schedule import Around, PlacedKey, global_box
 from map_server.state import RetiredPiece, RobotState
 from shared.geometry import apply_segments, compose, inverse, relative, wrap_angle
-from shared.messages import FusedMap, PoseUpdate, RobotMap, RobotPath, RobotStatus
+from shared.messages import GRAPH_FIELDS, FusedMap, PoseUpdate, RobotMap, RobotPath, RobotStatus
 
 log = logging.getLogger("fleet_slam.fleet")
 
@@ -125,6 +125,8 @@ class Fleet:
             return
         if any(p.session == m.session for p in self.retired.get(m.robot, ())):
             return  # a late map of a replaced session (e.g. pulled from the state after a restart)
+        if not m.has_graph and m.graph_seq is not None:
+            m = self._with_graph(r, m)
         if r.map is not None and m.session != r.map.session:
             self._retire(r, now_s)
             r.new_session()
@@ -133,6 +135,24 @@ class Fleet:
         r.map, r.layer = m, None
         if r.first_map_s is None and len(m.seg):
             r.first_map_s = now_s
+
+    @staticmethod
+    def _with_graph(r: RobotState, m: RobotMap) -> RobotMap:
+        """A map whose graph is unchanged since an earlier map carried it (``graph_seq``), with
+        that graph (from the robot's map before: the stored map is whole). Missed (a lost message,
+        a restart): the last graph the server has, if it holds every keyframe the anchors name;
+        else the map is placed as a whole until the next graph comes (one back-end period)."""
+        prev = r.map
+        ok = prev is not None and prev.session == m.session and prev.has_graph
+        if ok and prev.graph_seq != m.graph_seq and not np.isin(m.anchor, prev.kf_id).all():
+            log.info(
+                "%s: the graph of map %d was missed; map %d is placed as a whole", m.robot, m.graph_seq, m.seq
+            )
+            ok = False
+        if not ok:
+            return dataclasses.replace(m, anchor=None, graph_seq=None)
+        graph = {f: getattr(prev, f) for f in GRAPH_FIELDS}
+        return dataclasses.replace(m, **graph, graph_seq=prev.graph_seq)
 
     def _retire(self, r: RobotState, now_s: float) -> None:
         """Keep the replaced session's map in the fused map where it was placed (bounded)."""

@@ -78,6 +78,8 @@ class AgentCore:
         self._fingerprint: bytes | None = None
         self._graph: dict = {}  # the pose graph of the map being published (LiveCorrector.graph_fields)
         self._rebuilt_graph: tuple | None = None  # the graph of a map rebuilt along it (rebuilt())
+        self._graph_sent: tuple = (None, None)  # the graph last sent and the map seq that carried it
+        self.map_whole: list[RobotMap] = []  # the latest map with its graph (what a query gets)
         self._next_pose_s = -np.inf
         self._next_map_s = -np.inf
         self._last_stamp_s = 0.0
@@ -155,7 +157,7 @@ class AgentCore:
         self.session = uuid.uuid4().hex[:16]
         self.first_scan = self.scans
         self.prior = self.prior_sigma = None  # the new frame is nowhere known
-        self._fingerprint, self._rebuilt_graph = None, None
+        self._fingerprint, self._rebuilt_graph, self._graph_sent = None, None, (None, None)
         self._next_map_s = -np.inf
         self.free = FreeSpaceViews(self.cfg.free)  # (the ended session's went out with its map)
         self.free_seq, self._free_fingerprint, self._next_free_s = 0, None, -np.inf
@@ -212,8 +214,10 @@ class AgentCore:
         arrays = top_particle_maps(self.slam, self.cfg.publish)
         self._graph = {}
         born = self.slam.step_index - arrays.age
+        graph = None  # the graph object the map's graph fields come from
         if self.corrector is not None:  # every element moved with the keyframe it was made from
             self._graph = self.corrector.graph_fields(born)
+            graph = self.corrector.correction.graph
             arrays = dataclasses.replace(
                 arrays,
                 seg=self.corrector.segments(arrays.seg, born),
@@ -225,11 +229,22 @@ class AgentCore:
             c, gauge, first = self._rebuilt_graph
             scans = first + self.slam.trajectory.scan_of_step(np.maximum(born, 1))
             self._graph = graph_fields(c, scans, gauge)
+            graph = self._rebuilt_graph
         fp = arrays.fingerprint()
         if fp == self._fingerprint and not force:
             return None
         self._fingerprint = fp
-        chunks = self._chunks(arrays)
+        if not self._graph:
+            graph = None
+        if graph is None or graph is not self._graph_sent[0]:  # a new graph: it goes out now
+            self._graph_sent = (graph, None if graph is None else self.map_seq)
+        if self._graph:
+            self._graph["graph_seq"] = self._graph_sent[1]
+        chunks = self.map_whole = self._chunks(arrays)
+        if self._graph and self._graph_sent[1] != self.map_seq:  # unchanged since it went out: the
+            # anchors name it, the receiver has it (the queryable answers with the whole)
+            self._graph = {"anchor": self._graph["anchor"], "graph_seq": self._graph_sent[1]}
+            chunks = self._chunks(arrays)
         self.map_seq += 1
         return chunks
 
@@ -304,8 +319,10 @@ class Publisher:
         chunks = self.core.map_messages(force=force_map)
         if chunks is not None:
             payloads = [codec.encode(c) for c in chunks]
+            whole = self.core.map_whole
+            whole = payloads if whole is chunks else [codec.encode(c) for c in whole]
             with self._lock:
-                self._latest = payloads
+                self._latest = whole  # what a query gets: the map with its graph, same seq
             self._put("map", self.keys.robot_map(self.core.robot), payloads, reliable=True)
         free = self.core.free_message(force=force_map)
         if free is not None:

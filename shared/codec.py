@@ -72,10 +72,11 @@ WIRE_DTYPES = {
     "pose": "<f8", "transform": "<f8", "sigma": "<f8",
     "seg": "<f4", "trust": "<f4",  # float32: 8 µm at 100 m, 8 mm at the 100 km coordinate limit
     "element": "<i8", "members": "<u8", "hits": "<u4", "age": "<u4",
-    # a robot's pose graph: ids as they come, poses in float64 (the keyframes' are what the server
-    # optimizes from), information in float32 (seven digits of a weight)
-    "kf_id": "<i8", "kf_stamp": "<f8", "kf_pose": "<f8", "edge_ids": "<i8", "edge_z": "<f8",
-    "edge_info": "<f4", "anchor": "<i8", "local": "<f8",
+    # a robot's pose graph: keyframe ids (scan indices: 3 years of a 40 Hz laser) in uint32, poses
+    # in float64 (the keyframes' are what the server optimizes from), information in float32
+    # (seven digits of a weight)
+    "kf_id": "<u4", "kf_stamp": "<f8", "kf_pose": "<f8", "edge_ids": "<u4", "edge_z": "<f8",
+    "edge_info": "<f4", "anchor": "<u4", "local": "<f8",
     "support": "<u4", "prov_offsets": "<u4", "prov_robot": "<u2",
     # free space: a robot's views in centimetres around each view's pose (±327 m), the fused
     # polygons in float32 metres
@@ -89,7 +90,7 @@ KEYS = {
         "robot", "session", "seq", "stamp_s", "chunk", "n_chunks", "n_particles", "n_elements",
         "particle_weights", "particle_poses", "seg", "element", "members", "trust", "hits", "age",
         "prior", "prior_sigma", "n_keyframes", "n_edges", "kf_id", "kf_stamp", "kf_pose", "edge_ids",
-        "edge_z", "edge_info", "anchor",
+        "edge_z", "edge_info", "anchor", "graph_seq",
     ),
     "pose": ("robot", "session", "seq", "stamp_s", "pose", "status"),
     "fused_map": (
@@ -118,6 +119,7 @@ KEYS = {
 # space; 2 no pose status).
 _GRAPH_KEYS = (
     "n_keyframes", "n_edges", "kf_id", "kf_stamp", "kf_pose", "edge_ids", "edge_z", "edge_info", "anchor",
+    "graph_seq",
 )  # fmt: skip
 KEYS_SCHEMA_4 = dict(
     {k: v for k, v in KEYS.items() if k != "robot_path"},
@@ -197,6 +199,7 @@ def _encode_robot_map(m: RobotMap) -> dict:
                   "age", "prior", "prior_sigma", "kf_id", "kf_stamp", "kf_pose", "edge_ids", "edge_z",
                   "edge_info", "anchor"),
         "n_keyframes": 0 if m.kf_id is None else len(m.kf_id),
+        "graph_seq": None if m.graph_seq is None else int(m.graph_seq),
         "n_edges": 0 if m.edge_ids is None else len(m.edge_ids),
     }  # fmt: skip
 
@@ -415,7 +418,10 @@ def _decode_graph(r: _Reader, n: int) -> dict:
         kf_id=(k,), kf_stamp=(k,), kf_pose=(k, 3), edge_ids=(e, 2), edge_z=(e, 3), edge_info=(e, 6),
         anchor=(n,),
     )  # fmt: skip
-    return {name: r.array(name, shape, optional=True) for name, shape in shapes.items()}
+    out = {name: r.array(name, shape, optional=True) for name, shape in shapes.items()}
+    seq = r.fields["graph_seq"]
+    out["graph_seq"] = None if seq is None else r.integer("graph_seq")
+    return out
 
 
 def _decode_pose(r: _Reader) -> PoseUpdate:

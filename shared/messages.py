@@ -151,8 +151,10 @@ class RobotMap:
       ``kf_stamp (K,)`` [s], ``kf_pose (K,3)`` in the map frame; edges ``edge_ids (E,2)`` (keyframe
       ids a, b) measuring ``edge_z (E,3)`` (b's pose in a's frame) with information
       ``edge_info (E,6)`` (upper triangle: xx, xy, xθ, yy, yθ, θθ); ``anchor (N,)`` the keyframe
-      each element moves with. Only chunk 0 carries the graph; every chunk carries its rows'
-      anchors.
+      each element moves with; ``graph_seq`` the ``seq`` of the map that carried that graph: this
+      one (the graph fields given), or an earlier one of the session whose graph is unchanged
+      (the fields left out: the receiver has it). Only chunk 0 carries the graph; every chunk
+      carries its rows' anchors.
     """
 
     robot: str
@@ -178,6 +180,7 @@ class RobotMap:
     edge_z: np.ndarray | None = None
     edge_info: np.ndarray | None = None
     anchor: np.ndarray | None = None
+    graph_seq: int | None = None
 
     def __post_init__(self) -> None:
         check_id("robot", self.robot)
@@ -215,11 +218,15 @@ class RobotMap:
         _freeze(self, **arrays)
 
     def _graph(self, n: int) -> dict:
+        if self.graph_seq is not None:
+            check_int("graph_seq", self.graph_seq, 0, self.seq)
         given = [getattr(self, f) is not None for f in GRAPH_FIELDS]
         if any(given) and not all(given):
             missing = GRAPH_FIELDS[given.index(False)]
             raise WireFormatError(f"{missing}: missing (the graph's fields come together)")
         out = {}
+        if all(given) and self.graph_seq is None:
+            raise WireFormatError("graph_seq: required with a graph (the seq of the map that carried it)")
         if all(given):
             if self.chunk != 0:
                 raise WireFormatError("kf_id: only chunk 0 carries the graph")
@@ -252,8 +259,10 @@ class RobotMap:
             if all(given) and not np.isin(anchor, out["kf_id"]).all():
                 raise WireFormatError("anchor: names a keyframe not in kf_id")
             out["anchor"] = anchor
-        elif all(given) and n:
+        elif self.graph_seq is not None and n:
             raise WireFormatError("anchor: required with a graph (the keyframe of every element)")
+        if self.anchor is not None and self.graph_seq is None:
+            raise WireFormatError("graph_seq: required with anchors (the map whose graph they name)")
         return out
 
     @property

@@ -61,7 +61,7 @@ def graph_message(robot: str, run: tuple, prior: np.ndarray, seq: int = 1) -> Ro
         np.ones(n, np.int64), np.full(n, 0.8), np.full(n, 10, np.int64), np.full(n, 100, np.int64),
         prior=prior, prior_sigma=np.array([0.05, 0.05, 0.01]), kf_id=ks.astype(np.int64), kf_stamp=stamps,
         kf_pose=est, edge_ids=np.column_stack([ks[:-1], ks[1:]]).astype(np.int64), edge_z=z,
-        edge_info=info_upper(info), anchor=anchor.astype(np.int64),
+        edge_info=info_upper(info), anchor=anchor.astype(np.int64), graph_seq=seq,
     )  # fmt: skip
 
 
@@ -78,7 +78,7 @@ def fleet_of(enabled: bool = True, rigid_r0: bool = False) -> tuple[Fleet, dict]
         m = graph_message(name, run, prior=run[3][0])
         if rigid_r0 and name == "r0":
             m = dataclasses.replace(m, **dict.fromkeys(("kf_id", "kf_stamp", "kf_pose", "edge_ids", "edge_z",
-                                                         "edge_info", "anchor")))  # fmt: skip
+                                                         "edge_info", "anchor", "graph_seq")))  # fmt: skip
         fleet.put_map(m, 0.0)
     t = 0.0
     fleet.fuse(t)
@@ -144,3 +144,26 @@ def test_a_map_without_a_graph_stays_whole_and_the_others_bend_to_it():
     assert len(path.kf_stamp) == 1 and np.array_equal(path.pose[0], r0.alignment.transform)
     after = keyframe_errors(fleet, runs, "r1")
     assert np.percentile(after, 90) < 0.15  # measured 0.113 m
+
+
+def test_a_graph_sent_once_serves_the_maps_after_it():
+    """An agent sends its graph only when it changed; a map in between names it (``graph_seq``)
+    and the server takes it from the map before. A graph the server missed: the last one it has
+    if it holds every keyframe the anchors name, else the map is placed as a whole for now."""
+    run = bent_run(1, BEND)
+    fleet = Fleet(FleetConfig(), "srv")
+    first = graph_message("r1", run, prior=run[3][0], seq=1)
+    fleet.put_map(first, 0.0)
+    graph = dict.fromkeys(("kf_id", "kf_stamp", "kf_pose", "edge_ids", "edge_z", "edge_info"))
+    fleet.put_map(dataclasses.replace(first, seq=2, **graph), 1.0)  # (graph_seq stays 1)
+    m = fleet.robots["r1"].map
+    assert m.seq == 2 and m.has_graph and m.graph_seq == 1
+    np.testing.assert_array_equal(m.kf_pose, first.kf_pose)
+    # a later graph missed, anchors all known: the last graph serves
+    fleet.put_map(dataclasses.replace(first, seq=3, graph_seq=3, **graph), 2.0)
+    assert fleet.robots["r1"].map.has_graph and fleet.robots["r1"].map.graph_seq == 1
+    # anchors naming a keyframe the server never saw: placed as a whole until the next graph
+    unknown = np.full(len(first.seg), int(first.kf_id[-1]) + 1)
+    fleet.put_map(dataclasses.replace(first, seq=4, graph_seq=4, anchor=unknown, **graph), 3.0)
+    m = fleet.robots["r1"].map
+    assert not m.has_graph and m.anchor is None and m.graph_seq is None

@@ -26,7 +26,7 @@ def graph_map(n: int = 5000, k: int = 40, seq: int = 1) -> RobotMap:
         np.ones(n, np.int64), np.full(n, 0.9), np.full(n, 3, np.int64), np.full(n, 7, np.int64),
         kf_id=kf_id, kf_stamp=np.linspace(0.0, 12.0, k), kf_pose=rng.normal(0, 3, (k, 3)),
         edge_ids=np.column_stack([kf_id[a], kf_id[b]]), edge_z=rng.normal(0, 0.5, (len(a), 3)),
-        edge_info=info_upper(info), anchor=rng.choice(kf_id, n),
+        edge_info=info_upper(info), anchor=rng.choice(kf_id, n), graph_seq=seq,
     )  # fmt: skip
 
 
@@ -52,7 +52,7 @@ def test_a_schema_4_map_is_read_without_a_graph():
                                                 "members", "trust", "hits", "age")))  # fmt: skip
     fields = msgpack.unpackb(codec.encode(plain), raw=False)
     for name in ("n_keyframes", "n_edges", "kf_id", "kf_stamp", "kf_pose", "edge_ids", "edge_z", "edge_info",
-                 "anchor"):  # fmt: skip
+                 "anchor", "graph_seq"):  # fmt: skip
         del fields[name]
     old = codec.decode(msgpack.packb(dict(fields, schema=4), use_bin_type=True))
     assert not old.has_graph and old.anchor is None and len(old.seg) == 10
@@ -72,6 +72,8 @@ def replaced(m: RobotMap, **fields) -> dict:
         (lambda m: {"edge_ids": np.repeat(m.edge_ids[:, :1], 2, axis=1)}, "edge_ids: an edge joins"),
         (lambda m: {"anchor": np.full(len(m.seg), 5)}, "anchor: names a keyframe not in kf_id"),
         (lambda m: {"anchor": None}, "anchor: required with a graph"),
+        (lambda m: {"graph_seq": None}, "graph_seq: required with a graph"),
+        (lambda m: {"graph_seq": m.seq + 1}, "graph_seq: 2 out of range"),
         (lambda m: {"kf_id": m.kf_id[::-1].copy()}, "kf_id: must increase"),
         (lambda m: {"edge_z": None}, "edge_z: missing"),
         (lambda m: {"chunk": 1, "n_chunks": 2}, "kf_id: only chunk 0 carries the graph"),
