@@ -47,6 +47,8 @@ from shared import posegraph
 from shared.geometry import compose, inverse, relative, segment_lengths, transform_points, wrap_angle
 from shared.messages import RobotMap, info_matrices
 
+PRUNE_SLACK = 64  # a robot's matched keyframes and constraints kept beyond its graph's size
+
 
 @dataclass(frozen=True, eq=False)
 class RobotGraph:
@@ -164,6 +166,11 @@ class FleetGraph:
         x = self.poses(p)[cand]
         seen = self._matched.setdefault(p.robot, {})
         cons = self.constraints.get(p.robot, {})
+        if len(seen) > len(g) + PRUNE_SLACK or len(cons) > len(g) + PRUNE_SLACK:  # keyframes that
+            # left the robot's graph (retired, thinned) leave these too: bounded by the graph's size
+            ids = set(g.ids.tolist())
+            seen = self._matched[p.robot] = {k: v for k, v in seen.items() if k in ids}
+            cons = self.constraints[p.robot] = {k: c for k, c in cons.items() if k in ids}
         new = np.array([int(i) not in seen for i in g.ids[cand]], bool)
         before = np.array([seen.get(int(i), np.zeros(3)) for i in g.ids[cand]]).reshape(-1, 3)
         d = relative(before, x)

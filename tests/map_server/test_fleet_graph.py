@@ -12,6 +12,7 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
+from map_server import posegraph
 from map_server.config import FleetConfig, GraphConfig
 from map_server.fleet import Fleet
 from robot_agent.publish import directed
@@ -167,3 +168,18 @@ def test_a_graph_sent_once_serves_the_maps_after_it():
     fleet.put_map(dataclasses.replace(first, seq=4, graph_seq=4, anchor=unknown, **graph), 3.0)
     m = fleet.robots["r1"].map
     assert not m.has_graph and m.anchor is None and m.graph_seq is None
+
+
+def test_what_the_graph_keeps_per_robot_is_bounded_by_its_graph(monkeypatch):
+    """Keyframes that leave a robot's graph (retired, thinned by its back end) leave the fleet
+    graph's bookkeeping too (beyond a slack, here none): it does not grow with the run."""
+    monkeypatch.setattr(posegraph, "PRUNE_SLACK", 0)
+    fleet, runs = fleet_of(True)
+    assert len(fleet.graph._matched["r1"]) > 30  # every third of its ~120 keyframes: 41
+    ks, stamps, est, truth, seg, anchor = runs["r1"]
+    keep = anchor <= ks[9]  # a graph of its first 10 keyframes, and the rows made there
+    small = graph_message("r1", (ks[:10], stamps[:10], est[:10], truth[:10], seg[keep], anchor[keep]),
+                          prior=truth[0], seq=2)  # fmt: skip
+    fleet.put_map(small, 300.0)
+    fleet.fuse(300.0)
+    assert len(fleet.graph._matched["r1"]) <= 10 and len(fleet.graph.constraints["r1"]) <= 10
