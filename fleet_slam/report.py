@@ -53,11 +53,26 @@ def _first_merges(updates: list[Update], t0: float) -> dict[str, float]:
     return first
 
 
-def _global_frame_in_world(final: FusedMap, starts: dict[str, np.ndarray]) -> np.ndarray:
+def _frames(final: FusedMap, paths: dict | None) -> dict[str, np.ndarray]:
+    """Where each merged robot's map frame (its start frame) is in the global frame: the first
+    keyframe's placement by the fleet's graph (``paths``, RobotPath per robot) — the status's
+    transform is its newest keyframe's, where the robot is now — else the status's transform
+    (a map placed as a whole)."""
+    out = {}
+    for s in final.robots:
+        p = (paths or {}).get(s.robot)
+        if p is not None and p.robot_session == s.session:
+            out[s.robot] = compose(p.pose[0], inverse(p.local[0]))
+        else:
+            out[s.robot] = s.transform
+    return out
+
+
+def _global_frame_in_world(final: FusedMap, starts: dict[str, np.ndarray], frames: dict) -> np.ndarray:
     ref = next((r for r in final.robots if r.status == "reference"), None)
     if ref is None or ref.robot not in starts:
         return identity()
-    return compose(starts[ref.robot], inverse(ref.transform))
+    return compose(starts[ref.robot], inverse(frames[ref.robot]))
 
 
 def _slam_fits(agents_dir: Path, names, local: dict) -> dict:
@@ -74,7 +89,7 @@ def _slam_fits(agents_dir: Path, names, local: dict) -> dict:
     return out
 
 
-def _global_frame_fitted(final: FusedMap, fits: dict) -> np.ndarray | None:
+def _global_frame_fitted(final: FusedMap, fits: dict, frames: dict) -> np.ndarray | None:
     """The global frame in the world by the fitted map frames (see _slam_fits): the world in a
     prior frame, the reference's fitted map frame otherwise; None if there is no truth."""
     if not fits:
@@ -84,7 +99,7 @@ def _global_frame_fitted(final: FusedMap, fits: dict) -> np.ndarray | None:
         return identity()
     if ref.robot not in fits:
         return None
-    return compose(fits[ref.robot][1].alignment, inverse(ref.transform))
+    return compose(fits[ref.robot][1].alignment, inverse(frames[ref.robot]))
 
 
 def fused_geojson(final: FusedMap) -> dict:
@@ -107,8 +122,9 @@ def write_report(
         save_geojson(out / "world.geojson", to_geojson(world))
     local = {n: read_poses(agents_dir / f"{n}.poses.txt") for n in names}
     fits = _slam_fits(agents_dir, names, local) if starts else {}
-    g = _global_frame_in_world(final, starts)
-    g_fit = _global_frame_fitted(final, fits)
+    frames = _frames(final, paths)
+    g = _global_frame_in_world(final, starts, frames)
+    g_fit = _global_frame_fitted(final, fits, frames)
     pic = Picture(title=f"fused map v{final.version}: {len(final.seg)} segments, {len(names)} robots")
     if world is not None:
         pic.segments.append(
@@ -140,10 +156,11 @@ def write_report(
             all_poses.append(poses)
             merged_names.append(name)
             pic.paths.append(PathLayer(poses[:, :2], robot_colour(i), 0.04, name))
-            r["transform"] = status.transform.tolist()
+            r["transform"] = frames[name].tolist()
             r["transform_sigma"] = status.sigma.tolist()
         if name in starts:
-            r.update(_sim_scores(starts[name], g, g_fit, status, stamps, poses, merged, *fits[name]))
+            frame = frames.get(name, np.zeros(3))
+            r.update(_sim_scores(starts[name], g, g_fit, frame, stamps, poses, merged, *fits[name]))
         robots[name] = r
     save_geojson(out / "map.geojson", fused_geojson(final))
     save_picture(out / "map", pic)
@@ -222,18 +239,18 @@ def _bytes_per_s(info: dict) -> dict | None:
     return {k: v / span for k, v in sent.items()} | {"total": sum(sent.values()) / span}
 
 
-def _sim_scores(start, g, g_fit, status, stamps, poses, merged, truth, fit) -> dict:
-    """A simulated robot's scores: ``truth`` its true ``(stamps, poses)``, ``fit`` its SLAM path's
-    rigid fit to them (_slam_fits)."""
+def _sim_scores(start, g, g_fit, frame, stamps, poses, merged, truth, fit) -> dict:
+    """A simulated robot's scores: ``frame`` where its map frame was placed (_frames), ``truth``
+    its true ``(stamps, poses)``, ``fit`` its SLAM path's rigid fit to them (_slam_fits)."""
     r = {"ate_slam_m": fit.rmse_m}  # SLAM alone (best alignment)
     if merged:
         true_t = compose(inverse(g), start)
-        dt, dr = transform_error(status.transform, true_t)
+        dt, dr = transform_error(frame, true_t)
         r["transform_error_m"], r["transform_error_deg"] = dt, dr
         r["ate_m"] = ate(stamps, compose(g, poses), *truth, align=False).rmse_m
         r["wrong_merge"] = bool(dt > WRONG_MERGE_M or dr > WRONG_MERGE_DEG)
         if g_fit is not None:
-            dt, dr = transform_error(status.transform, compose(inverse(g_fit), fit.alignment))
+            dt, dr = transform_error(frame, compose(inverse(g_fit), fit.alignment))
             r["transform_error_fit_m"], r["transform_error_fit_deg"] = dt, dr
     return r
 

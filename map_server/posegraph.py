@@ -118,7 +118,13 @@ class FleetGraph:
     constraints: dict = field(default_factory=dict)  # robot -> {keyframe id: Constraint}
     stats: dict = field(default_factory=dict)
     pending: bool = False  # keyframes wait to be matched (more than one fusion's budget)
-    _matched: dict = field(default_factory=dict)  # robot -> {keyframe id: its pose when matched}
+    _matched: dict = field(default_factory=dict)  # robot -> {keyframe id: its poses when matched
+    # (6,): where the graph put it, where the robot put it in its own frame}
+
+    def refresh(self) -> None:
+        """Every keyframe due again (the robots' maps are final: a robot left), each keeping its
+        constraint until it is matched again."""
+        self._matched = {}
 
     def shift(self, robot: str, g: np.ndarray) -> None:
         """The robot's solution moved by the rigid motion ``g`` (the prior gauge moved every frame)."""
@@ -126,7 +132,9 @@ class FleetGraph:
             graph, x = self.solution[robot]
             self.solution[robot] = (graph, compose(g, x))
         if robot in self._matched:
-            self._matched[robot] = {k: compose(g, v) for k, v in self._matched[robot].items()}
+            self._matched[robot] = {
+                k: np.concatenate([compose(g, v[:3]), v[3:]]) for k, v in self._matched[robot].items()
+            }
 
     def poses(self, p: Placed) -> np.ndarray:
         """The robot's keyframes in the global frame: solved, or (new ones) carried from the last
@@ -172,9 +180,14 @@ class FleetGraph:
             seen = self._matched[p.robot] = {k: v for k, v in seen.items() if k in ids}
             cons = self.constraints[p.robot] = {k: c for k, c in cons.items() if k in ids}
         new = np.array([int(i) not in seen for i in g.ids[cand]], bool)
-        before = np.array([seen.get(int(i), np.zeros(3)) for i in g.ids[cand]]).reshape(-1, 3)
-        d = relative(before, x)
-        size = np.hypot(d[:, 0], d[:, 1]) / cfg.rematch_m + np.abs(d[:, 2]) / cfg.rematch_rad
+        zero = np.zeros(6)
+        before = np.array([seen.get(int(i), zero) for i in g.ids[cand]]).reshape(-1, 6)
+        size = np.zeros(len(cand))
+        for d in (relative(before[:, :3], x), relative(before[:, 3:], g.pose[cand])):  # where the
+            # graph put it, where the robot itself put it (its own correction moved it)
+            size = np.maximum(
+                size, np.hypot(d[:, 0], d[:, 1]) / cfg.rematch_m + np.abs(d[:, 2]) / cfg.rematch_rad
+            )
         moved = ~new & (size >= 1.0)
         order = np.concatenate([np.flatnonzero(new), np.flatnonzero(moved)[np.argsort(-size[moved])]])
         wide = np.array([int(i) not in cons for i in g.ids[cand[order]]], bool)
@@ -209,7 +222,7 @@ class FleetGraph:
             for k in ks:
                 kid = int(p.graph.ids[k])
                 cons.pop(kid, None)
-                seen[kid] = x[k]
+                seen[kid] = np.concatenate([x[k], p.graph.pose[k]])
             for c in found:
                 cons[c.b_id] = c
             tried += len(ks)
