@@ -85,7 +85,8 @@ PRIOR_SIGMA = np.array([0.05, 0.05, np.radians(1.0)])  # = robot_agent.agent.DEF
 STARTUP_TIMEOUT_S = 60.0
 FIRST_REPLAYED_MAP = 10  # load agents replay their recorded maps from the 10th (about 10 s in)
 PROFILE_RATE_HZ = 200  # py-spy samples per second (--profile)
-CACHE_FORMAT = 3  # of the recordings in --cache (in their file names); 3: maps with the pose graph
+CACHE_FORMAT = 4  # of the recordings in --cache (in their file names); 3: maps with the pose graph;
+# 4: every map stored whole (its graph in it, as a query gets it)
 
 
 # -- recorded agent runs ----------------------------------------------------------------------------
@@ -146,7 +147,7 @@ def record_run(world_name: str, route: int, seed: int, duration_s: float, path: 
         if chunks is not None:
             map_bytes.append(sum(len(codec.encode(c)) for c in chunks))
             map_scans.append(core.scans)
-            blobs.append(codec.encode_stored_map(codec.join(chunks)))
+            blobs.append(codec.encode_stored_map(codec.join(core.map_whole)))  # with its graph
     meta = dict(world=world_name, route=route, seed=seed, duration_s=duration_s, start=start.tolist(),
                 range_max_m=float(scan.range_max_m))  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -474,6 +475,7 @@ class ReplayCore:
         self._order = list(range(lo, n)) + list(range(n - 2, lo, -1)) or [lo]
         self.ticks = self.map_seq = self.pose_seq = 0
         self.unlogged: int | None = None
+        self.map_whole: list[RobotMap] = []
 
     def pose_message(self, force: bool = False) -> PoseUpdate:
         pose = self.rec.scan_poses[self.ticks % len(self.rec.scan_poses)]
@@ -496,8 +498,10 @@ class ReplayCore:
         m = dataclasses.replace(
             m, robot=self.robot, session=self.session, seq=self.map_seq, stamp_s=time.monotonic(),
             prior=self.prior, prior_sigma=PRIOR_SIGMA,
+            graph_seq=self.map_seq if m.has_graph else None,
         )  # fmt: skip
-        return codec.split(m)
+        self.map_whole = codec.split(m)  # every replayed map carries its graph: what a query gets too
+        return self.map_whole
 
 
 def load_agent_main(args: argparse.Namespace) -> int:

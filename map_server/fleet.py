@@ -57,7 +57,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 
-import msgpack
 import numpy as np
 
 from map_server import policy
@@ -649,16 +648,14 @@ class Fleet:
 
     # -- persistence ---------------------------------------------------------------------------
 
-    def _restore_graph(self, blob: bytes | None) -> None:
-        """The bent robots as the graph left them (see :meth:`graph_blob`); a robot whose map
+    def _restore_graph(self, graph: dict[str, tuple[str, int, np.ndarray]] | None) -> None:
+        """The bent robots as the graph left them (see :meth:`graph_state`); a robot whose map
         is not the one its solution was of stays rigid until the graph is solved again."""
-        if blob is None:
-            return
-        for robot, (session, seq, raw) in msgpack.unpackb(blob, raw=False).items():
+        for robot, (session, seq, x) in (graph or {}).items():
             r = self.robots.get(robot)
             if r is None or r.map is None or (r.map.session, r.map.seq) != (session, seq) or r.graph is None:
                 continue
-            x = np.frombuffer(raw, "<f8").reshape(-1, 3)
+            x = np.asarray(x, float).reshape(-1, 3)
             if len(x) != len(r.graph) or not r.alignment.placed:
                 continue
             p = _graph_item(r)
@@ -678,15 +675,14 @@ class Fleet:
         maps.update((p.blob, p.map) for p in self._pieces())
         return meta, maps
 
-    def graph_blob(self) -> bytes | None:
-        """Where the fleet's graph put each bent robot's keyframes, as bytes (None: none bent):
-        restored with the maps, the same fused map comes back."""
-        bent = {
-            r.robot: [r.map.session, r.map.seq, np.asarray(r.bent_x, "<f8").tobytes()]
+    def graph_state(self) -> dict[str, tuple[str, int, np.ndarray]]:
+        """Where the fleet's graph put each bent robot's keyframes (robot -> the session and seq
+        of the map solved, (K, 3) poses): restored with the maps, the same fused map comes back."""
+        return {
+            r.robot: (r.map.session, r.map.seq, np.asarray(r.bent_x, float))
             for r in self.robots.values()
             if r.bent is not None and r.map is not None
         }
-        return msgpack.packb(bent, use_bin_type=True) if bent else None
 
     @classmethod
     def restore(
@@ -695,11 +691,11 @@ class Fleet:
         maps: dict[str, RobotMap],
         cfg: FleetConfig,
         server_id: str,
-        graph: bytes | None = None,
+        graph: dict[str, tuple[str, int, np.ndarray]] | None = None,
     ) -> Fleet:
         """A fleet that fuses to the same map, same version (no alignment is re-attempted until
         a map changes). ``maps`` holds the robots' maps and the retired pieces' (see snapshot);
-        ``graph`` the graph's solution (:meth:`graph_blob`)."""
+        ``graph`` the graph's solution (:meth:`graph_state`)."""
         f = cls(cfg, server_id)
         f.version, f.epoch_s, f.reference = int(meta["version"]), meta["epoch_s"], meta["reference"]
         f.frame, f._arrivals = meta["frame"], int(meta["arrivals"])

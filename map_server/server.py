@@ -20,6 +20,9 @@ import uuid
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
+import msgpack
+import numpy as np
+
 from map_server.config import FleetConfig
 from map_server.fleet import Fleet
 from map_server.freespace import FreeFusionConfig, FreeSpaces
@@ -55,7 +58,7 @@ class ServerConfig:
 
 
 FREE_BLOB = "free~"  # a robot session's free space in a snapshot: free~<robot>~<session>
-GRAPH_BLOB = "graph~"  # the fleet graph's solution (Fleet.graph_blob)
+GRAPH_BLOB = "graph~"  # the fleet graph's solution (Fleet.graph_state, encode_graph_state)
 
 
 class MapServer:
@@ -114,7 +117,7 @@ class MapServer:
         meta, blobs = loaded
         try:  # the checksums hold, but the content must be a state this build reads too
             frees = {n: b for n, b in blobs.items() if n.startswith(FREE_BLOB)}
-            graph = blobs.pop(GRAPH_BLOB, None)
+            graph = decode_graph_state(blobs.pop(GRAPH_BLOB, None))
             blobs = {n: b for n, b in blobs.items() if n not in frees}
             maps = {name: codec.decode_stored_map(blob) for name, blob in blobs.items()}
             for name, blob in frees.items():
@@ -155,9 +158,9 @@ class MapServer:
         for gone in set(self._stored_free) - set(frees):
             del self._stored_free[gone]
         blobs.update({name: b for name, (_, b) in self._stored_free.items()})
-        graph = self.fleet.graph_blob()
-        if graph is not None:
-            blobs[GRAPH_BLOB] = graph
+        graph = self.fleet.graph_state()
+        if graph:
+            blobs[GRAPH_BLOB] = encode_graph_state(graph)
         self.store.save({"fleet": meta, "now_s": self.now_s(), "server": self.server_id}, blobs)
 
     # -- bus callbacks (zenoh threads): decode, validate, queue ----------------------------------
@@ -478,3 +481,24 @@ def _reason(exc: Exception) -> str:
 
 def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def encode_graph_state(graph: dict[str, tuple[str, int, np.ndarray]]) -> bytes:
+    """The fleet graph's solution (:meth:`Fleet.graph_state`) as stored bytes: poses as <f8."""
+    return msgpack.packb(
+        {robot: [session, seq, np.asarray(x, "<f8").tobytes()] for robot, (session, seq, x) in graph.items()},
+        use_bin_type=True,
+    )
+
+
+def decode_graph_state(blob: bytes | None) -> dict[str, tuple[str, int, np.ndarray]] | None:
+    """Inverse of :func:`encode_graph_state` (None stays None); damaged bytes raise ValueError."""
+    if blob is None:
+        return None
+    items = msgpack.unpackb(blob, raw=False)
+    if not isinstance(items, dict):
+        raise ValueError(f"{GRAPH_BLOB}: not a map of robots ({type(items).__name__})")
+    out = {}
+    for robot, (session, seq, raw) in items.items():
+        out[str(robot)] = (str(session), int(seq), np.frombuffer(raw, "<f8").reshape(-1, 3))
+    return out

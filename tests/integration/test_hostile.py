@@ -30,14 +30,15 @@ import numpy as np
 import pytest
 
 from fleet_slam.procs import ProcGroup, python_module
-from fleet_slam.watch import FusedWatcher
+from fleet_slam.watch import FusedWatcher, fetch_paths
 from map_server.config import FleetConfig
 from map_server.fusion import fuse_particles, merge_segments
+from map_server.posegraph import RobotGraph
 from shared import codec
 from shared.bus import Bus, BusConfig
-from shared.geometry import apply_segments, compose
+from shared.geometry import apply_segments, compose, inverse, transform_points
 from shared.keys import Keys
-from shared.messages import FusedMap, PoseUpdate, RobotMap, WireFormatError
+from shared.messages import GRAPH_FIELDS, FusedMap, PoseUpdate, RobotMap, RobotPath, WireFormatError
 from tests.netutil import loopback_endpoint, wait_for, wait_while_progressing
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
@@ -206,7 +207,11 @@ class Flood:
             return kind, key, codec.encode(dataclasses.replace(msg, pose=msg.pose + 1.0))
         if seq == 0:  # older: a seq below a settled one of the same session
             return None
-        return kind, key, codec.encode(dataclasses.replace(msg, seq=int(rng.integers(0, seq))))
+        older = int(rng.integers(0, seq))
+        changes = {"seq": older}
+        if getattr(msg, "graph_seq", None) is not None:  # a map names its graph by a seq not after its own
+            changes["graph_seq"] = min(msg.graph_seq, older)
+        return kind, key, codec.encode(dataclasses.replace(msg, **changes))
 
 
 def refused(payload: bytes) -> bool:
@@ -217,18 +222,28 @@ def refused(payload: bytes) -> bool:
     return False
 
 
-def offline_fusion(fused: FusedMap, maps: dict[str, RobotMap]) -> tuple[np.ndarray, np.ndarray, list]:
-    """The fused segments, support and provenance that ``maps`` give under the transforms the
-    server reports (map_server.fleet's build: per robot the cross-particle layer moved into the
-    global frame, then the merge across robots)."""
+def offline_fusion(
+    fused: FusedMap, maps: dict[str, RobotMap], paths: dict[str, RobotPath]
+) -> tuple[np.ndarray, np.ndarray, list]:
+    """The fused segments, support and provenance that ``maps`` give where the server reports
+    their keyframes (map_server.fleet's build: per robot the cross-particle layer, each row moved
+    into the global frame with its keyframe as the fleet's graph placed it, then the merge across
+    robots)."""
     cfg = FleetConfig().fusion
     rows = {r.robot: i for i, r in enumerate(fused.robots)}
     placed = sorted(r.robot for r in fused.robots if r.merged)
     layers = [fuse_particles(maps[name], cfg) for name in placed]
-    seg = [
-        apply_segments(fused.robot(name).transform, layer.seg)
-        for name, layer in zip(placed, layers, strict=True)
-    ]
+    seg = []
+    for name, layer in zip(placed, layers, strict=True):
+        path = paths[name]
+        if len(path.pose) == 1:  # placed as a whole: its map frame at the transform
+            np.testing.assert_allclose(path.pose[0], fused.robot(name).transform, rtol=0, atol=1e-9)
+            seg.append(apply_segments(path.pose[0], layer.seg))
+            continue
+        graph = RobotGraph.of(maps[name], layer)
+        np.testing.assert_allclose(path.local, graph.pose, rtol=0, atol=1e-12)
+        move = compose(path.pose, inverse(path.local))[graph.row_kf]
+        seg.append(transform_points(move[:, None, :], layer.seg))
     w = [layer.weight for layer in layers]
     owner = [np.full(len(layer), rows[name]) for name, layer in zip(placed, layers, strict=True)]
     fseg, support, off, prov = merge_segments(
@@ -272,6 +287,7 @@ def test_thousands_of_hostile_messages_leave_the_fused_map_as_the_agents_made_it
             done = wait_while_progressing(rejected, lambda: rejected() == n_sent, 15.0, 180.0)
             assert done, (n_sent, watcher.latest and watcher.latest.extra, flood.sent)
             fused = watcher.wait_quiet(2.0, 15.0)
+            paths = fetch_paths(bus, KEYS)
     assert all(not p.running for p in group.procs)
     log = server.output()
     print(f"{n_sent} hostile messages in {flood_s:.1f} s: {dict(flood.sent)}; fused version {fused.version}")
@@ -289,10 +305,16 @@ def test_thousands_of_hostile_messages_leave_the_fused_map_as_the_agents_made_it
         session, seq = rec.last_map_seq(r.robot)
         assert (r.session, r.map_seq) == (session, seq), (r.robot, r.session, r.map_seq, session, seq)
         assert r.status == "prior", (r.robot, r.status)
-        maps[r.robot] = rec.whole_map(r.robot, session, seq)
+        m = rec.whole_map(r.robot, session, seq)
+        if not m.has_graph and m.graph_seq is not None:  # its graph came with an earlier map
+            carrier = rec.whole_map(r.robot, session, m.graph_seq)
+            m = dataclasses.replace(m, **{f: getattr(carrier, f) for f in GRAPH_FIELDS})
+        maps[r.robot] = m
+    assert {p.version for p in paths.values()} == {fused.version}, (fused.version, paths)
 
-    # the fused map is the fusion of those legitimate maps (float32 on the wire)
-    seg, support, provenance = offline_fusion(fused, maps)
+    # the fused map is the fusion of those legitimate maps (float32 on the wire) where the
+    # server's graph put their keyframes
+    seg, support, provenance = offline_fusion(fused, maps, paths)
     assert fused.seg.shape == seg.shape and len(seg) > 20
     np.testing.assert_allclose(fused.seg, seg, rtol=0, atol=1e-4)
     np.testing.assert_array_equal(fused.support, support)

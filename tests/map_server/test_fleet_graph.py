@@ -130,7 +130,7 @@ def test_the_solution_survives_a_restart(bent):
     fleet, _ = bent
     meta, maps = fleet.snapshot()
     meta = json.loads(json.dumps(meta, allow_nan=False))
-    back = Fleet.restore(meta, maps, fleet.cfg, "srv", fleet.graph_blob())
+    back = Fleet.restore(meta, maps, fleet.cfg, "srv", fleet.graph_state())
     np.testing.assert_array_equal(back.latest().seg, fleet.latest().seg)
     assert back.latest().version == fleet.latest().version
     for name in ("r0", "r1"):
