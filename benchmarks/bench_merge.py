@@ -1,0 +1,282 @@
+"""Merge delay: how long after the evidence is there the fleet places a robot (issue 21, item 2).
+
+    .venv/bin/python benchmarks/bench_merge.py [--worlds office warehouse] [--seeds 0 ... 9]
+        [--robots 3] [--duration 175] [--cache DIR] [--jobs 2] [--set KEY=VALUE ...]
+
+Each seed's simulated robots (unknown starts: no priors) are first run as the demo's agents run
+them (route i, seed ``100 * seed + i``, the online back end beside each, maps at 1 Hz when they
+changed) and every map they would publish is recorded with its time (cached in ``--cache``). Then,
+without processes or network, in simulated time:
+
+- **evidence**: every map of every robot but the reference is matched, by the server's own
+  matcher (``alignment.estimate_alignment``, one attempt's verification: corners, overlap, rival
+  ratio), against the other robots' maps of the same moment placed where they truly are. The
+  *evidence time* is the first snapshot at which the verdict is "aligned" at the true place
+  (within 0.3 m / 3°, as a wrong merge is counted); a verdict "aligned" somewhere else is a *false
+  verdict* — what a policy that took every verdict at once would have merged wrongly.
+  The false verdicts are counted up to 60 s after the evidence (printed: all / after the evidence).
+- **the fleet**: the maps go into ``map_server.fleet.Fleet`` in time order (a fusion after each,
+  as the server does when it is idle), with the defaults or ``--set`` overrides of FleetConfig
+  (``confirmations=1``, ``alignment.min_share=0.3``, ...); when each robot is placed, whether
+  correctly, and where its first keyframe ends (the fleet's graph) against the truth.
+
+Prints one row per robot (evidence, false verdicts, placed, delay, final error) and a summary:
+median and worst delay, wrong merges, robots never placed; writes benchmarks/results/bench_merge.json.
+Live timing (a fusion takes time, messages queue) is not in this figure: bench_demo.py measures
+the whole fleet on loopback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from _results import save_results  # noqa: E402
+
+from map_server.alignment import estimate_alignment  # noqa: E402
+from map_server.config import FleetConfig  # noqa: E402
+from map_server.fleet import Fleet  # noqa: E402
+from map_server.fusion import fuse_particles, merge_segments  # noqa: E402
+from shared import codec  # noqa: E402
+from shared.geometry import apply_segments, compose, inverse, relative  # noqa: E402
+from shared.messages import RobotMap  # noqa: E402
+
+CACHE_FORMAT = 1
+WRONG_M, WRONG_DEG = 0.3, 3.0  # = fleet_slam/report.py's wrong merge
+
+
+# -- recording -----------------------------------------------------------------------------------
+
+
+def record(world_name: str, route: int, seed: int, duration_s: float, path: Path) -> Path:
+    """One simulated robot as the demo runs it (fleet_slam/demo.py, robot_agent/service.py), its
+    back end inline: every map it would publish, whole, with the source time."""
+    from robot_agent.agent import AgentConfig, AgentCore
+    from robot_agent.backend.live import InlineRunner, LiveCorrector
+    from robot_agent.service import endless_config
+    from robot_agent.sim import LiveSim, builtin_world
+    from robot_agent.slam.config import command_line_config
+    from robot_agent.slam.fastslam import FastSLAM
+
+    world = builtin_world(world_name)
+    cfg = endless_config(command_line_config())
+    slam = FastSLAM(cfg, np.random.default_rng(seed))
+    core = AgentCore(f"robot{route + 1}", slam, AgentConfig(), corrector=LiveCorrector(slam, InlineRunner(cfg)))
+    blobs, stamps, t0 = [], [], None
+    for scan in LiveSim(world, route, seed=seed).scans(duration_s):
+        t0 = scan.stamp_s if t0 is None else t0
+        core.step(scan)
+        core.pose_message()
+        if core.map_messages() is not None:
+            blobs.append(codec.encode_stored_map(codec.join(core.map_whole)))
+            stamps.append(scan.stamp_s - t0)  # s since the robot started
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(
+        tmp, blob=np.frombuffer(b"".join(blobs), np.uint8), offsets=np.cumsum([0] + [len(b) for b in blobs]),
+        stamps=np.array(stamps), start=np.asarray(world.starts[route], float),
+    )  # fmt: skip
+    tmp.replace(path)
+    return path
+
+
+def load(path: Path) -> tuple[np.ndarray, list[RobotMap], np.ndarray]:
+    with np.load(path, allow_pickle=False) as z:
+        blob, off = z["blob"].tobytes(), z["offsets"]
+        maps = [codec.decode_stored_map(blob[a:b]) for a, b in zip(off[:-1], off[1:], strict=True)]
+        return z["stamps"], maps, z["start"]
+
+
+def cache_path(cache: Path, world: str, route: int, seed: int, duration_s: float) -> Path:
+    return cache / f"v{CACHE_FORMAT}-{world}-r{route}-s{seed}-{duration_s:g}s.npz"
+
+
+def _record_job(job: tuple) -> Path:
+    return record(*job)
+
+
+# -- evidence and replay ---------------------------------------------------------------------------
+
+
+def _error(t: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    d = relative(truth, t)
+    return float(np.hypot(d[0], d[1])), float(np.degrees(abs(d[2])))
+
+
+def _wrong(t: np.ndarray, truth: np.ndarray) -> bool:
+    m, deg = _error(t, truth)
+    return m > WRONG_M or deg > WRONG_DEG
+
+
+def _with_overrides(cfg, sets: list[str]):
+    """``key=value`` (``alignment.min_share=0.3``: a nested config's field) over ``cfg``."""
+    for s in sets:
+        key, _, value = s.partition("=")
+        head, _, rest = key.partition(".")
+        if rest:
+            cfg = dataclasses.replace(cfg, **{head: _with_overrides(getattr(cfg, head), [f"{rest}={value}"])})
+            continue
+        old = getattr(cfg, head)  # an unknown field: AttributeError names it
+        cfg = dataclasses.replace(cfg, **{head: type(old)(json.loads(value) if isinstance(old, bool) else value)})
+    return cfg
+
+
+def run_seed(world: str, seed: int, robots: int, paths: list[Path], sets: list[str]) -> dict:
+    """Evidence and the fleet's placements for one seed's recorded robots."""
+    cfg = _with_overrides(FleetConfig(), sets)
+    recs = [load(p) for p in paths]
+    names = [f"robot{i + 1}" for i in range(robots)]
+    events = sorted((float(t), i, k) for i, (ts, _, _) in enumerate(recs) for k, t in enumerate(ts))
+
+    # the fleet, in simulated time
+    fleet = Fleet(cfg, "bench")
+    placed_at: dict[str, float] = {}
+    first_place: dict[str, np.ndarray] = {}
+    t0 = time.perf_counter()
+    for t, i, k in events:
+        fleet.put_map(recs[i][1][k], t)
+        fleet.fuse(t)
+        for n, r in fleet.robots.items():
+            if r.alignment.placed and n not in placed_at:
+                placed_at[n] = t
+                first_place[n] = r.alignment.transform.copy()
+    fuse_s = time.perf_counter() - t0
+    ref = fleet.reference or names[0]
+    iref = names.index(ref)
+    truth = {n: compose(inverse(recs[iref][2]), recs[i][2]) for i, n in enumerate(names)}
+    latest = fleet.latest()
+    paths_now = {p.robot: p for p in fleet.paths(latest.version if latest is not None else 0)}
+
+    # evidence: each robot's maps against the others' of the same moment, placed at the truth
+    layers: dict[tuple[int, int], object] = {}
+
+    def layer(i: int, k: int):
+        if (i, k) not in layers:
+            layers[(i, k)] = fuse_particles(recs[i][1][k], cfg.fusion)
+        return layers[(i, k)]
+
+    out = {}
+    for i, n in enumerate(names):
+        row = dict(robot=n, reference=n == ref, placed_s=placed_at.get(n))
+        if n in first_place:
+            row["wrong_merge"] = _wrong(first_place[n], truth[n])
+        if n in paths_now:
+            p = paths_now[n]
+            frame = compose(p.pose[0], inverse(p.local[0]))  # its map frame by its first keyframe
+            row["error_m"], row["error_deg"] = _error(frame, truth[n])
+        if n == ref:
+            out[n] = row
+            continue
+        ts = recs[i][0]
+        evidence, false_verdicts, first_false, false_after = None, 0, None, 0
+        for k, t in enumerate(ts):
+            others = []
+            for j in range(robots):
+                if j == i:
+                    continue
+                kj = np.searchsorted(recs[j][0], t, side="right") - 1
+                if kj >= 0:
+                    others.append((j, layer(j, kj)))
+            if not others:
+                continue
+            seg = np.concatenate([apply_segments(truth[names[j]], lj.seg) for j, lj in others])
+            w = np.concatenate([lj.weight for _, lj in others])
+            owner = np.concatenate([np.full(len(lj), j) for j, lj in others])
+            merged = merge_segments(seg, w, owner, cfg.fusion)[0]
+            if len(layer(i, k)) == 0 or len(merged) == 0:
+                continue
+            a = estimate_alignment(layer(i, k).seg, merged, cfg.alignment)
+            if a.status != "aligned":
+                continue
+            if _wrong(a.transform, truth[n]):
+                false_verdicts += 1
+                first_false = t if first_false is None else first_false
+                false_after += evidence is not None
+            elif evidence is None:
+                evidence = float(t)
+            if evidence is not None and t - evidence > 60.0:
+                break  # enough seen after the evidence (the false verdicts counted: before and shortly after)
+        row.update(evidence_s=evidence, false_verdicts=false_verdicts, false_after=false_after, first_false_s=first_false)
+        if evidence is not None and row["placed_s"] is not None:
+            row["delay_s"] = row["placed_s"] - evidence
+        out[n] = row
+    return dict(world=world, seed=seed, fuse_s=fuse_s, robots=out)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--worlds", nargs="+", default=["office", "warehouse"])
+    p.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
+    p.add_argument("--robots", type=int, default=3)
+    p.add_argument("--duration", type=float, default=175.0)
+    p.add_argument("--cache", type=Path, default=ROOT / "benchmarks" / "results" / "bench_merge_maps")
+    p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a FleetConfig override")
+    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "bench_merge.json")
+    args = p.parse_args()
+    _with_overrides(FleetConfig(), args.set)  # a bad override fails before any work
+
+    runs = [(w, s) for w in args.worlds for s in args.seeds]
+    paths = {
+        (w, s): [cache_path(args.cache, w, i, 100 * s + i, args.duration) for i in range(args.robots)] for w, s in runs
+    }
+    todo = [(w, i, 100 * s + i, args.duration, cp) for (w, s), ps in paths.items() for i, cp in enumerate(ps)
+            if not cp.exists()]  # fmt: skip
+    with ProcessPoolExecutor(args.jobs) as pool:
+        if todo:
+            print(f"recording {len(todo)} simulated robots ({args.duration:g} s each) into {args.cache} ...", flush=True)
+            list(pool.map(_record_job, todo))
+        futures = [pool.submit(run_seed, w, s, args.robots, paths[(w, s)], args.set) for w, s in runs]
+        results = [f.result() for f in futures]
+
+    print(f"{'world':9} {'seed':>4} {'robot':7} {'evidence':>8} {'false':>9} {'placed':>6} {'delay':>6} "
+          f"{'error':>14}  wrong")  # fmt: skip
+    delays, wrong, unplaced, errors = [], 0, 0, []
+    for res in results:
+        for n, r in res["robots"].items():
+
+            def f(v, fmt="{:.0f}"):
+                return "-" if v is None else fmt.format(v)
+
+            err = "-" if "error_m" not in r else f"{r['error_m']:.3f}m/{r['error_deg']:.2f}°"
+            print(
+                f"{res['world']:9} {res['seed']:4d} {n:7} {f(r.get('evidence_s')):>8} {r.get('false_verdicts', 0):5d}/{r.get('false_after', 0):<3d} "
+                f"{f(r['placed_s']):>6} {f(r.get('delay_s')):>6} {err:>14}  "
+                + ("REFERENCE" if r["reference"] else ("WRONG" if r.get("wrong_merge") else ""))
+            )
+            if r["reference"]:
+                continue
+            wrong += bool(r.get("wrong_merge"))
+            unplaced += r["placed_s"] is None
+            if r.get("delay_s") is not None:
+                delays.append(r["delay_s"])
+            if "error_m" in r:
+                errors.append((r["error_m"], r["error_deg"]))
+    summary = dict(
+        runs=len(results), wrong_merges=wrong, unplaced=unplaced,
+        delay_median_s=float(np.median(delays)) if delays else None,
+        delay_max_s=float(np.max(delays)) if delays else None,
+        error_max_m=max((e[0] for e in errors), default=None), error_max_deg=max((e[1] for e in errors), default=None),
+    )  # fmt: skip
+    print(
+        f"{len(results)} runs: {wrong} wrong merges, {unplaced} robots never placed; delay from evidence to "
+        f"merge median {summary['delay_median_s']} s, worst {summary['delay_max_s']} s; worst error "
+        f"{summary['error_max_m']} m / {summary['error_max_deg']}°"
+    )
+    save_results(args.out, "bench_merge", dict(args=vars(args) | {"cache": str(args.cache), "out": str(args.out)},
+                                               summary=summary, results=results))  # fmt: skip
+    return 1 if wrong else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
