@@ -10,7 +10,8 @@ without processes or network, in simulated time:
 
 - **evidence**: every map of every robot but the reference is matched, by the server's own
   matcher (``alignment.estimate_alignment``, one attempt's verification: corners, overlap, rival
-  ratio), against the other robots' maps of the same moment placed where they truly are. The
+  ratio, places contradicted by the free space seen set aside), against the other robots' maps
+  of the same moment placed where they truly are. The
   *evidence time* is the first snapshot at which the verdict is "aligned" at the true place
   (within 0.3 m / 3°, as a wrong merge is counted); a verdict "aligned" somewhere else is a *false
   verdict* — what a policy that took every verdict at once would have merged wrongly.
@@ -30,13 +31,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import shapely
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -45,13 +49,15 @@ from _results import save_results  # noqa: E402
 
 from map_server.alignment import estimate_alignment  # noqa: E402
 from map_server.config import FleetConfig  # noqa: E402
+from map_server.contradiction import contradiction_m, moved, refused, shrink  # noqa: E402
 from map_server.fleet import Fleet  # noqa: E402
+from map_server.freespace import FreeSpaces  # noqa: E402
 from map_server.fusion import fuse_particles, merge_segments  # noqa: E402
 from shared import codec  # noqa: E402
 from shared.geometry import apply_segments, compose, inverse, relative  # noqa: E402
-from shared.messages import RobotMap  # noqa: E402
+from shared.messages import FreeSpace, RobotMap  # noqa: E402
 
-CACHE_FORMAT = 1
+CACHE_FORMAT = 3  # 2: with the free space; 3: the end of the run (corrected, rebuilt maps)
 WRONG_M, WRONG_DEG = 0.3, 3.0  # = fleet_slam/report.py's wrong merge
 
 
@@ -62,39 +68,89 @@ def record(world_name: str, route: int, seed: int, duration_s: float, path: Path
     """One simulated robot as the demo runs it (fleet_slam/demo.py, robot_agent/service.py), its
     back end inline: every map it would publish, whole, with the source time."""
     from robot_agent.agent import AgentConfig, AgentCore
+    from robot_agent.backend import remap
     from robot_agent.backend.live import InlineRunner, LiveCorrector
     from robot_agent.service import endless_config
     from robot_agent.sim import LiveSim, builtin_world
     from robot_agent.slam.config import command_line_config
     from robot_agent.slam.fastslam import FastSLAM
+    from robot_agent.sources import LaserLog
 
     world = builtin_world(world_name)
     cfg = endless_config(command_line_config())
     slam = FastSLAM(cfg, np.random.default_rng(seed))
-    core = AgentCore(f"robot{route + 1}", slam, AgentConfig(), corrector=LiveCorrector(slam, InlineRunner(cfg)))
+    core = AgentCore(
+        f"robot{route + 1}", slam, AgentConfig(), corrector=LiveCorrector(slam, InlineRunner(cfg))
+    )
     blobs, stamps, t0 = [], [], None
+    free_blobs, free_stamps = [], []
+    scans, odometry = [], []
+
+    def publish(t: float, force: bool = False) -> None:
+        core.pose_message()
+        if core.map_messages(force=force) is not None:
+            blobs.append(codec.encode_stored_map(codec.join(core.map_whole)))
+            stamps.append(t)  # s since the robot started
+        if core.free_message(force=force) is not None:
+            free_blobs.append(codec.encode(core.free_whole))
+            free_stamps.append(t)
+
     for scan in LiveSim(world, route, seed=seed).scans(duration_s):
         t0 = scan.stamp_s if t0 is None else t0
+        scans.append(scan)
+        odometry.append(scan.odometry)
         core.step(scan)
-        core.pose_message()
-        if core.map_messages() is not None:
-            blobs.append(codec.encode_stored_map(codec.join(core.map_whole)))
-            stamps.append(scan.stamp_s - t0)  # s since the robot started
+        publish(scan.stamp_s - t0)
+    # the end of the run as robot_agent/service.py does it: the back end's last correction, then
+    # the map rebuilt along the corrected path, each published at once
+    t_end = scans[-1].stamp_s - t0
+    slam, corrector = core.slam, core.corrector
+    corrector.finish(60.0)
+    _, now = slam.best_trajectory()
+    first_scan = slam.trajectory.first_scan
+    filter_poses = corrector.raw_path(now, first_scan)
+    poses = corrector.corrected_path(now, first_scan)
+    publish(t_end, force=True)
+    f = scans[0]
+    log = LaserLog.from_arrays(
+        np.array([x.stamp_s for x in scans]), np.array([x.ranges_m for x in scans]), f.angles_rad,
+        np.array(odometry), f.laser_offset, f.range_max_m,
+    )  # fmt: skip
+    gauge = compose(filter_poses[0], inverse(poses[0]))
+    poses = compose(gauge, poses)
+    core.rebuilt(
+        remap(log, core.first_scan, poses, cfg), poses[-1], (corrector.correction, gauge, first_scan)
+    )
+    publish(t_end, force=True)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
     np.savez(
         tmp, blob=np.frombuffer(b"".join(blobs), np.uint8), offsets=np.cumsum([0] + [len(b) for b in blobs]),
         stamps=np.array(stamps), start=np.asarray(world.starts[route], float),
+        free=np.frombuffer(b"".join(free_blobs), np.uint8),
+        free_offsets=np.cumsum([0] + [len(b) for b in free_blobs]),
+        free_stamps=np.array(free_stamps),
     )  # fmt: skip
     tmp.replace(path)
     return path
 
 
-def load(path: Path) -> tuple[np.ndarray, list[RobotMap], np.ndarray]:
+@dataclass
+class Rec:
+    stamps: np.ndarray
+    maps: list[RobotMap]
+    start: np.ndarray
+    free_stamps: np.ndarray
+    free: list[FreeSpace]
+
+
+def load(path: Path) -> Rec:
     with np.load(path, allow_pickle=False) as z:
         blob, off = z["blob"].tobytes(), z["offsets"]
-        maps = [codec.decode_stored_map(blob[a:b]) for a, b in zip(off[:-1], off[1:], strict=True)]
-        return z["stamps"], maps, z["start"]
+        maps = [codec.decode_stored_map(blob[a:b]) for a, b in itertools.pairwise(off)]
+        fb, fo = z["free"].tobytes(), z["free_offsets"]
+        free = [codec.decode(fb[a:b], expect=FreeSpace) for a, b in itertools.pairwise(fo)]
+        return Rec(z["stamps"], maps, z["start"], z["free_stamps"], free)
 
 
 def cache_path(cache: Path, world: str, route: int, seed: int, duration_s: float) -> Path:
@@ -127,7 +183,9 @@ def _with_overrides(cfg, sets: list[str]):
             cfg = dataclasses.replace(cfg, **{head: _with_overrides(getattr(cfg, head), [f"{rest}={value}"])})
             continue
         old = getattr(cfg, head)  # an unknown field: AttributeError names it
-        cfg = dataclasses.replace(cfg, **{head: type(old)(json.loads(value) if isinstance(old, bool) else value)})
+        cfg = dataclasses.replace(
+            cfg, **{head: type(old)(json.loads(value) if isinstance(old, bool) else value)}
+        )
     return cfg
 
 
@@ -136,38 +194,68 @@ def run_seed(world: str, seed: int, robots: int, paths: list[Path], sets: list[s
     cfg = _with_overrides(FleetConfig(), sets)
     recs = [load(p) for p in paths]
     names = [f"robot{i + 1}" for i in range(robots)]
-    events = sorted((float(t), i, k) for i, (ts, _, _) in enumerate(recs) for k, t in enumerate(ts))
+    events = sorted(
+        [(float(t), 1, i, k) for i, r in enumerate(recs) for k, t in enumerate(r.stamps)]
+        + [(float(t), 0, i, k) for i, r in enumerate(recs) for k, t in enumerate(r.free_stamps)]
+    )  # a free space before the map of the same moment (the agent publishes both together)
 
     # the fleet, in simulated time
     fleet = Fleet(cfg, "bench")
+    free = FreeSpaces()
+    fleet.free_of = free.area
     placed_at: dict[str, float] = {}
     first_place: dict[str, np.ndarray] = {}
     t0 = time.perf_counter()
-    for t, i, k in events:
-        fleet.put_map(recs[i][1][k], t)
+    for t, is_map, i, k in events:
+        if not is_map:
+            free.put(recs[i].free[k])
+            continue
+        fleet.put_map(recs[i].maps[k], t)
         fleet.fuse(t)
         for n, r in fleet.robots.items():
             if r.alignment.placed and n not in placed_at:
                 placed_at[n] = t
                 first_place[n] = r.alignment.transform.copy()
+    t_end = events[-1][0] if events else 0.0
+    for n in names:  # the agents finish: each leaves (the server solves its graph again, settles)
+        fleet.set_online(n, False)
+    for extra in range(1, 31):
+        fleet.fuse(t_end + extra)
+        if not fleet.pending_work:
+            break
     fuse_s = time.perf_counter() - t0
     ref = fleet.reference or names[0]
     iref = names.index(ref)
-    truth = {n: compose(inverse(recs[iref][2]), recs[i][2]) for i, n in enumerate(names)}
+    truth = {n: compose(inverse(recs[iref].start), recs[i].start) for i, n in enumerate(names)}
     latest = fleet.latest()
     paths_now = {p.robot: p for p in fleet.paths(latest.version if latest is not None else 0)}
 
     # evidence: each robot's maps against the others' of the same moment, placed at the truth
     layers: dict[tuple[int, int], object] = {}
+    areas: dict[tuple[int, int], object] = {}
+    ccfg = cfg.contradiction
 
     def layer(i: int, k: int):
         if (i, k) not in layers:
-            layers[(i, k)] = fuse_particles(recs[i][1][k], cfg.fusion)
+            layers[(i, k)] = fuse_particles(recs[i].maps[k], cfg.fusion)
         return layers[(i, k)]
+
+    def area(i: int, t: float):
+        k = int(np.searchsorted(recs[i].free_stamps, t, side="right") - 1)
+        if k < 0:
+            return None
+        if (i, k) not in areas:
+            one = FreeSpaces()
+            one.put(recs[i].free[k])
+            m = recs[i].free[k]
+            areas[(i, k)] = one.area(m.robot, m.session)
+        return areas[(i, k)]
 
     out = {}
     for i, n in enumerate(names):
         row = dict(robot=n, reference=n == ref, placed_s=placed_at.get(n))
+        if n in fleet.robots and not fleet.robots[n].alignment.placed:
+            row["reason"] = fleet.robots[n].alignment.reason
         if n in first_place:
             row["wrong_merge"] = _wrong(first_place[n], truth[n])
         if n in paths_now:
@@ -177,14 +265,16 @@ def run_seed(world: str, seed: int, robots: int, paths: list[Path], sets: list[s
         if n == ref:
             out[n] = row
             continue
-        ts = recs[i][0]
+        ts = recs[i].stamps
         evidence, false_verdicts, first_false, false_after = None, 0, None, 0
+        c_true, c_false = [], []  # contradiction (m) at the truth, at each false verdict
+        verdicts = []  # (t, true?, rival ratio, matched m, share) of every "aligned" verdict
         for k, t in enumerate(ts):
             others = []
             for j in range(robots):
                 if j == i:
                     continue
-                kj = np.searchsorted(recs[j][0], t, side="right") - 1
+                kj = np.searchsorted(recs[j].stamps, t, side="right") - 1
                 if kj >= 0:
                     others.append((j, layer(j, kj)))
             if not others:
@@ -195,22 +285,55 @@ def run_seed(world: str, seed: int, robots: int, paths: list[Path], sets: list[s
             merged = merge_segments(seg, w, owner, cfg.fusion)[0]
             if len(layer(i, k)) == 0 or len(merged) == 0:
                 continue
-            a = estimate_alignment(layer(i, k).seg, merged, cfg.alignment)
+            placed_free = [moved(area(j, t), truth[names[j]]) for j, _ in others if area(j, t) is not None]
+            placed_free = shrink(shapely.union_all(placed_free), ccfg.margin_m) if placed_free else None
+            own_free = shrink(area(i, t), ccfg.margin_m)
+
+            def contra(pose, i=i, k=k, merged=merged, own_free=own_free, placed_free=placed_free):
+                return contradiction_m(pose, layer(i, k).seg, own_free, merged, placed_free, ccfg)
+
+            def veto(pose, matched_m, contra=contra):  # as Fleet._veto
+                m = contra(pose)
+                return f"{m:.1f} m" if refused(m, matched_m, ccfg) else None
+
+            a = estimate_alignment(layer(i, k).seg, merged, cfg.alignment, veto=veto)
             if a.status != "aligned":
                 continue
+            verdicts.append((float(t), not _wrong(a.transform, truth[n]), round(a.rival_ratio, 2),
+                             round(a.score_m, 1), round(a.inlier_share, 2)))  # fmt: skip
             if _wrong(a.transform, truth[n]):
                 false_verdicts += 1
                 first_false = t if first_false is None else first_false
                 false_after += evidence is not None
-            elif evidence is None:
-                evidence = float(t)
+                c_false.append((contra(a.transform), a.score_m))
+            else:
+                c_true.append((contra(a.transform), a.score_m))
+                if evidence is None:
+                    evidence = float(t)
             if evidence is not None and t - evidence > 60.0:
                 break  # enough seen after the evidence (the false verdicts counted: before and shortly after)
-        row.update(evidence_s=evidence, false_verdicts=false_verdicts, false_after=false_after, first_false_s=first_false)
+        row.update(
+            evidence_s=evidence,
+            false_verdicts=false_verdicts,
+            false_after=false_after,
+            first_false_s=first_false,
+        )
+        row.update(contradiction_true=c_true, contradiction_false=c_false, verdicts=verdicts)
         if evidence is not None and row["placed_s"] is not None:
             row["delay_s"] = row["placed_s"] - evidence
         out[n] = row
     return dict(world=world, seed=seed, fuse_s=fuse_s, robots=out)
+
+
+def contra_text(r: dict) -> str:
+    """Contradiction (m) at the true verdicts (largest) and at the false ones (smallest)."""
+    ct, cf = r.get("contradiction_true", []), r.get("contradiction_false", [])
+    if not ct and not cf:
+        return ""
+    t = max(ct, default=None, key=lambda c: c[0])
+    f = min(cf, default=None, key=lambda c: c[0])
+    text = "  contradicted: true max " + ("-" if t is None else f"{t[0]:.1f}m/{t[1]:.0f}m")
+    return text + "  false min " + ("-" if f is None else f"{f[0]:.1f}m/{f[1]:.0f}m")
 
 
 def main() -> int:
@@ -228,13 +351,17 @@ def main() -> int:
 
     runs = [(w, s) for w in args.worlds for s in args.seeds]
     paths = {
-        (w, s): [cache_path(args.cache, w, i, 100 * s + i, args.duration) for i in range(args.robots)] for w, s in runs
+        (w, s): [cache_path(args.cache, w, i, 100 * s + i, args.duration) for i in range(args.robots)]
+        for w, s in runs
     }
     todo = [(w, i, 100 * s + i, args.duration, cp) for (w, s), ps in paths.items() for i, cp in enumerate(ps)
             if not cp.exists()]  # fmt: skip
     with ProcessPoolExecutor(args.jobs) as pool:
         if todo:
-            print(f"recording {len(todo)} simulated robots ({args.duration:g} s each) into {args.cache} ...", flush=True)
+            print(
+                f"recording {len(todo)} simulated robots ({args.duration:g} s each) into {args.cache} ...",
+                flush=True,
+            )
             list(pool.map(_record_job, todo))
         futures = [pool.submit(run_seed, w, s, args.robots, paths[(w, s)], args.set) for w, s in runs]
         results = [f.result() for f in futures]
@@ -250,9 +377,12 @@ def main() -> int:
 
             err = "-" if "error_m" not in r else f"{r['error_m']:.3f}m/{r['error_deg']:.2f}°"
             print(
-                f"{res['world']:9} {res['seed']:4d} {n:7} {f(r.get('evidence_s')):>8} {r.get('false_verdicts', 0):5d}/{r.get('false_after', 0):<3d} "
+                f"{res['world']:9} {res['seed']:4d} {n:7} {f(r.get('evidence_s')):>8} "
+                f"{r.get('false_verdicts', 0):5d}/{r.get('false_after', 0):<3d} "
                 f"{f(r['placed_s']):>6} {f(r.get('delay_s')):>6} {err:>14}  "
                 + ("REFERENCE" if r["reference"] else ("WRONG" if r.get("wrong_merge") else ""))
+                + contra_text(r)
+                + (f"  unplaced: {r['reason']}" if r.get("reason") else "")
             )
             if r["reference"]:
                 continue
@@ -266,14 +396,16 @@ def main() -> int:
         runs=len(results), wrong_merges=wrong, unplaced=unplaced,
         delay_median_s=float(np.median(delays)) if delays else None,
         delay_max_s=float(np.max(delays)) if delays else None,
-        error_max_m=max((e[0] for e in errors), default=None), error_max_deg=max((e[1] for e in errors), default=None),
+        error_max_m=max((e[0] for e in errors), default=None),
+        error_max_deg=max((e[1] for e in errors), default=None),
     )  # fmt: skip
     print(
         f"{len(results)} runs: {wrong} wrong merges, {unplaced} robots never placed; delay from evidence to "
         f"merge median {summary['delay_median_s']} s, worst {summary['delay_max_s']} s; worst error "
         f"{summary['error_max_m']} m / {summary['error_max_deg']}°"
     )
-    save_results(args.out, "bench_merge", dict(args=vars(args) | {"cache": str(args.cache), "out": str(args.out)},
+    args_out = vars(args) | {"cache": str(args.cache), "out": str(args.out)}
+    save_results(args.out, "bench_merge", dict(args=args_out,
                                                summary=summary, results=results))  # fmt: skip
     return 1 if wrong else 0
 

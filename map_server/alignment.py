@@ -31,6 +31,7 @@ grew enough is searched for such a place (fleet.py), a changed one is refined wh
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -119,6 +120,7 @@ def estimate_alignment(
     search: bool = True,
     index: MapIndex | None = None,
     robot_samples: tuple[Samples, Samples] | None = None,
+    veto: Callable[[np.ndarray, float], str | None] | None = None,
 ) -> Alignment:
     """The robot's map frame in the global frame, from its directed segments ``robot_seg (N,2,2)``
     (its map frame) and the placed robots' fused map ``placed_seg (M,2,2)`` (global frame).
@@ -126,7 +128,9 @@ def estimate_alignment(
     search, so no revision to a distinct place): the maps changed shape, not size. ``index``: the
     placed map's index when the caller has one (a crop, registration.MapIndex; without a search
     only the index is used); ``robot_samples``: ``robot_seg``'s samples at ``cfg.sample_step_m``
-    and ``cfg.coarse_step_m`` when the caller keeps them."""
+    and ``cfg.coarse_step_m`` when the caller keeps them. ``veto(pose, matched_m)``: why a found
+    place is contradicted (contradiction.py: walls in free space), or None — a contradicted place
+    is set aside, as the best and as a rival (a search only)."""
     robot_seg = np.asarray(robot_seg, float).reshape(-1, 2, 2)
     placed_seg = np.asarray(placed_seg, float).reshape(-1, 2, 2)
     if robot_samples is None:
@@ -146,31 +150,58 @@ def estimate_alignment(
     cands = cand.search(robot_seg, placed_seg, index, robot, coarse, cfg) if search or not keep else []
     if keep:
         cur = cand.refine_and_score(index, robot, coarse, current.transform, cfg)
-        return _revise(current, cur, cands, robot_seg, index, robot, total, cfg)
+        return _revise(current, cur, cands, robot_seg, index, robot, total, cfg, veto)
     if not cands:
         return Alignment("unaligned", np.zeros(3), np.zeros(3), reason="no corner correspondences")
-    return _accept_best(cands, robot_seg, index, robot, total, cfg)
+    return _accept_best(cands, robot_seg, index, robot, total, cfg, veto)
 
 
-def _accept_best(cands: list[Scored], robot_seg, index, robot, total, cfg) -> Alignment:
+MAX_VETOED = 6  # places checked for contradiction, best first, before the search gives up
+
+
+def _accept_best(cands: list[Scored], robot_seg, index, robot, total, cfg, veto=None) -> Alignment:
+    set_aside = []
+    if veto is not None:
+        for s in sorted(cands, key=lambda s: -s.net)[:MAX_VETOED]:
+            why = veto(s.pose, s.matched_m)
+            if why is None:
+                break
+            set_aside.append((s, why))
+        else:
+            if set_aside:
+                s, why = set_aside[0]
+                n = len(set_aside)
+                return _verdict("unaligned", s, total, 1.0, f"rejected: the best {n} places contradicted"
+                                f" (best: {why})")  # fmt: skip
+        cands = [c for c in cands if all(c is not s for s, _ in set_aside)]
     best = max(cands, key=lambda s: s.net)
     ratio = best.net / max(cand.rival(best, cands, robot.points, cfg.distinct_m), 1e-9)
     problems = _problems(best, total, index, robot, robot_seg, cfg)
     if ratio < cfg.min_rival_ratio:
         problems.append(f"rival ratio {ratio:.3f} < {cfg.min_rival_ratio:g}")
+    aside = f"; {len(set_aside)} better-scored place(s) contradicted ({set_aside[0][1]})" if set_aside else ""
     if problems:
-        return _verdict("unaligned", best, total, ratio, "rejected: " + "; ".join(problems))
-    why = f"overlap {best.matched_m:.1f} m ({best.matched_m / total:.0%}), {ratio:.2f}x the best rival"
+        return _verdict("unaligned", best, total, ratio, "rejected: " + "; ".join(problems) + aside)
+    why = (
+        f"overlap {best.matched_m:.1f} m ({best.matched_m / total:.0%}), {ratio:.2f}x the best rival" + aside
+    )
     return _verdict("aligned", best, total, ratio, "matched: " + why)
 
 
-def _revise(current: Alignment, cur: Scored, cands, robot_seg, index, robot, total, cfg) -> Alignment:
+def _revise(
+    current: Alignment, cur: Scored, cands, robot_seg, index, robot, total, cfg, veto=None
+) -> Alignment:
     """Keep the current alignment (refined while it stays verified) unless a distinct place passes
     every check and the current one lost support: it fails a check now, or the new place beats
-    it by ``revise_ratio`` (symmetric buildings: the truth overtakes a mirror image slowly)."""
-    cands = [cur, *cands]
+    it by ``revise_ratio`` (symmetric buildings: the truth overtakes a mirror image slowly).
+    ``veto``: a current place contradicted by the free space seen (a wrong merge the maps have
+    grown to disprove) is undone — the robot is unplaced unless a distinct place passes."""
+    contradicted = veto(cur.pose, cur.matched_m) if veto is not None else None
+    cands = [cur, *[c for c in cands if veto is None or c is cur or veto(c.pose, c.matched_m) is None]]
     best = max(cands, key=lambda s: s.net)
     cur_problems = _problems(cur, total, index, robot, robot_seg, cfg)
+    if contradicted is not None:
+        cur_problems.insert(0, f"contradicted: {contradicted}")
     ratio = cur.net / max(cand.rival(cur, cands, robot.points, cfg.distinct_m), 1e-9)
     if cand.mean_displacement(best.pose, cur.pose, robot.points) > cfg.distinct_m:
         new_ratio = best.net / max(cand.rival(best, cands, robot.points, cfg.distinct_m), 1e-9)
@@ -182,6 +213,8 @@ def _revise(current: Alignment, cur: Scored, cands, robot_seg, index, robot, tot
             lost = "; ".join(cur_problems) or f"beaten {best.net / max(cur.net, 1e-9):.2f}x"
             why = f"current place lost support ({lost}); new overlap {best.matched_m:.1f} m"
             return _verdict("aligned", best, total, new_ratio, "revised: " + why)
+    if contradicted is not None:
+        return _verdict("unaligned", cur, total, ratio, f"undone: the place is contradicted ({contradicted})")
     if cur_problems:
         return Alignment(
             "aligned", current.transform, current.sigma, current.score_m, current.inlier_share,

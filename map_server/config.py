@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from map_server.contradiction import ContradictionConfig
 from map_server.fusion import FusionConfig
 from shared.matching import MatchingConfig
 
@@ -129,6 +130,8 @@ class FleetConfig:
     fusion: FusionConfig = field(default_factory=FusionConfig)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)
+    contradiction: ContradictionConfig = field(default_factory=ContradictionConfig)  # a found place
+    # whose walls fall where other robots saw free space is set aside (contradiction.py)
     retry_growth_m: float = 5.0  # re-attempt a robot's alignment when its map grew by this much ...
     retry_growth_share: float = 0.05  # ... or by this share of its length (whichever is larger)
     retry_placed_growth_m: float = 10.0  # an unaligned robot is retried when the placed map grew so

@@ -56,10 +56,12 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
 
 import numpy as np
+import shapely
 
-from map_server import policy
+from map_server import contradiction, policy
 from map_server.alignment import (
     Alignment,
     estimate_alignment,
@@ -104,6 +106,10 @@ class Fleet:
         self._samples: dict[str, tuple] = {}  # robot -> (layer, its samples for alignment attempts)
         self.graph = FleetGraph(cfg.graph)  # the placed robots' keyframes solved together
         self._graph_key: tuple | None = None  # what the graph's last solve held
+        # a robot session's free space in its map frame (shapely, or None): the server gives
+        # freespace.FreeSpaces.area; without it no placement is checked for contradiction
+        self.free_of: Callable[[str, str], object] | None = None
+        self._placed_free: tuple[tuple, object] | None = None  # (what it was made of, area)
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -449,7 +455,38 @@ class Fleet:
                 except OutsideIndex:
                     log.debug("%s: refinement left its crop; done against the whole placed map", r.robot)
         placed_map = self._global_segments(r.robot, rigid=not r.alignment.placed)
+        if prior is None and (current is None or search):  # a search: a place contradicted by the
+            # free space seen is set aside (and a current one undone)
+            kw["veto"] = self._veto(r, placed_map)
         return estimate_alignment(r.layer.seg, placed_map, c, prior, sigma, current, search, **kw)
+
+    def _veto(
+        self, r: RobotState, placed_map: np.ndarray
+    ) -> Callable[[np.ndarray, float], str | None] | None:
+        """Why a place found for ``r`` is contradicted — its walls where the placed robots saw
+        free space, or theirs where it did (contradiction.py) — or None."""
+        if self.free_of is None:
+            return None
+        cc = self.cfg.contradiction
+        own = contradiction.shrink(self.free_of(r.robot, r.map.session), cc.margin_m)
+        placed = [(x.robot, x.map.session, x.alignment.transform) for x in self._placed() if x is not r]
+        placed += [(p.robot, p.session, p.alignment.transform) for p in self._pieces()]
+        parts = [(a, t) for robot, ses, t in placed if (a := self.free_of(robot, ses)) is not None]
+        made_of = tuple((id(a), *np.round(t, 4)) for a, t in parts)
+        if self._placed_free is None or self._placed_free[0] != made_of:
+            union = shapely.union_all([contradiction.moved(a, t) for a, t in parts]) if parts else None
+            self._placed_free = (made_of, contradiction.shrink(union, cc.margin_m))
+        theirs = self._placed_free[1]
+        if own is None and theirs is None:
+            return None
+
+        def veto(pose: np.ndarray, matched_m: float) -> str | None:
+            m = contradiction.contradiction_m(pose, r.layer.seg, own, placed_map, theirs, cc)
+            if contradiction.refused(m, matched_m, cc):
+                return f"{m:.1f} m of walls where free space was seen"
+            return None
+
+        return veto
 
     def _align_round(self, now_s: float, urgent: bool = False, only: set[int] | None = None) -> bool:
         """One pass over the robots that deserve an attempt; True if a robot got placed.

@@ -71,6 +71,11 @@ class FreeSpaces:
             self._own_cache.pop(key, None)
             self.changed = True
 
+    def area(self, robot: str, session: str):
+        """The free space a robot session's views saw, united, in its map frame (shapely; None
+        when none came)."""
+        return self._own((robot, session))[0] if (robot, session) in self.latest else None
+
     def _own(self, key: tuple[str, str]) -> tuple[object, np.ndarray]:
         """A session's views united and its wall edges ``(E,2,2)``, in its map frame."""
         m = self.latest[key]

@@ -80,6 +80,7 @@ class MapServer:
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self.free = FreeSpaces(cfg.free)  # the robots' free space, and its union
+        self.fleet.free_of = self.free.area  # a found place is checked against the free space seen
         self._frees: list[FreeSpace] = []  # queued free-space messages
         self._latest_free: list[bytes] = []
         self._stored_free: dict[str, tuple[int, bytes]] = {}  # blob name -> (seq, encoded)
@@ -125,6 +126,7 @@ class MapServer:
                 self.free.put(m)
                 self._stored_free[name] = (m.seq, blob)
             self.fleet = Fleet.restore(meta["fleet"], maps, self.fleet_cfg, self.server_id, graph)
+            self.fleet.free_of = self.free.area
             self._time_offset = float(meta.get("now_s", 0.0))
         except (KeyError, TypeError, ValueError) as exc:
             raise StateError(f"{self.store.index}: cannot be restored ({type(exc).__name__}: {exc})") from exc

@@ -87,3 +87,24 @@ def scan_map(world_name: str, robot_index: int, duration_s: float, every: int = 
     seg = np.concatenate(parts)
     merged, *_ = merge_segments(seg, np.ones(len(seg)), np.zeros(len(seg), np.int64), FusionConfig())
     return merged, start
+
+
+@lru_cache(maxsize=16)
+def scan_free(world_name: str, robot_index: int, duration_s: float, every: int = 5, seed: int = 0):
+    """The free space the robot's laser saw (every ``every``-th scan at the true pose, as
+    robot_agent/freespace.py cuts it), united, in its start frame (shapely) — :func:`scan_map`'s."""
+    import shapely
+
+    from robot_agent.freespace import scan_region
+
+    world = builtin_world(world_name)
+    sim = simulate_robot(world, robot_index, duration_s, seed, SimConfig())
+    start = sim.truth[0]
+    parts = []
+    for k in range(0, len(sim.stamps_s), every):
+        pose = relative(start, sim.truth[k])
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        for ring, _wall in scan_region(sim.ranges_m[k], sim.angles_rad, sim.laser_offset, sim.range_max_m):
+            xy = ring @ np.array([[c, s], [-s, c]]) + pose[:2]
+            parts.append(shapely.Polygon(xy).buffer(0))
+    return shapely.union_all(parts)
