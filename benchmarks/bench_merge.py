@@ -189,8 +189,11 @@ def _with_overrides(cfg, sets: list[str]):
     return cfg
 
 
-def run_seed(world: str, seed: int, robots: int, paths: list[Path], sets: list[str]) -> dict:
-    """Evidence and the fleet's placements for one seed's recorded robots."""
+def run_seed(
+    world: str, seed: int, robots: int, paths: list[Path], sets: list[str], known: dict | None = None
+) -> dict:
+    """Evidence and the fleet's placements for one seed's recorded robots (``known``: the
+    evidence rows of an earlier run on the same recordings, not measured again)."""
     cfg = _with_overrides(FleetConfig(), sets)
     recs = [load(p) for p in paths]
     names = [f"robot{i + 1}" for i in range(robots)]
@@ -265,6 +268,13 @@ def run_seed(world: str, seed: int, robots: int, paths: list[Path], sets: list[s
         if n == ref:
             out[n] = row
             continue
+        if known is not None:
+            keep = ("evidence_s", "false_verdicts", "false_after", "first_false_s", "verdicts")
+            row.update({k: known[n][k] for k in keep if k in known.get(n, {})})
+            if row.get("evidence_s") is not None and row["placed_s"] is not None:
+                row["delay_s"] = row["placed_s"] - row["evidence_s"]
+            out[n] = row
+            continue
         ts = recs[i].stamps
         evidence, false_verdicts, first_false, false_after = None, 0, None, 0
         c_true, c_false = [], []  # contradiction (m) at the truth, at each false verdict
@@ -286,8 +296,12 @@ def run_seed(world: str, seed: int, robots: int, paths: list[Path], sets: list[s
             if len(layer(i, k)) == 0 or len(merged) == 0:
                 continue
             placed_free = [moved(area(j, t), truth[names[j]]) for j, _ in others if area(j, t) is not None]
-            placed_free = shrink(shapely.union_all(placed_free), ccfg.margin_m) if placed_free else None
-            own_free = shrink(area(i, t), ccfg.margin_m)
+            placed_free = (
+                shrink(shapely.union_all(placed_free), ccfg.margin_m, merged, ccfg.near_wall_m)
+                if placed_free
+                else None
+            )
+            own_free = shrink(area(i, t), ccfg.margin_m, layer(i, k).seg, ccfg.near_wall_m)
 
             def contra(pose, i=i, k=k, merged=merged, own_free=own_free, placed_free=placed_free):
                 return contradiction_m(pose, layer(i, k).seg, own_free, merged, placed_free, ccfg)
@@ -296,7 +310,9 @@ def run_seed(world: str, seed: int, robots: int, paths: list[Path], sets: list[s
                 m = contra(pose)
                 return f"{m:.1f} m" if refused(m, matched_m, ccfg) else None
 
-            a = estimate_alignment(layer(i, k).seg, merged, cfg.alignment, veto=veto)
+            a = estimate_alignment(
+                layer(i, k).seg, merged, cfg.alignment, veto=veto if ccfg.enabled else None
+            )
             if a.status != "aligned":
                 continue
             verdicts.append((float(t), not _wrong(a.transform, truth[n]), round(a.rival_ratio, 2),
@@ -345,6 +361,8 @@ def main() -> int:
     p.add_argument("--cache", type=Path, default=ROOT / "benchmarks" / "results" / "bench_merge_maps")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a FleetConfig override")
+    p.add_argument("--evidence-from", type=Path, default=None,
+                   help="a bench_merge JSON of the same recordings and matcher: its evidence")  # fmt: skip
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "bench_merge.json")
     args = p.parse_args()
     _with_overrides(FleetConfig(), args.set)  # a bad override fails before any work
@@ -363,7 +381,16 @@ def main() -> int:
                 flush=True,
             )
             list(pool.map(_record_job, todo))
-        futures = [pool.submit(run_seed, w, s, args.robots, paths[(w, s)], args.set) for w, s in runs]
+        known = {}
+        if args.evidence_from is not None:
+            for res in json.loads(args.evidence_from.read_text())["results"]:
+                known[(res["world"], res["seed"])] = res["robots"]
+        futures = [
+            pool.submit(
+                run_seed, w, s, args.robots, paths[(w, s)], args.set, known.get((w, s)) if known else None
+            )
+            for w, s in runs
+        ]
         results = [f.result() for f in futures]
 
     print(f"{'world':9} {'seed':>4} {'robot':7} {'evidence':>8} {'false':>9} {'placed':>6} {'delay':>6} "
@@ -404,7 +431,11 @@ def main() -> int:
         f"merge median {summary['delay_median_s']} s, worst {summary['delay_max_s']} s; worst error "
         f"{summary['error_max_m']} m / {summary['error_max_deg']}°"
     )
-    args_out = vars(args) | {"cache": str(args.cache), "out": str(args.out)}
+    args_out = vars(args) | {
+        "cache": str(args.cache),
+        "out": str(args.out),
+        "evidence_from": str(args.evidence_from),
+    }
     save_results(args.out, "bench_merge", dict(args=args_out,
                                                summary=summary, results=results))  # fmt: skip
     return 1 if wrong else 0

@@ -136,7 +136,8 @@ class FleetConfig:
     retry_growth_share: float = 0.05  # ... or by this share of its length (whichever is larger)
     retry_placed_growth_m: float = 10.0  # an unaligned robot is retried when the placed map grew so
     retry_interval_s: float = 10.0  # ... or when anything changed (or a candidate waits) this long ago
-    confirmations: int = 2  # consecutive attempts that must agree on a new place
+    confirmations: int = 2  # consecutive attempts that must agree on a new place ...
+    confirm_s: float = 0.0  # ... over this long at least (the first to the last)
     same_place_m: float = 0.3  # two verdicts agree when they move the robot map this little (mean)
     # maturity (module docstring). Office, 3 robots, 10 seeds, 180 s: no wrong merge with 0.2-0.3
     # (placed at 125-170 s), one with 0.4; warehouse: maps never mature below 0.15

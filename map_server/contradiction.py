@@ -25,9 +25,18 @@ from shared.geometry import apply_segments, inverse
 
 @dataclass(frozen=True)
 class ContradictionConfig:
+    # Off by default: measured (bench_merge.py, bench_demo.py --logs, 2026-11-28) it turns the
+    # simulated warehouse's 15 half-turned merges in 10 seeds into unplaced robots, but the real
+    # logs' pieces (Intel, ACES, MIT-CSAIL cut in 3) see their true places contradicted by 28-89 m
+    # of wall and stay unplaced (1/3 placed each, against 3/3, 3/3, 1/3 without it).
+    enabled: bool = False
     margin_m: float = 0.3  # free space is shrunk by this much first (its edges are walls seen,
     # ranges and the maps' drift move them by centimetres to a decimetre)
     step_m: float = 0.1  # walls are sampled this densely
+    near_wall_m: float = 0.0  # free space this close to the map's own walls is no evidence (two
+    # maps bent apart put a wall beside the other's, not across its free space); 0.6 m kept the
+    # real logs' pieces contradicted (Intel: 28-56 m) and let 10 of the warehouse's mirror images
+    # through (their pallets stand a metre off)
     # a placement is refused when this much wall (both ways) contradicts and this share of the
     # overlap matched (bench_merge.py, office and warehouse, 10 seeds: true places 0.0-2.1 m at
     # 48-251 m matched, the warehouse's half-turned ones 3.4-10 m at 100-230 m)
@@ -35,11 +44,15 @@ class ContradictionConfig:
     max_share: float = 0.02
 
 
-def shrink(area, margin_m: float):
-    """``area`` shrunk by ``margin_m`` (prepared for point queries); None stays None."""
+def shrink(area, margin_m: float, walls: np.ndarray | None = None, near_m: float = 0.0):
+    """``area`` shrunk by ``margin_m``, less what lies within ``near_m`` of ``walls (N,2,2)``
+    (same frame), prepared for point queries; None stays None."""
     if area is None or area.is_empty:
         return None
     out = area.buffer(-margin_m, join_style="mitre")
+    if walls is not None and len(walls) and near_m > 0 and not out.is_empty:
+        lines = shapely.multilinestrings(np.asarray(walls, float).reshape(-1, 2, 2))
+        out = out.difference(lines.buffer(near_m, cap_style="flat", quad_segs=2))
     if out.is_empty:
         return None
     shapely.prepare(out)
@@ -83,9 +96,10 @@ def contradiction_m(
     cfg: ContradictionConfig,
 ) -> float:
     """Metres of wall that contradict the robot's map frame at ``pose``: the robot's walls
-    ``robot_seg`` (its frame) inside the placed robots' shrunk free space ``placed_free`` (global,
-    prepared), plus the placed walls ``placed_seg`` (global) inside the robot's shrunk free space
-    ``robot_free`` (its frame, prepared). Either free space may be None (not known: no evidence)."""
+    ``robot_seg`` (its frame) inside the placed robots' free space ``placed_free`` (global), plus
+    the placed walls ``placed_seg`` (global) inside the robot's free space ``robot_free`` (its
+    frame) — each as :func:`shrink` gives it, away from its own map's walls. Either may be None
+    (not known: no evidence)."""
     pose = np.asarray(pose, float)
     out = inside_m(placed_free, apply_segments(pose, robot_seg), cfg.step_m)
     if robot_free is not None and len(placed_seg):

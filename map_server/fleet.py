@@ -465,17 +465,22 @@ class Fleet:
     ) -> Callable[[np.ndarray, float], str | None] | None:
         """Why a place found for ``r`` is contradicted — its walls where the placed robots saw
         free space, or theirs where it did (contradiction.py) — or None."""
-        if self.free_of is None:
-            return None
         cc = self.cfg.contradiction
-        own = contradiction.shrink(self.free_of(r.robot, r.map.session), cc.margin_m)
+        if self.free_of is None or not cc.enabled:
+            return None
+        own = contradiction.shrink(
+            self.free_of(r.robot, r.map.session), cc.margin_m, r.layer.seg, cc.near_wall_m
+        )
         placed = [(x.robot, x.map.session, x.alignment.transform) for x in self._placed() if x is not r]
         placed += [(p.robot, p.session, p.alignment.transform) for p in self._pieces()]
         parts = [(a, t) for robot, ses, t in placed if (a := self.free_of(robot, ses)) is not None]
-        made_of = tuple((id(a), *np.round(t, 4)) for a, t in parts)
+        made_of = (tuple((id(a), *np.round(t, 4)) for a, t in parts), len(placed_map), placed_map.sum())
         if self._placed_free is None or self._placed_free[0] != made_of:
             union = shapely.union_all([contradiction.moved(a, t) for a, t in parts]) if parts else None
-            self._placed_free = (made_of, contradiction.shrink(union, cc.margin_m))
+            self._placed_free = (
+                made_of,
+                contradiction.shrink(union, cc.margin_m, placed_map, cc.near_wall_m),
+            )
         theirs = self._placed_free[1]
         if own is None and theirs is None:
             return None
@@ -548,7 +553,7 @@ class Fleet:
                 continue
             r.attempted(placed_m, key, now_s)
             if a.status == "aligned" and current is not None and policy.moved(r, current, a, self.cfg):
-                a = policy.confirm(r, a, current, self.cfg)  # a revision: not before it is confirmed
+                a = policy.confirm(r, a, current, self.cfg, now_s)  # a revision: not before it is confirmed
             else:
                 r.pending, r.pending_count = None, 0
             was_placed = r.alignment.placed
@@ -563,7 +568,7 @@ class Fleet:
         for f in fresh:
             f[0].attempted(f[2], f[3], now_s)
         r, a = max(fresh, key=lambda f: f[1].rival_ratio)[:2]
-        r.alignment = policy.confirm(r, a, None, self.cfg)
+        r.alignment = policy.confirm(r, a, None, self.cfg, now_s)
         if r.alignment.placed:
             r.mark_placed(now_s - self.epoch_s)
             return True

@@ -35,17 +35,25 @@ def moved(r: RobotState, a: Alignment, b: Alignment, cfg: FleetConfig) -> bool:
     return mean_displacement(a.transform, b.transform, pts) > cfg.same_place_m
 
 
-def confirm(r: RobotState, a: Alignment, current: Alignment | None, cfg: FleetConfig) -> Alignment:
+def confirm(
+    r: RobotState, a: Alignment, current: Alignment | None, cfg: FleetConfig, now_s: float
+) -> Alignment:
     """A new alignment (or a revision) counts once ``confirmations`` attempts in a row put the
-    robot at the same place; until then the robot stays unaligned (or where it was, ``current``).
-    Keeps the count on ``r`` (``pending``, ``pending_count``)."""
+    robot at the same place over at least ``confirm_s`` (a young map's mirror image holds for a
+    few seconds of growth, then the matcher refuses it; the truth stays); until then the robot
+    stays unaligned (or where it was, ``current``). Keeps the count on ``r`` (``pending``,
+    ``pending_count``, ``pending_s``)."""
     same = r.pending is not None and not moved(r, r.pending, a, cfg)
     r.pending_count = r.pending_count + 1 if same else 1
+    if not same:
+        r.pending_s = now_s
     r.pending = a
-    if r.pending_count >= cfg.confirmations:
+    held = now_s - r.pending_s
+    if r.pending_count >= cfg.confirmations and held >= cfg.confirm_s:
         r.pending, r.pending_count = None, 0
         return a
-    why = f"awaiting confirmation ({r.pending_count}/{cfg.confirmations}) of {a.reason}"
+    count = f"{r.pending_count}/{cfg.confirmations}, {held:.0f}/{cfg.confirm_s:g} s"
+    why = f"awaiting confirmation ({count}) of {a.reason}"
     if current is not None:
         c = current
         return Alignment("aligned", c.transform, c.sigma, c.score_m, c.inlier_share, c.rival_ratio, why)

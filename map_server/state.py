@@ -43,6 +43,7 @@ class RobotState:
     attempt_seq: int = -1  # the map's seq at the last attempt
     pending: Alignment | None = None
     pending_count: int = 0
+    pending_s: float = 0.0  # server time of the first verdict of the pending place
     lengths: list[tuple[float, float]] = field(default_factory=list)  # (server time, map length)
     graph: RobotGraph | None = None  # the map's pose graph (posegraph.RobotGraph), with the layer
     bent: RobotLayer | None = None  # the layer's rows in the global frame as the fleet's graph
@@ -182,9 +183,9 @@ def retired_blob(robot: str, session: str) -> str:
 _SCALARS = (
     "order", "online", "aligned_at_s", "first_map_s", "attempt_len_m", "attempt_placed_m",
     "attempt_placed_key", "attempt_s", "attempt_seq",
-    "pending_count",
+    "pending_count", "pending_s",
 )  # fmt: skip
-_ADDED = {"attempt_seq": -1}  # fields newer than some snapshots: their value when missing
+_ADDED = {"attempt_seq": -1, "pending_s": 0.0}  # fields newer than some snapshots: their value when missing
 
 
 def _floats(a: np.ndarray) -> list[float]:

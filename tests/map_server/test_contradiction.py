@@ -1,5 +1,7 @@
 """Negative evidence: a place whose walls fall in free space another robot saw is set aside."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import shapely
@@ -53,8 +55,10 @@ def veto_for(world, a, b, duration_s):
     seg_a, start_a = scan_map(world, a, duration_s)
     seg_b, start_b = scan_map(world, b, duration_s)
     placed = apply_segments(start_a, seg_a)
-    theirs = cd.shrink(cd.moved(scan_free(world, a, duration_s), start_a), CC.margin_m)
-    own = cd.shrink(scan_free(world, b, duration_s), CC.margin_m)
+    theirs = cd.shrink(
+        cd.moved(scan_free(world, a, duration_s), start_a), CC.margin_m, placed, CC.near_wall_m
+    )
+    own = cd.shrink(scan_free(world, b, duration_s), CC.margin_m, seg_b, CC.near_wall_m)
     calls = []
 
     def veto(pose, matched_m):
@@ -83,9 +87,13 @@ def test_the_warehouse_mirror_image_is_contradicted_and_the_truth_found():
 
 def veto_parts(world, a, b, duration_s):
     seg_a, start_a = scan_map(world, a, duration_s)
-    theirs = cd.shrink(cd.moved(scan_free(world, a, duration_s), start_a), CC.margin_m)
-    own = cd.shrink(scan_free(world, b, duration_s), CC.margin_m)
-    return own, apply_segments(start_a, seg_a), theirs, CC
+    seg_b, _ = scan_map(world, b, duration_s)
+    placed = apply_segments(start_a, seg_a)
+    theirs = cd.shrink(
+        cd.moved(scan_free(world, a, duration_s), start_a), CC.margin_m, placed, CC.near_wall_m
+    )
+    own = cd.shrink(scan_free(world, b, duration_s), CC.margin_m, seg_b, CC.near_wall_m)
+    return own, placed, theirs, CC
 
 
 @pytest.mark.parametrize(
@@ -101,14 +109,16 @@ def test_the_true_place_of_exact_maps_is_not_contradicted(world, a, b, duration_
 def test_the_fleet_sets_the_mirror_image_aside_with_the_free_space_seen(with_free):
     """The fleet, no priors, the warehouse's robots 0 and 1 at 60 s (exact maps, mature): without
     their free space robot 1 is merged half-turned (a wrong merge); with it (the server passes
-    freespace.FreeSpaces.area) the mirror image is set aside and robot 1 is not merged wrongly."""
+    freespace.FreeSpaces.area; ``contradiction.enabled``) the mirror image is set aside and robot 1
+    is not merged wrongly."""
     from map_server.config import FleetConfig
     from map_server.fleet import Fleet
     from tests.map_server.robots import robot_map_from_segments
 
     maps = {f"r{i}": scan_map("warehouse", i, 60.0) for i in (0, 1)}
     areas = {f"r{i}": scan_free("warehouse", i, 60.0) for i in (0, 1)}
-    fleet = Fleet(FleetConfig(), "srv")
+    cfg = FleetConfig(contradiction=dataclasses.replace(CC, enabled=True))
+    fleet = Fleet(cfg, "srv")
     if with_free:
         fleet.free_of = lambda robot, session: areas.get(robot)
     for k, t in enumerate(np.arange(0.0, 80.0, 5.0)):
