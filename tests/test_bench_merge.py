@@ -40,7 +40,7 @@ def test_one_seed_gives_a_row_per_robot(recorded, enabled):
     assert sorted(rows) == ["robot1", "robot2", "robot3"]
     ref = [n for n, r in rows.items() if r["reference"]]
     assert len(ref) == 1 and rows[ref[0]]["error_m"] == pytest.approx(0.0, abs=1e-9)
-    for n, r in rows.items():
+    for r in rows.values():
         if r["reference"]:
             continue
         assert r["false_verdicts"] >= 0 and isinstance(r["verdicts"], list)
