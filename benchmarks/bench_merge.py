@@ -49,9 +49,9 @@ from _results import save_results  # noqa: E402
 
 from map_server.alignment import estimate_alignment  # noqa: E402
 from map_server.config import FleetConfig  # noqa: E402
-from map_server.contradiction import contradiction_m, moved, refused, shrink  # noqa: E402
+from map_server.contradiction import contradiction_m, shrink, veto  # noqa: E402
 from map_server.fleet import Fleet  # noqa: E402
-from map_server.freespace import FreeSpaces  # noqa: E402
+from map_server.freespace import FreeSpaces, place_area  # noqa: E402
 from map_server.fusion import fuse_particles, merge_segments  # noqa: E402
 from shared import codec  # noqa: E402
 from shared.geometry import apply_segments, compose, inverse, relative  # noqa: E402
@@ -295,35 +295,29 @@ def run_seed(
             merged = merge_segments(seg, w, owner, cfg.fusion)[0]
             if len(layer(i, k)) == 0 or len(merged) == 0:
                 continue
-            placed_free = [moved(area(j, t), truth[names[j]]) for j, _ in others if area(j, t) is not None]
-            placed_free = (
-                shrink(shapely.union_all(placed_free), ccfg.margin_m, merged, ccfg.near_wall_m)
-                if placed_free
-                else None
-            )
-            own_free = shrink(area(i, t), ccfg.margin_m, layer(i, k).seg, ccfg.near_wall_m)
 
-            def contra(pose, i=i, k=k, merged=merged, own_free=own_free, placed_free=placed_free):
-                return contradiction_m(pose, layer(i, k).seg, own_free, merged, placed_free, ccfg)
+            def checked(i=i, k=k, t=t, others=others, merged=merged):
+                """contradiction_m's and contradiction.veto's arguments but the pose, as Fleet._veto."""
+                theirs = [
+                    place_area(area(j, t), truth[names[j]]) for j, _ in others if area(j, t) is not None
+                ]
+                theirs = shrink(shapely.union_all(theirs), ccfg.margin_m) if theirs else None
+                return layer(i, k).seg, shrink(area(i, t), ccfg.margin_m), merged, theirs, ccfg
 
-            def veto(pose, matched_m, contra=contra):  # as Fleet._veto
-                m = contra(pose)
-                return f"{m:.1f} m" if refused(m, matched_m, ccfg) else None
-
-            a = estimate_alignment(
-                layer(i, k).seg, merged, cfg.alignment, veto=veto if ccfg.enabled else None
-            )
+            args = checked() if ccfg.enabled else None
+            a = estimate_alignment(layer(i, k).seg, merged, cfg.alignment, veto=args and veto(*args))
             if a.status != "aligned":
                 continue
             verdicts.append((float(t), not _wrong(a.transform, truth[n]), round(a.rival_ratio, 2),
                              round(a.score_m, 1), round(a.inlier_share, 2)))  # fmt: skip
+            contradicted = (contradiction_m(a.transform, *(args or checked())), a.score_m)
             if _wrong(a.transform, truth[n]):
                 false_verdicts += 1
                 first_false = t if first_false is None else first_false
                 false_after += evidence is not None
-                c_false.append((contra(a.transform), a.score_m))
+                c_false.append(contradicted)
             else:
-                c_true.append((contra(a.transform), a.score_m))
+                c_true.append(contradicted)
                 if evidence is None:
                     evidence = float(t)
             if evidence is not None and t - evidence > 60.0:

@@ -159,21 +159,27 @@ def estimate_alignment(
 MAX_VETOED = 6  # places checked for contradiction, best first, before the search gives up
 
 
+def _set_aside(cands: list[Scored], veto) -> tuple[list[Scored], list[tuple[Scored, str]]]:
+    """The places ``veto`` contradicts, best first, up to the first it does not (at most
+    MAX_VETOED checked), and the candidates without them."""
+    aside = []
+    for s in sorted(cands, key=lambda s: -s.net)[:MAX_VETOED]:
+        why = veto(s.pose, s.matched_m)
+        if why is None:
+            break
+        aside.append((s, why))
+    gone = {id(s) for s, _ in aside}
+    return [c for c in cands if id(c) not in gone], aside
+
+
 def _accept_best(cands: list[Scored], robot_seg, index, robot, total, cfg, veto=None) -> Alignment:
     set_aside = []
     if veto is not None:
-        for s in sorted(cands, key=lambda s: -s.net)[:MAX_VETOED]:
-            why = veto(s.pose, s.matched_m)
-            if why is None:
-                break
-            set_aside.append((s, why))
-        else:
-            if set_aside:
-                s, why = set_aside[0]
-                n = len(set_aside)
-                return _verdict("unaligned", s, total, 1.0, f"rejected: the best {n} places contradicted"
-                                f" (best: {why})")  # fmt: skip
-        cands = [c for c in cands if all(c is not s for s, _ in set_aside)]
+        cands, set_aside = _set_aside(cands, veto)
+        if set_aside and (not cands or len(set_aside) == MAX_VETOED):  # every place checked contradicted
+            s, why = set_aside[0]
+            reason = f"rejected: the best {len(set_aside)} places contradicted (best: {why})"
+            return _verdict("unaligned", s, total, 1.0, reason)
     best = max(cands, key=lambda s: s.net)
     ratio = best.net / max(cand.rival(best, cands, robot.points, cfg.distinct_m), 1e-9)
     problems = _problems(best, total, index, robot, robot_seg, cfg)

@@ -70,6 +70,7 @@ from map_server.alignment import (
     query_reach,
 )
 from map_server.config import FleetConfig
+from map_server.freespace import place_area
 from map_server.fusion import fuse_particles
 from map_server.incremental import MergedMap, Source
 from map_server.posegraph import FleetGraph, Placed, RobotGraph
@@ -468,30 +469,18 @@ class Fleet:
         cc = self.cfg.contradiction
         if self.free_of is None or not cc.enabled:
             return None
-        own = contradiction.shrink(
-            self.free_of(r.robot, r.map.session), cc.margin_m, r.layer.seg, cc.near_wall_m
-        )
+        own = contradiction.shrink(self.free_of(r.robot, r.map.session), cc.margin_m)
         placed = [(x.robot, x.map.session, x.alignment.transform) for x in self._placed() if x is not r]
         placed += [(p.robot, p.session, p.alignment.transform) for p in self._pieces()]
         parts = [(a, t) for robot, ses, t in placed if (a := self.free_of(robot, ses)) is not None]
-        made_of = (tuple((id(a), *np.round(t, 4)) for a, t in parts), len(placed_map), placed_map.sum())
+        made_of = tuple((id(a), *np.round(t, 4)) for a, t in parts)
         if self._placed_free is None or self._placed_free[0] != made_of:
-            union = shapely.union_all([contradiction.moved(a, t) for a, t in parts]) if parts else None
-            self._placed_free = (
-                made_of,
-                contradiction.shrink(union, cc.margin_m, placed_map, cc.near_wall_m),
-            )
+            union = shapely.union_all([place_area(a, t) for a, t in parts]) if parts else None
+            self._placed_free = (made_of, contradiction.shrink(union, cc.margin_m))
         theirs = self._placed_free[1]
         if own is None and theirs is None:
             return None
-
-        def veto(pose: np.ndarray, matched_m: float) -> str | None:
-            m = contradiction.contradiction_m(pose, r.layer.seg, own, placed_map, theirs, cc)
-            if contradiction.refused(m, matched_m, cc):
-                return f"{m:.1f} m of walls where free space was seen"
-            return None
-
-        return veto
+        return contradiction.veto(r.layer.seg, own, placed_map, theirs, cc)
 
     def _align_round(self, now_s: float, urgent: bool = False, only: set[int] | None = None) -> bool:
         """One pass over the robots that deserve an attempt; True if a robot got placed.

@@ -21,6 +21,7 @@ import numpy as np
 import shapely
 from shapely import affinity
 
+from shared.geometry import apply_segments
 from shared.messages import FreeSpace, FusedFree
 from shared.occupancy import to_rings, unexplained, union, view_vertices, view_walls
 
@@ -36,6 +37,12 @@ class FreeFusionConfig:
 
 
 Placements = dict[tuple[str, str], np.ndarray]  # (robot, session) -> its map frame in the global frame
+
+
+def place_area(area, pose: np.ndarray):
+    """A shapely ``area`` with its frame placed at ``pose (3,)``."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return affinity.affine_transform(area, [c, -s, s, c, pose[0], pose[1]])
 
 
 class FreeSpaces:
@@ -119,9 +126,8 @@ class FreeSpaces:
             own, own_walls = self._own(key)
             if own.is_empty:
                 continue
-            c, s = np.cos(t[2]), np.sin(t[2])
-            parts.append(affinity.affine_transform(own, [c, -s, s, c, t[0], t[1]]))
-            walls.append(np.einsum("ij,...j->...i", [[c, -s], [s, c]], own_walls) + t[:2])
+            parts.append(place_area(own, t))
+            walls.append(apply_segments(t, own_walls))
         seen = shapely.union_all(parts) if parts else shapely.MultiPolygon()
         free = seen.buffer(-self.cfg.wall_margin_m, join_style="mitre") if not seen.is_empty else seen
         offsets, hole, vertices, tol = to_rings(free, self.cfg.tolerance_m)

@@ -9,6 +9,7 @@ import shapely
 from map_server import contradiction as cd
 from map_server.alignment import estimate_alignment
 from map_server.config import AlignmentConfig
+from map_server.freespace import place_area
 from shared.geometry import apply_segments, compose, inverse
 from shared.metrics import transform_error
 from tests.map_server.robots import scan_free, scan_map
@@ -18,11 +19,12 @@ CC = cd.ContradictionConfig()
 ROOM = shapely.box(0.0, 0.0, 10.0, 6.0)  # a room's free space, seen from inside
 
 
-def test_samples_cover_each_segment_once():
-    seg = np.array([[[0.0, 0.0], [1.0, 0.0]], [[0.0, 0.0], [0.0, 0.25]], [[2.0, 2.0], [2.0, 2.0]]])
-    pts, w = cd.samples(seg, 0.1)
-    assert len(pts) == 10 + 3 + 1 and w.sum() == pytest.approx(1.25)
-    assert np.all((pts[:10, 0] > 0) & (pts[:10, 0] < 1) & (pts[:10, 1] == 0))
+def test_inside_counts_the_length_of_wall_inside():
+    room = cd.shrink(ROOM, 0.0)
+    seg = np.array([[[8.0, 3.0], [12.0, 3.0]], [[1.0, 1.0], [1.0, 2.0]], [[2.0, 2.0], [2.0, 2.0]]])
+    assert cd.inside_m(room, seg[:1], 0.1) == pytest.approx(2.0)  # half of it in the room
+    assert cd.inside_m(room, seg, 0.1) == pytest.approx(3.0)  # and a 1 m wall; a point has no length
+    assert cd.inside_m(None, seg, 0.1) == 0.0 and cd.inside_m(room, np.zeros((0, 2, 2)), 0.1) == 0.0
 
 
 def test_walls_inside_free_space_contradict_and_walls_on_its_edge_do_not():
@@ -41,32 +43,35 @@ def test_walls_inside_free_space_contradict_and_walls_on_its_edge_do_not():
     assert not cd.refused(2.0, 10.0, CC) and cd.refused(2.5, 10.0, CC) and not cd.refused(2.5, 150.0, CC)
 
 
-def test_moved_places_free_space_like_segments():
+def test_a_placed_area_moves_like_segments():
     pose = np.array([3.0, -1.0, 0.7])
     corner = np.array([[[10.0, 6.0], [10.0, 6.0]]])
     x, y = apply_segments(pose, corner)[0, 0]
-    area = cd.moved(ROOM, pose)
+    area = place_area(ROOM, pose)
     assert area.buffer(1e-9).contains(shapely.Point(x, y)) and area.area == pytest.approx(60.0)
+
+
+def exact_pair(world, a, b, duration_s):
+    """Robot ``b``'s exact map (its frame) and free space, robot ``a``'s placed at its truth (the
+    world frame), each free space shrunk — contradiction.veto's arguments — and ``b``'s truth."""
+    seg_a, start_a = scan_map(world, a, duration_s)
+    seg_b, start_b = scan_map(world, b, duration_s)
+    theirs = cd.shrink(place_area(scan_free(world, a, duration_s), start_a), CC.margin_m)
+    own = cd.shrink(scan_free(world, b, duration_s), CC.margin_m)
+    return (seg_b, own, apply_segments(start_a, seg_a), theirs, CC), start_b
 
 
 def veto_for(world, a, b, duration_s):
     """What Fleet._veto gives for robot ``b`` against robot ``a`` placed at its truth (exact maps
-    and free space, from scans at the true poses)."""
-    seg_a, start_a = scan_map(world, a, duration_s)
-    seg_b, start_b = scan_map(world, b, duration_s)
-    placed = apply_segments(start_a, seg_a)
-    theirs = cd.shrink(
-        cd.moved(scan_free(world, a, duration_s), start_a), CC.margin_m, placed, CC.near_wall_m
-    )
-    own = cd.shrink(scan_free(world, b, duration_s), CC.margin_m, seg_b, CC.near_wall_m)
-    calls = []
+    and free space, from scans at the true poses), recording each place it checks."""
+    args, truth = exact_pair(world, a, b, duration_s)
+    veto, calls = cd.veto(*args), []
 
-    def veto(pose, matched_m):
-        m = cd.contradiction_m(pose, seg_b, own, placed, theirs, CC)
-        calls.append((np.asarray(pose).copy(), m))
-        return f"{m:.1f} m" if cd.refused(m, matched_m, CC) else None
+    def recorded(pose, matched_m):
+        calls.append((np.asarray(pose).copy(), cd.contradiction_m(pose, *args)))
+        return veto(pose, matched_m)
 
-    return placed, seg_b, start_b, veto, calls
+    return args[2], args[0], truth, recorded, calls
 
 
 def test_the_warehouse_mirror_image_is_contradicted_and_the_truth_found():
@@ -85,24 +90,12 @@ def test_the_warehouse_mirror_image_is_contradicted_and_the_truth_found():
     assert "contradicted" in a.reason, a.reason
 
 
-def veto_parts(world, a, b, duration_s):
-    seg_a, start_a = scan_map(world, a, duration_s)
-    seg_b, _ = scan_map(world, b, duration_s)
-    placed = apply_segments(start_a, seg_a)
-    theirs = cd.shrink(
-        cd.moved(scan_free(world, a, duration_s), start_a), CC.margin_m, placed, CC.near_wall_m
-    )
-    own = cd.shrink(scan_free(world, b, duration_s), CC.margin_m, seg_b, CC.near_wall_m)
-    return own, placed, theirs, CC
-
-
 @pytest.mark.parametrize(
     ("world", "a", "b", "duration_s"), [("office", 0, 1, 150.0), ("warehouse", 0, 1, 60.0)]
 )
 def test_the_true_place_of_exact_maps_is_not_contradicted(world, a, b, duration_s):
-    _, start_b = scan_map(world, b, duration_s)
-    seg_b, _ = scan_map(world, b, duration_s)
-    assert cd.contradiction_m(start_b, seg_b, *veto_parts(world, a, b, duration_s)) < 0.5
+    args, truth = exact_pair(world, a, b, duration_s)
+    assert cd.contradiction_m(truth, *args) < 0.5
 
 
 @pytest.mark.parametrize("with_free", [False, True])
