@@ -68,9 +68,8 @@ def record(world_name: str, route: int, seed: int, duration_s: float, path: Path
     """One simulated robot as the demo runs it (fleet_slam/demo.py, robot_agent/service.py), its
     back end inline: every map it would publish, whole, with the source time."""
     from robot_agent.agent import AgentConfig, AgentCore
-    from robot_agent.backend import remap
     from robot_agent.backend.live import InlineRunner, LiveCorrector
-    from robot_agent.service import endless_config
+    from robot_agent.service import endless_config, final_correction, rebuild_along
     from robot_agent.sim import LiveSim, builtin_world
     from robot_agent.slam.config import command_line_config
     from robot_agent.slam.fastslam import FastSLAM
@@ -84,7 +83,7 @@ def record(world_name: str, route: int, seed: int, duration_s: float, path: Path
     )
     blobs, stamps, t0 = [], [], None
     free_blobs, free_stamps = [], []
-    scans, odometry = [], []
+    scans = []
 
     def publish(t: float, force: bool = False) -> None:
         core.pose_message()
@@ -98,29 +97,19 @@ def record(world_name: str, route: int, seed: int, duration_s: float, path: Path
     for scan in LiveSim(world, route, seed=seed).scans(duration_s):
         t0 = scan.stamp_s if t0 is None else t0
         scans.append(scan)
-        odometry.append(scan.odometry)
         core.step(scan)
         publish(scan.stamp_s - t0)
     # the end of the run as robot_agent/service.py does it: the back end's last correction, then
     # the map rebuilt along the corrected path, each published at once
     t_end = scans[-1].stamp_s - t0
-    slam, corrector = core.slam, core.corrector
-    corrector.finish(60.0)
-    _, now = slam.best_trajectory()
-    first_scan = slam.trajectory.first_scan
-    filter_poses = corrector.raw_path(now, first_scan)
-    poses = corrector.corrected_path(now, first_scan)
+    _, _, filter_poses, poses = final_correction(core, 60.0)
     publish(t_end, force=True)
     f = scans[0]
     log = LaserLog.from_arrays(
         np.array([x.stamp_s for x in scans]), np.array([x.ranges_m for x in scans]), f.angles_rad,
-        np.array(odometry), f.laser_offset, f.range_max_m,
+        np.array([x.odometry for x in scans]), f.laser_offset, f.range_max_m,
     )  # fmt: skip
-    gauge = compose(filter_poses[0], inverse(poses[0]))
-    poses = compose(gauge, poses)
-    core.rebuilt(
-        remap(log, core.first_scan, poses, cfg), poses[-1], (corrector.correction, gauge, first_scan)
-    )
+    rebuild_along(core, log, core.first_scan, filter_poses, poses, cfg)
     publish(t_end, force=True)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")

@@ -36,6 +36,31 @@ SIM_HISTORY_SCANS = 18_000  # a simulated robot runs without end: the filter kee
 # poses live on in the back end's keyframes, older places in the map
 
 
+def final_correction(core, timeout_s: float) -> tuple:
+    """The online back end's last update at the end of a run (within ``timeout_s``): whether it
+    came in time, and the stamps, the filter's own path and the corrected path of the best
+    particle (the filter continued from the corrections), in the robot's map frame."""
+    slam, corrector = core.slam, core.corrector
+    done = corrector.finish(timeout_s)
+    stamps, now = slam.best_trajectory()
+    first_scan = slam.trajectory.first_scan
+    return done, stamps, corrector.raw_path(now, first_scan), corrector.corrected_path(now, first_scan)
+
+
+def rebuild_along(core, scan_log, first: int, filter_poses, poses, cfg):
+    """The map rebuilt along the corrected path ``poses`` from the scans ``scan_log[first:]``, put
+    in ``core`` to be published next (with the back end's graph); the path moved by the start
+    gauge — so that the map frame stays the robot's start frame, what a prior gives — is returned."""
+    from robot_agent.backend import remap
+    from shared.geometry import compose, inverse
+
+    start = compose(filter_poses[0], inverse(poses[0]))
+    poses = compose(start, poses)
+    graph = (core.corrector.correction, start, core.slam.trajectory.first_scan)
+    core.rebuilt(remap(scan_log, first, poses, cfg), poses[-1], graph)
+    return poses
+
+
 def endless_config(cfg):
     """``cfg`` for a source without end (a simulated robot): the path kept for the newest
     SIM_HISTORY_SCANS scans, unless ``--set filter.history_scans`` chose."""
@@ -388,7 +413,6 @@ def run(args: argparse.Namespace) -> int:
     from robot_agent.slam.config import command_line_config
     from robot_agent.slam.fastslam import FastSLAM
     from shared.bus import Bus, client_config, stop_on_signals
-    from shared.geometry import compose, inverse
     from shared.keys import Keys
     from shared.metrics import write_poses, write_tum
 
@@ -460,12 +484,9 @@ def run(args: argparse.Namespace) -> int:
             if corrector is not None and len(poses):
                 # the last update of the online back end: bounded when stopped (SIGTERM/SIGINT:
                 # the whole exit within 10 s), complete when the source ended
-                done = corrector.finish(FINAL_UPDATE_STOPPED_S if stop.is_set() else FINAL_UPDATE_S)
+                timeout_s = FINAL_UPDATE_STOPPED_S if stop.is_set() else FINAL_UPDATE_S
+                done, stamps, filter_poses, poses = final_correction(core, timeout_s)
                 backend = dict(corrector.stats, final_update_in_time=done, updates=corrector.updates)
-                stamps, now = slam.best_trajectory()  # the filter continued from the corrections
-                first_scan = slam.trajectory.first_scan
-                filter_poses = corrector.raw_path(now, first_scan)  # the filter's own path
-                poses = corrector.corrected_path(now, first_scan)
                 pub.publish(force_map=True)  # the map and pose as the last correction moves them
                 print(
                     f"agent {args.robot}: published the corrected map ({backend.get('loops', 0)} loops, "
@@ -478,12 +499,7 @@ def run(args: argparse.Namespace) -> int:
             first, scan_log = (0, sim.recorded_log()) if sim is not None else (args.first, laser_log)
             first += core.first_scan
             if corrector is not None and len(poses) and not stop.is_set() and scan_log is not None:
-                from robot_agent.backend import remap
-
-                start = compose(filter_poses[0], inverse(poses[0]))  # the start gauge: the map frame
-                poses = compose(start, poses)  # stays the robot's start frame (what a prior gives)
-                graph = (corrector.correction, start, slam.trajectory.first_scan)
-                core.rebuilt(remap(scan_log, first, poses, cfg), poses[-1], graph)
+                poses = rebuild_along(core, scan_log, first, filter_poses, poses, cfg)
                 pub.publish(force_map=True)
                 print(f"agent {args.robot}: published the map rebuilt along the corrected path", flush=True)
             elif scan_log is None and len(poses) and not stop.is_set():  # a long simulated run

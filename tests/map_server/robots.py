@@ -71,12 +71,17 @@ def slam_run(world_name: str, robot_index: int, duration_s: float, seed: int) ->
 
 
 @lru_cache(maxsize=16)
+def simulated(world_name: str, robot_index: int, duration_s: float, seed: int):
+    """A simulated run of one robot (scans, truth), shared by :func:`scan_map` and :func:`scan_free`."""
+    return simulate_robot(builtin_world(world_name), robot_index, duration_s, seed, SimConfig())
+
+
+@lru_cache(maxsize=16)
 def scan_map(world_name: str, robot_index: int, duration_s: float, every: int = 5, seed: int = 0) -> tuple:
     """A map without SLAM error: the segments of every ``every``-th scan, extracted at the true pose
     and expressed in the robot's start frame, merged. Returns ``(seg (N,2,2), start (3,))``; the
     start pose is the true robot-to-world transform."""
-    world = builtin_world(world_name)
-    sim = simulate_robot(world, robot_index, duration_s, seed, SimConfig())
+    sim = simulated(world_name, robot_index, duration_s, seed)
     start = sim.truth[0]
     parts = []
     for k in range(0, len(sim.stamps_s), every):
@@ -97,8 +102,7 @@ def scan_free(world_name: str, robot_index: int, duration_s: float, every: int =
 
     from robot_agent.freespace import scan_region
 
-    world = builtin_world(world_name)
-    sim = simulate_robot(world, robot_index, duration_s, seed, SimConfig())
+    sim = simulated(world_name, robot_index, duration_s, seed)
     start = sim.truth[0]
     parts = []
     for k in range(0, len(sim.stamps_s), every):
