@@ -49,7 +49,7 @@ from _results import save_results  # noqa: E402
 
 from map_server.alignment import estimate_alignment  # noqa: E402
 from map_server.config import FleetConfig  # noqa: E402
-from map_server.contradiction import contradiction_m, shrink, veto  # noqa: E402
+from map_server.contradiction import Check, placed_noise, shrink  # noqa: E402
 from map_server.fleet import Fleet  # noqa: E402
 from map_server.freespace import FreeSpaces, place_area  # noqa: E402
 from map_server.fusion import fuse_particles, merge_segments  # noqa: E402
@@ -286,20 +286,21 @@ def run_seed(
                 continue
 
             def checked(i=i, k=k, t=t, others=others, merged=merged):
-                """contradiction_m's and contradiction.veto's arguments but the pose, as Fleet._veto."""
-                theirs = [
-                    place_area(area(j, t), truth[names[j]]) for j, _ in others if area(j, t) is not None
-                ]
+                """contradiction.Check's arguments, as Fleet._veto gives them."""
+                known = [(j, lj, area(j, t)) for j, lj in others if area(j, t) is not None]
+                theirs = [place_area(a, truth[names[j]]) for j, _, a in known]
                 theirs = shrink(shapely.union_all(theirs), ccfg.margin_m) if theirs else None
-                return layer(i, k).seg, shrink(area(i, t), ccfg.margin_m), merged, theirs, ccfg
+                noise = placed_noise([(lj.seg, a, truth[names[j]]) for j, lj, a in known], ccfg)
+                return layer(i, k).seg, shrink(area(i, t), ccfg.margin_m), merged, theirs, ccfg, noise
 
             args = checked() if ccfg.enabled else None
-            a = estimate_alignment(layer(i, k).seg, merged, cfg.alignment, veto=args and veto(*args))
+            a = estimate_alignment(layer(i, k).seg, merged, cfg.alignment, veto=args and Check(*args))
             if a.status != "aligned":
                 continue
             verdicts.append((float(t), not _wrong(a.transform, truth[n]), round(a.rival_ratio, 2),
                              round(a.score_m, 1), round(a.inlier_share, 2)))  # fmt: skip
-            contradicted = (contradiction_m(a.transform, *(args or checked())), a.score_m)
+            check = Check(*(args or checked()))  # contradiction (m), matched (m), the maps' own (m)
+            contradicted = (check.contradicted_m(a.transform), a.score_m, check.noise_m(a.transform))
             if _wrong(a.transform, truth[n]):
                 false_verdicts += 1
                 first_false = t if first_false is None else first_false
@@ -331,8 +332,11 @@ def contra_text(r: dict) -> str:
         return ""
     t = max(ct, default=None, key=lambda c: c[0])
     f = min(cf, default=None, key=lambda c: c[0])
-    text = "  contradicted: true max " + ("-" if t is None else f"{t[0]:.1f}m/{t[1]:.0f}m")
-    return text + "  false min " + ("-" if f is None else f"{f[0]:.1f}m/{f[1]:.0f}m")
+
+    def one(c) -> str:  # contradicted / matched (own contradiction)
+        return "-" if c is None else f"{c[0]:.1f}m/{c[1]:.0f}m" + (f"({c[2]:.1f})" if len(c) > 2 else "")
+
+    return f"  contradicted: true max {one(t)}  false min {one(f)}"
 
 
 def main() -> int:

@@ -110,7 +110,7 @@ class Fleet:
         # a robot session's free space in its map frame (shapely, or None): the server gives
         # freespace.FreeSpaces.area; without it no placement is checked for contradiction
         self.free_of: Callable[[str, str], object] | None = None
-        self._placed_free: tuple[tuple, object] | None = None  # (what it was made of, area)
+        self._placed_free: tuple | None = None  # (what it was made of, area, noise, parts)
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -470,17 +470,21 @@ class Fleet:
         if self.free_of is None or not cc.enabled:
             return None
         own = contradiction.shrink(self.free_of(r.robot, r.map.session), cc.margin_m)
-        placed = [(x.robot, x.map.session, x.alignment.transform) for x in self._placed() if x is not r]
-        placed += [(p.robot, p.session, p.alignment.transform) for p in self._pieces()]
-        parts = [(a, t) for robot, ses, t in placed if (a := self.free_of(robot, ses)) is not None]
-        made_of = tuple((id(a), *np.round(t, 4)) for a, t in parts)
+        placed = [
+            (x.robot, x.map.session, x.layer, x.alignment.transform) for x in self._placed() if x is not r
+        ]
+        placed += [(p.robot, p.session, p.layer, p.alignment.transform) for p in self._pieces()]
+        parts = [(a, lay, t) for robot, ses, lay, t in placed if (a := self.free_of(robot, ses)) is not None]
+        made_of = tuple((id(a), id(lay), *np.round(t, 4)) for a, lay, t in parts)
         if self._placed_free is None or self._placed_free[0] != made_of:
-            union = shapely.union_all([place_area(a, t) for a, t in parts]) if parts else None
-            self._placed_free = (made_of, contradiction.shrink(union, cc.margin_m))
-        theirs = self._placed_free[1]
+            union = shapely.union_all([place_area(a, t) for a, _, t in parts]) if parts else None
+            noise = contradiction.placed_noise([(lay.seg, a, t) for a, lay, t in parts], cc)
+            # (the parts held with it: the ids it is known by stay theirs)
+            self._placed_free = (made_of, contradiction.shrink(union, cc.margin_m), noise, parts)
+        theirs, noise = self._placed_free[1:3]
         if own is None and theirs is None:
             return None
-        return contradiction.veto(r.layer.seg, own, placed_map, theirs, cc)
+        return contradiction.veto(r.layer.seg, own, placed_map, theirs, cc, noise)
 
     def _align_round(self, now_s: float, urgent: bool = False, only: set[int] | None = None) -> bool:
         """One pass over the robots that deserve an attempt; True if a robot got placed.

@@ -43,6 +43,35 @@ def test_walls_inside_free_space_contradict_and_walls_on_its_edge_do_not():
     assert not cd.refused(2.0, 10.0, CC) and cd.refused(2.5, 10.0, CC) and not cd.refused(2.5, 150.0, CC)
 
 
+def test_the_maps_own_contradiction_is_the_noise_the_test_allows():
+    """A map whose walls stand in its own free space (a door shut in one pass, open in another)
+    is that noisy: the test allows noise_factor times what the robot and the placed maps near it
+    contradict themselves by — placed walls in their own free space far away do not count."""
+    assert CC.noise_factor == 4.0
+    free = cd.shrink(ROOM, CC.margin_m)
+    door = np.array([[[5.0, 1.5], [5.0, 4.5]]])  # 3 m of the robot's wall across its own room
+    across = np.array([[[1.0, 2.0], [8.0, 2.0]], [[1.0, 4.0], [8.0, 4.0]]])  # 14 m of placed wall
+    none = np.zeros((0, 2, 2))
+    quiet = cd.Check(none, free, across, None, CC)
+    assert quiet.noise_m(np.zeros(3)) == 0.0 and "14.0 m" in quiet(np.zeros(3), 0.0)
+    noisy = cd.Check(door, free, across, None, CC)  # 14 m contradicted, 3 m its own: 14 > 4 x 3
+    assert noisy.robot_self_m == pytest.approx(3.0) and noisy.noise_m(np.zeros(3)) == pytest.approx(3.0)
+    assert "14.0 m" in noisy(np.zeros(3), 0.0) and "by 3.0 m" in noisy(np.zeros(3), 0.0)
+    half = cd.Check(door, free, across[:1], None, CC)  # 7 m against 4 x 3: within the noise
+    assert half(np.zeros(3), 0.0) is None
+    # a placed map's own walls in its own free space, near the robot at the pose, count too
+    near_wall = np.array([[[2.0, 3.0], [4.0, 3.0]]])  # 2 m in its room
+    far_wall = near_wall + np.array([40.0, 0.0])  # the same room 40 m away: 2 m there
+    placed = [(near_wall, ROOM, np.zeros(3)), (near_wall, ROOM, np.array([40.0, 0.0, 0.0]))]
+    pts, w = cd.placed_noise(placed, CC)
+    assert w.sum() == pytest.approx(4.0) and pts[:, 0].max() > 40.0
+    check = cd.Check(none, free, np.concatenate([across, near_wall, far_wall]), None, CC, (pts, w))
+    assert check.noise_m(np.zeros(3)) == pytest.approx(2.0)  # the far room's do not count here
+    assert check.noise_m(np.array([40.0, 0.0, 0.0])) == pytest.approx(2.0)  # (the robot there)
+    assert check.noise_m(np.array([20.0, 0.0, 0.0])) == 0.0
+    assert not cd.refused(7.9, 0.0, CC, 2.0) and cd.refused(8.1, 0.0, CC, 2.0)
+
+
 def test_a_placed_area_moves_like_segments():
     pose = np.array([3.0, -1.0, 0.7])
     corner = np.array([[[10.0, 6.0], [10.0, 6.0]]])
