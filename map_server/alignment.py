@@ -156,29 +156,44 @@ def estimate_alignment(
     return _accept_best(cands, robot_seg, index, robot, total, cfg, veto)
 
 
-MAX_VETOED = 6  # places checked for contradiction, best first, before the search gives up
+MAX_VETOED = 6  # distinct places checked for contradiction, best first, before the search gives up
 
 
-def _set_aside(cands: list[Scored], veto) -> tuple[list[Scored], list[tuple[Scored, str]]]:
+def _set_aside(
+    cands: list[Scored], veto, points: np.ndarray, distinct_m: float
+) -> tuple[list[Scored], list[tuple[Scored, str]], int]:
     """The places ``veto`` contradicts, best first, up to the first it does not (at most
-    MAX_VETOED checked), and the candidates without them."""
-    aside = []
-    for s in sorted(cands, key=lambda s: -s.net)[:MAX_VETOED]:
+    MAX_VETOED distinct places checked), and the candidates without them. A candidate that is
+    the same place as a contradicted one (within ``distinct_m``, as rivals are told apart) goes
+    with it unchecked: a mirror image found six times over is one place, not six. Returns the
+    candidates left, those set aside with why, and how many distinct places were contradicted."""
+    aside, contradicted, checked = [], [], 0
+    for s in sorted(cands, key=lambda s: -s.net):
+        same = next(
+            (w for c, w in contradicted if cand.mean_displacement(s.pose, c.pose, points) <= distinct_m), None
+        )
+        if same is not None:
+            aside.append((s, same))
+            continue
+        if checked == MAX_VETOED:
+            break
+        checked += 1
         why = veto(s.pose, s.matched_m)
         if why is None:
             break
         aside.append((s, why))
+        contradicted.append((s, why))
     gone = {id(s) for s, _ in aside}
-    return [c for c in cands if id(c) not in gone], aside
+    return [c for c in cands if id(c) not in gone], aside, len(contradicted)
 
 
 def _accept_best(cands: list[Scored], robot_seg, index, robot, total, cfg, veto=None) -> Alignment:
     set_aside = []
     if veto is not None:
-        cands, set_aside = _set_aside(cands, veto)
-        if set_aside and (not cands or len(set_aside) == MAX_VETOED):  # every place checked contradicted
+        cands, set_aside, distinct = _set_aside(cands, veto, robot.points, cfg.distinct_m)
+        if set_aside and (not cands or distinct == MAX_VETOED):  # every place checked contradicted
             s, why = set_aside[0]
-            reason = f"rejected: the best {len(set_aside)} places contradicted (best: {why})"
+            reason = f"rejected: the best {distinct} distinct places contradicted (best: {why})"
             return _verdict("unaligned", s, total, 1.0, reason)
     best = max(cands, key=lambda s: s.net)
     ratio = best.net / max(cand.rival(best, cands, robot.points, cfg.distinct_m), 1e-9)

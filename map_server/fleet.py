@@ -77,7 +77,7 @@ from map_server.posegraph import FleetGraph, Placed, RobotGraph
 from map_server.registration import MapIndex, OutsideIndex, Samples
 from map_server.schedule import Around, PlacedKey, global_box
 from map_server.state import RetiredPiece, RobotState
-from shared.geometry import apply_segments, compose, inverse, relative, wrap_angle
+from shared.geometry import apply_points, apply_segments, compose, inverse, relative, wrap_angle
 from shared.messages import GRAPH_FIELDS, FusedMap, PoseUpdate, RobotMap, RobotPath, RobotStatus
 
 log = logging.getLogger("fleet_slam.fleet")
@@ -111,6 +111,7 @@ class Fleet:
         # freespace.FreeSpaces.area; without it no placement is checked for contradiction
         self.free_of: Callable[[str, str], object] | None = None
         self._placed_free: tuple | None = None  # (what it was made of, area, noise, parts)
+        self._noise_cache: dict[tuple[int, int], tuple] = {}  # Fleet._own_noise
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -478,13 +479,39 @@ class Fleet:
         made_of = tuple((id(a), id(lay), *np.round(t, 4)) for a, lay, t in parts)
         if self._placed_free is None or self._placed_free[0] != made_of:
             union = shapely.union_all([place_area(a, t) for a, _, t in parts]) if parts else None
-            noise = contradiction.placed_noise([(lay.seg, a, t) for a, lay, t in parts], cc)
+            noise = [
+                (apply_points(t, pts), w)
+                for (pts, w), (_, _, t) in zip(self._own_noise(parts), parts, strict=True)
+            ]
+            noise = (
+                (np.concatenate([p for p, _ in noise]), np.concatenate([w for _, w in noise]))
+                if noise
+                else None
+            )
             # (the parts held with it: the ids it is known by stay theirs)
             self._placed_free = (made_of, contradiction.shrink(union, cc.margin_m), noise, parts)
         theirs, noise = self._placed_free[1:3]
         if own is None and theirs is None:
             return None
         return contradiction.veto(r.layer.seg, own, placed_map, theirs, cc, noise)
+
+    def _own_noise(self, parts: list) -> list[tuple[np.ndarray, np.ndarray]]:
+        """contradiction.own_noise of each placed ``(free area, layer, pose)``, in its own frame:
+        kept while the area and the layer are the same objects (a placement that moves needs only
+        its transform, not the area shrunk again)."""
+        cc, out, keep = self.cfg.contradiction, [], {}
+        for a, lay, _ in parts:
+            hit = self._noise_cache.get((id(a), id(lay)))
+            if hit is None or hit[0] is not a or hit[1] is not lay:
+                hit = (
+                    a,
+                    lay,
+                    contradiction.own_noise(lay.seg, contradiction.shrink(a, cc.margin_m), cc.step_m),
+                )
+            keep[(id(a), id(lay))] = hit
+            out.append(hit[2])
+        self._noise_cache = keep  # (only the current parts: bounded by the placed robots)
+        return out
 
     def _align_round(self, now_s: float, urgent: bool = False, only: set[int] | None = None) -> bool:
         """One pass over the robots that deserve an attempt; True if a robot got placed.

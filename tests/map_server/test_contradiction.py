@@ -155,3 +155,25 @@ def test_the_fleet_sets_the_mirror_image_aside_with_the_free_space_seen(with_fre
         return
     assert not a.placed or transform_error(a.transform, truth)[0] < 0.1, a.reason
     assert "contradicted" in a.reason, a.reason
+
+
+def test_a_contradicted_place_found_many_times_over_counts_once():
+    """The search checks MAX_VETOED *distinct* places: copies of a contradicted mirror image
+    (within distinct_m of it) go with it unchecked, so the true place further down is reached."""
+    from map_server import alignment
+    from map_server.candidates import Scored
+
+    points = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 3.0]])
+    mirror = np.array([10.0, 0.0, np.pi])
+    copies = [Scored(mirror + np.array([0.01 * k, 0.0, 0.0]), 100.0, 0.0, 100.0 - k, None) for k in range(8)]
+    others = [Scored(np.array([-20.0 * k, 5.0, 0.0]), 80.0, 0.0, 80.0 - k, None) for k in range(1, 4)]
+    truth = Scored(np.zeros(3), 60.0, 0.0, 60.0, None)
+    checked = []
+
+    def veto(pose, matched_m):
+        checked.append(pose)
+        return None if np.allclose(pose, 0.0) else "contradicted"
+
+    left, aside, distinct = alignment._set_aside([*copies, *others, truth], veto, points, 0.5)
+    assert left == [truth] and len(aside) == 11 and distinct == 4  # the mirror once, 3 others
+    assert len(checked) == 5  # 4 contradicted places and the truth, not the mirror's 7 copies
