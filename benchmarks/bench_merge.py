@@ -49,7 +49,7 @@ from _results import save_results  # noqa: E402
 
 from map_server.alignment import estimate_alignment  # noqa: E402
 from map_server.config import FleetConfig  # noqa: E402
-from map_server.contradiction import Check, placed_noise, shrink  # noqa: E402
+from map_server.contradiction import Check, own_noise, placed_noise, shrink  # noqa: E402
 from map_server.fleet import Fleet  # noqa: E402
 from map_server.freespace import FreeSpaces, place_area  # noqa: E402
 from map_server.fusion import fuse_particles, merge_segments  # noqa: E402
@@ -290,16 +290,21 @@ def run_seed(
                 known = [(j, lj, area(j, t)) for j, lj in others if area(j, t) is not None]
                 theirs = [place_area(a, truth[names[j]]) for j, _, a in known]
                 theirs = shrink(shapely.union_all(theirs), ccfg.margin_m) if theirs else None
-                noise = placed_noise([(lj.seg, a, truth[names[j]]) for j, lj, a in known], ccfg)
+                noise = placed_noise(
+                    [
+                        (own_noise(lj.seg, shrink(a, ccfg.margin_m), ccfg.step_m), truth[names[j]])
+                        for j, lj, a in known
+                    ]
+                )
                 return layer(i, k).seg, shrink(area(i, t), ccfg.margin_m), merged, theirs, ccfg, noise
 
-            args = checked() if ccfg.enabled else None
-            a = estimate_alignment(layer(i, k).seg, merged, cfg.alignment, veto=args and Check(*args))
+            check = Check(*checked()) if ccfg.enabled else None
+            a = estimate_alignment(layer(i, k).seg, merged, cfg.alignment, veto=check)
             if a.status != "aligned":
                 continue
             verdicts.append((float(t), not _wrong(a.transform, truth[n]), round(a.rival_ratio, 2),
                              round(a.score_m, 1), round(a.inlier_share, 2)))  # fmt: skip
-            check = Check(*(args or checked()))  # contradiction (m), matched (m), the maps' own (m)
+            check = check or Check(*checked())  # contradiction (m), matched (m), the maps' own (m)
             contradicted = (check.contradicted_m(a.transform), a.score_m, check.noise_m(a.transform))
             if _wrong(a.transform, truth[n]):
                 false_verdicts += 1

@@ -77,7 +77,7 @@ from map_server.posegraph import FleetGraph, Placed, RobotGraph
 from map_server.registration import MapIndex, OutsideIndex, Samples
 from map_server.schedule import Around, PlacedKey, global_box
 from map_server.state import RetiredPiece, RobotState
-from shared.geometry import apply_points, apply_segments, compose, inverse, relative, wrap_angle
+from shared.geometry import apply_segments, compose, inverse, relative, wrap_angle
 from shared.messages import GRAPH_FIELDS, FusedMap, PoseUpdate, RobotMap, RobotPath, RobotStatus
 
 log = logging.getLogger("fleet_slam.fleet")
@@ -110,7 +110,7 @@ class Fleet:
         # a robot session's free space in its map frame (shapely, or None): the server gives
         # freespace.FreeSpaces.area; without it no placement is checked for contradiction
         self.free_of: Callable[[str, str], object] | None = None
-        self._placed_free: tuple | None = None  # (what it was made of, area, noise, parts)
+        self._placed_free: tuple | None = None  # (what it was made of, area, noise)
         self._noise_cache: dict[tuple[int, int], tuple] = {}  # Fleet._own_noise
 
     # -- inputs ------------------------------------------------------------------------------
@@ -479,21 +479,15 @@ class Fleet:
         made_of = tuple((id(a), id(lay), *np.round(t, 4)) for a, lay, t in parts)
         if self._placed_free is None or self._placed_free[0] != made_of:
             union = shapely.union_all([place_area(a, t) for a, _, t in parts]) if parts else None
-            noise = [
-                (apply_points(t, pts), w)
-                for (pts, w), (_, _, t) in zip(self._own_noise(parts), parts, strict=True)
-            ]
-            noise = (
-                (np.concatenate([p for p, _ in noise]), np.concatenate([w for _, w in noise]))
-                if noise
-                else None
+            noise = contradiction.placed_noise(
+                [(n, t) for n, (_, _, t) in zip(self._own_noise(parts), parts, strict=True)]
             )
-            # (the parts held with it: the ids it is known by stay theirs)
-            self._placed_free = (made_of, contradiction.shrink(union, cc.margin_m), noise, parts)
-        theirs, noise = self._placed_free[1:3]
+            # (the ids it is known by stay theirs: _noise_cache holds the parts)
+            self._placed_free = (made_of, contradiction.shrink(union, cc.margin_m), noise)
+        theirs, noise = self._placed_free[1:]
         if own is None and theirs is None:
             return None
-        return contradiction.veto(r.layer.seg, own, placed_map, theirs, cc, noise)
+        return contradiction.Check(r.layer.seg, own, placed_map, theirs, cc, noise)
 
     def _own_noise(self, parts: list) -> list[tuple[np.ndarray, np.ndarray]]:
         """contradiction.own_noise of each placed ``(free area, layer, pose)``, in its own frame:

@@ -62,8 +62,8 @@ def test_the_maps_own_contradiction_is_the_noise_the_test_allows():
     # a placed map's own walls in its own free space, near the robot at the pose, count too
     near_wall = np.array([[[2.0, 3.0], [4.0, 3.0]]])  # 2 m in its room
     far_wall = near_wall + np.array([40.0, 0.0])  # the same room 40 m away: 2 m there
-    placed = [(near_wall, ROOM, np.zeros(3)), (near_wall, ROOM, np.array([40.0, 0.0, 0.0]))]
-    pts, w = cd.placed_noise(placed, CC)
+    own = cd.own_noise(near_wall, cd.shrink(ROOM, CC.margin_m), CC.step_m)
+    pts, w = cd.placed_noise([(own, np.zeros(3)), (own, np.array([40.0, 0.0, 0.0]))])
     assert w.sum() == pytest.approx(4.0) and pts[:, 0].max() > 40.0
     check = cd.Check(none, free, np.concatenate([across, near_wall, far_wall]), None, CC, (pts, w))
     assert check.noise_m(np.zeros(3)) == pytest.approx(2.0)  # the far room's do not count here
@@ -82,7 +82,7 @@ def test_a_placed_area_moves_like_segments():
 
 def exact_pair(world, a, b, duration_s):
     """Robot ``b``'s exact map (its frame) and free space, robot ``a``'s placed at its truth (the
-    world frame), each free space shrunk — contradiction.veto's arguments — and ``b``'s truth."""
+    world frame), each free space shrunk — contradiction.Check's arguments — and ``b``'s truth."""
     seg_a, start_a = scan_map(world, a, duration_s)
     seg_b, start_b = scan_map(world, b, duration_s)
     theirs = cd.shrink(place_area(scan_free(world, a, duration_s), start_a), CC.margin_m)
@@ -94,7 +94,7 @@ def veto_for(world, a, b, duration_s):
     """What Fleet._veto gives for robot ``b`` against robot ``a`` placed at its truth (exact maps
     and free space, from scans at the true poses), recording each place it checks."""
     args, truth = exact_pair(world, a, b, duration_s)
-    veto, calls = cd.veto(*args), []
+    veto, calls = cd.Check(*args), []
 
     def recorded(pose, matched_m):
         calls.append((np.asarray(pose).copy(), cd.contradiction_m(pose, *args)))
