@@ -31,6 +31,7 @@ grew enough is searched for such a place (fleet.py), a changed one is refined wh
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -260,6 +261,25 @@ def floored_prior_sigma(prior_sigma: np.ndarray, cfg: AlignmentConfig) -> np.nda
     return np.maximum(np.asarray(prior_sigma, float), floor)
 
 
+def _refined_at(
+    robot_seg, index: MapIndex, robot: Samples, coarse: Samples, start, sigma, cfg
+) -> tuple[Scored, float, list[str]]:
+    """``start`` refined by matching within ``sigma`` (floored; a Gaussian term), scored and
+    verified: the candidate, how far it moved (Mahalanobis) and what keeps it from acceptance."""
+    info = np.diag(1.0 / sigma**2)
+    gate = max(cfg.prior_gate_sigmas * max(sigma[0], sigma[1]), cfg.refine_stages[-1][0])
+    stages = tuple((min(g, gate), a) for g, a in cfg.refine_stages)
+    r = refine(index, coarse, start, stages, cfg.point_sigma_m, cfg.correlation_m, start, info)
+    s = cand.score(index, robot, r.pose, cfg, r)
+    d = s.pose - start
+    d[2] = wrap_angle(d[2])
+    maha = float(np.sqrt(d @ info @ d))
+    problems = _problems(s, float(robot.length.sum()), index, robot, robot_seg, cfg)
+    if maha > cfg.prior_gate_sigmas:
+        problems.append(f"refinement moved {maha:.1f} sigma")
+    return s, maha, problems
+
+
 def _from_prior(
     robot_seg, index: MapIndex, robot: Samples, coarse: Samples, prior, prior_sigma, cfg
 ) -> Alignment:
@@ -272,21 +292,53 @@ def _from_prior(
 
     if len(index.samples) == 0 or total < cfg.min_overlap_m:
         return kept("nothing placed to refine against" if len(index.samples) == 0 else "robot map too short")
-    info = np.diag(1.0 / sigma**2)
-    gate = max(cfg.prior_gate_sigmas * max(sigma[0], sigma[1]), cfg.refine_stages[-1][0])
-    stages = tuple((min(g, gate), a) for g, a in cfg.refine_stages)
-    r = refine(index, coarse, prior, stages, cfg.point_sigma_m, cfg.correlation_m, prior, info)
-    s = cand.score(index, robot, r.pose, cfg, r)
-    d = s.pose - prior
-    d[2] = wrap_angle(d[2])
-    maha = float(np.sqrt(d @ info @ d))
-    problems = _problems(s, total, index, robot, robot_seg, cfg)
-    if maha > cfg.prior_gate_sigmas:
-        problems.append(f"refinement moved {maha:.1f} sigma")
+    s, maha, problems = _refined_at(robot_seg, index, robot, coarse, prior, sigma, cfg)
     if problems:
         return kept("; ".join(problems))
     why = f"prior refined: overlap {s.matched_m:.1f} m, moved {maha:.1f} sigma"
     return _verdict("prior", s, total, 0.0, why)
+
+
+def verify_join(
+    robot_seg: np.ndarray,
+    placed_seg: np.ndarray,
+    cfg: AlignmentConfig,
+    claim: np.ndarray,
+    claim_sigma: np.ndarray,
+    index: MapIndex | None = None,
+    robot_samples: tuple[Samples, Samples] | None = None,
+    veto: Callable[[np.ndarray, float], str | None] | None = None,
+) -> Alignment:
+    """A robot's own claim ``claim (3,)`` of where its map frame is in the global frame — it found
+    itself in the fused map (``fleet-slam agent --join``: robot_agent/join.py) — checked against
+    the placed map: refined within ``claim_sigma`` and verified as a search's best would be, but
+    for the overlap floors (``join_min_overlap_m``, ``join_min_share``: a join comes seconds
+    after the robot's start, its map is small, and the claim is evidence of its own) and without
+    rivals (the robot ruled them out against the whole fused map); ``veto`` as in
+    :func:`estimate_alignment`. ``aligned`` there, or ``unaligned`` saying why (the robot is then
+    matched as any robot)."""
+    robot_seg = np.asarray(robot_seg, float).reshape(-1, 2, 2)
+    if robot_samples is None:
+        robot_samples = Samples.of(robot_seg, cfg.sample_step_m), Samples.of(robot_seg, cfg.coarse_step_m)
+    robot, coarse = robot_samples
+    index = MapIndex(np.asarray(placed_seg, float).reshape(-1, 2, 2), cfg.sample_step_m,
+                     compiled=cfg.compiled) if index is None else index  # fmt: skip
+    claim = np.asarray(claim, float)
+    sigma = floored_prior_sigma(claim_sigma, cfg)
+    total = float(robot.length.sum())
+    if len(index.samples) == 0 or total == 0.0:
+        why = "nothing placed" if len(index.samples) == 0 else "empty robot map"
+        return Alignment("unaligned", claim, sigma, reason="join not verified: " + why)
+    jc = dataclasses.replace(cfg, min_overlap_m=cfg.join_min_overlap_m, min_share=cfg.join_min_share)
+    s, maha, problems = _refined_at(robot_seg, index, robot, coarse, claim, sigma, jc)
+    if not problems and veto is not None and (why := veto(s.pose, s.matched_m)) is not None:
+        problems.append(why)
+    if problems:
+        share = s.matched_m / total
+        return Alignment("unaligned", s.pose, sigma, s.matched_m, share, 0.0,
+                         "join not verified: " + "; ".join(problems))  # fmt: skip
+    why = f"joined: its place in the fused map verified (overlap {s.matched_m:.1f} m, moved {maha:.1f} sigma)"
+    return _verdict("aligned", s, total, RATIO_CAP, why)
 
 
 def prior_gauge(

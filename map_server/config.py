@@ -66,6 +66,10 @@ class AlignmentConfig:
     prior_gate_sigmas: float = 4.0  # refinement may move the prior this far (Mahalanobis, 99.9 %)
     prior_min_sigma_m: float = 0.01  # floors of the prior's sigma (a zero sigma pins the pose)
     prior_min_sigma_rad: float = np.radians(0.2)
+    # a robot's claim of its place in the fused map (agent --join; alignment.verify_join): verified
+    # on less wall than a search needs (it comes seconds after the robot's start)
+    join_min_overlap_m: float = 8.0
+    join_min_share: float = 0.5
     # revision of a current alignment
     revise_ratio: float = 1.15  # a new place that beats the current one's net score by this factor
     # takes over (the current one lost its support), if it passes every check

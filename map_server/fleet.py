@@ -68,6 +68,7 @@ from map_server.alignment import (
     floored_prior_sigma,
     prior_gauge,
     query_reach,
+    verify_join,
 )
 from map_server.config import FleetConfig
 from map_server.freespace import place_area
@@ -363,7 +364,9 @@ class Fleet:
     def _choose_frame(self, now_s: float) -> None:
         with_map = [r for r in self._ordered() if r.layer is not None and len(r.layer)]
         if self.frame is None and with_map:
-            self.frame = "prior" if any(r.map.prior is not None for r in with_map) else "reference"
+            # (a joined robot's prior is its place in a fused map that exists: no frame of its own)
+            framed = any(r.map.prior is not None and not r.map.joined for r in with_map)
+            self.frame = "prior" if framed else "reference"
         if self.frame != "reference" or self._placed() or self.retired or not with_map:
             return  # priors define the frame (_align_round places them), or it is defined already
         first = min(with_map, key=lambda r: (r.first_map_s, r.order))
@@ -430,12 +433,14 @@ class Fleet:
             return self._rigid_merged.without(hold, lo, hi)
         return self._synced(hold=exclude).without(hold, lo, hi)
 
-    def _estimate(self, r: RobotState, prior, sigma, current: Alignment | None, search: bool) -> Alignment:
-        """An alignment attempt. A refinement where the robot is (from its prior, or from its
-        current place without a search) looks at the placed map near the robot map only: every
-        query stays within ``query_reach`` of the robot map's samples, and the index is a crop
-        that answers exactly there (registration.MapIndex); one that strays out of it is done again
-        against the whole map."""
+    def _estimate(
+        self, r: RobotState, prior, sigma, current: Alignment | None, search: bool, join: bool = False
+    ) -> Alignment:
+        """An alignment attempt. A refinement where the robot is (from its prior, from its claim
+        of its place in the fused map when ``join``, or from its current place without a search)
+        looks at the placed map near the robot map only: every query stays within ``query_reach``
+        of the robot map's samples, and the index is a crop that answers exactly there
+        (registration.MapIndex); one that strays out of it is done again against the whole map."""
         c = self.cfg.alignment
         start = prior if prior is not None else (None if search or current is None else current.transform)
         samples = self._samples.get(r.robot)
@@ -451,12 +456,17 @@ class Fleet:
             if len(near):
                 index = MapIndex(near, c.sample_step_m, inner=(lo, hi), compiled=c.compiled)
                 try:
+                    if join:  # a place contradicted by the free space seen is not verified
+                        veto = self._veto(r, near)
+                        return verify_join(r.layer.seg, near, c, prior, sigma, index, veto=veto, **kw)
                     return estimate_alignment(
                         r.layer.seg, near, c, prior, sigma, current, search, index=index, **kw
                     )
                 except OutsideIndex:
                     log.debug("%s: refinement left its crop; done against the whole placed map", r.robot)
         placed_map = self._global_segments(r.robot, rigid=not r.alignment.placed)
+        if join:
+            return verify_join(r.layer.seg, placed_map, c, prior, sigma, veto=self._veto(r, placed_map), **kw)
         if prior is None and (current is None or search):  # a search: a place contradicted by the
             # free space seen is set aside (and a current one undone)
             kw["veto"] = self._veto(r, placed_map)
@@ -545,11 +555,24 @@ class Fleet:
                 continue
             if turn is not None and r.alignment.placed and id(r) not in turn:
                 continue  # a refinement whose turn comes in a later fusion (or not due)
-            prior = r.map.prior if self.frame == "prior" else None
+            prior = r.map.prior if self.frame == "prior" and not r.map.joined else None
             placed_m, key = key_of(r)
             if not r.due(self.cfg, placed_m, key, now_s, urgent):
                 continue
             key = key()
+            if r.map.joined and not r.alignment.placed and placed:  # it found itself in the fused map
+                a = self._estimate(r, r.map.prior, r.map.prior_sigma, None, search=False, join=True)
+                log.info("%s: join at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
+                r.alignment = a
+                if a.placed:  # verified: placed at once, no maturity, no confirmation (its own evidence)
+                    r.attempted(placed_m, key, now_s)
+                    r.pending, r.pending_count = None, 0
+                    r.mark_placed(now_s - self.epoch_s)
+                    placed = self._placed()
+                    placed_total = sum(p.layer.length_m for p in placed)
+                    placed_ids = {id(p) for p in placed}
+                    continue
+                # not verified: matched as any robot (below)
             others = [p for p in placed if p is not r]
             if prior is None and not r.alignment.placed and not policy.mature([r, *others], now_s, self.cfg):
                 if r.alignment.score_m == 0.0:  # no candidate to report yet: say why

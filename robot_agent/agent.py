@@ -7,6 +7,9 @@ holds a liveliness token, and writes its trajectory when asked.
 
 Frames: the filter starts at the origin of the robot's *map frame*. A start-pose prior (the map
 frame in the global frame), when given, travels with every map so the server can place the robot.
+A robot that joins a fleet (``--join``) finds its map frame in the fused map first
+(:class:`~robot_agent.join.Joiner`, fed from :meth:`AgentCore.step`): from then on that transform
+travels as its prior, marked ``joined``, and the server places it there once it checked it.
 """
 
 from __future__ import annotations
@@ -24,8 +27,10 @@ import numpy as np
 from robot_agent.backend.live import LiveCorrector, graph_fields
 from robot_agent.freespace import FreeSpaceConfig, FreeSpaceViews
 from robot_agent.health import LaserHealth
+from robot_agent.join import Joiner
 from robot_agent.publish import MapArrays, PublishConfig, top_particle_maps
 from robot_agent.slam.fastslam import Estimate, FastSLAM
+from robot_agent.slam.relocalize import ScanRays
 from robot_agent.sources.base import Scan
 from shared import codec
 from shared.keys import Keys
@@ -97,6 +102,8 @@ class AgentCore:
         self._next_free_s = -np.inf
         self._free_fingerprint: bytes | None = None
         self._in_doubt = False
+        self.joiner: Joiner | None = None  # finds the map frame in the fused map (--join)
+        self.joined = False  # the prior is the map frame's place in the fused map
 
     def step(self, scan: Scan) -> Estimate:
         self.health.add(scan.ranges_m, scan.range_max_m)
@@ -117,10 +124,26 @@ class AgentCore:
             if self.corrector.tick():
                 self._next_map_s = -np.inf  # a new correction: the corrected map goes out now
         self._free_view(scan)
+        if self.joiner is not None and self.prior is None and self.joiner.due(float(scan.stamp_s)):
+            self._join(scan)
         if self.slam.lost:
             self.new_session()
         self._trimmer.maybe()
         return self.estimate
+
+    def _join(self, scan: Scan) -> None:
+        """An attempt to find the filter's map in the fused map; when it is taken, its transform is
+        the prior (``joined``) of every map from now on, and the map and free space go out now."""
+        gm, _ = self.slam.published_map()
+        keep = gm.hits >= self.joiner.cfg.min_hits
+        usable = min(self.slam.cfg.extraction.max_usable_range_m, scan.range_max_m)
+        rays = ScanRays(scan.ranges_m, scan.angles_rad, scan.laser_offset, usable)
+        if self.joiner.step(float(scan.stamp_s), gm.seg[keep], gm.facing[keep], self.estimate.pose, rays):
+            self.prior = self.joiner.transform.copy()
+            self.prior_sigma = np.asarray(self.joiner.cfg.sigma, float)
+            self.joined = True
+            self._next_map_s = self._next_free_s = -np.inf
+            log.info("%s: joined the fused map: %s", self.robot, self.joiner.last.reason)
 
     def _free_view(self, scan: Scan) -> None:
         """The scan's free space kept as a view when it adds some; none while the filter doubts
@@ -157,6 +180,7 @@ class AgentCore:
         self.session = uuid.uuid4().hex[:16]
         self.first_scan = self.scans
         self.prior = self.prior_sigma = None  # the new frame is nowhere known
+        self.joined, self.joiner = False, None
         self._fingerprint, self._rebuilt_graph, self._graph_sent = None, None, (None, None)
         self._next_map_s = -np.inf
         self.free = FreeSpaceViews(self.cfg.free)  # (the ended session's went out with its map)
@@ -286,7 +310,7 @@ class AgentCore:
         return codec.robot_map_chunks(
             self.robot, self.session, self.map_seq, self._last_stamp_s,
             a.particle_weights, a.particle_poses, a.seg, a.element, a.members, a.trust, a.hits, a.age,
-            prior=self.prior, prior_sigma=self.prior_sigma, **self._graph,
+            prior=self.prior, prior_sigma=self.prior_sigma, joined=self.joined, **self._graph,
         )  # fmt: skip
 
 

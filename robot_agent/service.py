@@ -106,6 +106,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(by default they are left out with a warning)",
     )
     p.add_argument("--prior", default=None, help="X,Y,THETA: start in the global frame, for the server")
+    p.add_argument(
+        "--join",
+        action="store_true",
+        help="take the fleet's fused map at start, find the robot in it and map in its frame (else map "
+        "on its own: merged as any robot)",
+    )
     p.add_argument("--speed", type=float, default=1.0, help="source seconds per wall second (0: no waiting)")
     p.add_argument("--particles", type=int, default=None, help="particles (default 30)")
     p.add_argument("--seed", type=int, default=0, help="random seed (filter; simulated noise)")
@@ -362,6 +368,45 @@ class LaserReport:
         self._said = {"scans": h.scans_with_unusable, "unusable": h.unusable, "by_kind": dict(h.by_kind)}
 
 
+JOIN_QUERY_S = 5.0  # --join: how long the agent waits for the server's fused map at its start
+
+
+def fetch_fused(bus, keys, robot: str, timeout_s: float = JOIN_QUERY_S):
+    """``--join``: the fleet's fused map by query (the server's queryable), or None (said why)."""
+    from fleet_slam.watch import FusedWatcher
+
+    fused = FusedWatcher(bus, keys).fetch(timeout_s)
+    if fused is None or not len(fused.seg):
+        why = "no fused map answered (is the server running?)" if fused is None else "the fused map is empty"
+        print(f"agent {robot}: --join: {why}; mapping on its own", flush=True)
+        return None
+    print(f"agent {robot}: --join: fused map version {fused.version}, {len(fused.seg)} segments", flush=True)
+    return fused
+
+
+class JoinReport:
+    """Says once whether the robot found itself in the fused map (--join), and where."""
+
+    def __init__(self, robot: str):
+        self.robot, self.said = robot, False
+
+    def __call__(self, core) -> None:
+        j = core.joiner
+        if self.said or j is None or not j.done:
+            return
+        self.said = True
+        if j.transform is not None:
+            x, y, t = j.transform
+            print(
+                f"agent {self.robot}: joined the fused map after {j.attempts} attempts: map frame at "
+                f"{x:.2f},{y:.2f},{t:.4f} ({j.last.reason})",
+                flush=True,
+            )
+        else:
+            why = j.last.reason if j.last is not None else "no attempt"
+            print(f"agent {self.robot}: --join: not found in the fused map ({why}); maps alone", flush=True)
+
+
 class BackendReport:
     """One line when the online back end's loops change, at most every ``every_s`` of wall time
     (the agent's back end, ``core.corrector``: a new session has a new one)."""
@@ -424,6 +469,8 @@ def run(args: argparse.Namespace) -> int:
     if args.snapshot_at is not None and not 0 < args.snapshot_at < 1:
         raise ValueError(f"--snapshot-at must be between 0 and 1, got {args.snapshot_at}")
     prior = None if args.prior is None else parse_pose(args.prior, "--prior")
+    if prior is not None and getattr(args, "join", False):
+        raise ValueError("--prior and --join: choose one (--join finds the map frame in the fused map)")
     slam = FastSLAM(cfg, np.random.default_rng(args.seed))
     corrector = None
     if cfg.backend.enabled:  # the online back end, in a process of its own
@@ -463,7 +510,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         with Bus(bus_cfg, cancel=stop) as bus:
             print(f"agent {args.robot}: session {core.session}, connected", flush=True)
+            if getattr(args, "join", False) and (fused := fetch_fused(bus, keys, args.robot)) is not None:
+                from robot_agent.join import Joiner
+
+                core.joiner = Joiner(fused.seg)
             hooks = [
+                JoinReport(args.robot),
                 BackendReport(args.robot),
                 LaserReport(args.robot),
                 OdometryReport(args.robot),
@@ -536,6 +588,7 @@ def run(args: argparse.Namespace) -> int:
             "messages_sent": pub.messages_sent,
             "map_seq": core.map_seq,
             "prior": None if prior is None else prior.tolist(),
+            "joined": core.prior.tolist() if core.joined else None,  # the map frame in the fused map
             "filter": dict(slam.stats),
             "sessions_ended": [  # each one's path in <robot>.<session>.poses.txt
                 dict(session=ses, first_scan=a, last_scan=b, filter=st) for ses, a, b, st in core.ended

@@ -197,6 +197,7 @@ def _header(msg: RobotMap | FusedMap) -> dict:
         for name in ("particle_weights", "particle_poses", "prior", "prior_sigma"):
             header[name] = _comparable(getattr(msg, name))
         header["graph_seq"] = msg.graph_seq
+        header["joined"] = msg.joined
     else:
         header["robots"] = [
             tuple(_comparable(getattr(r, f.name)) for f in dataclasses.fields(r)) for r in msg.robots

@@ -90,7 +90,7 @@ KEYS = {
         "robot", "session", "seq", "stamp_s", "chunk", "n_chunks", "n_particles", "n_elements",
         "particle_weights", "particle_poses", "seg", "element", "members", "trust", "hits", "age",
         "prior", "prior_sigma", "n_keyframes", "n_edges", "kf_id", "kf_stamp", "kf_pose", "edge_ids",
-        "edge_z", "edge_info", "anchor", "graph_seq",
+        "edge_z", "edge_info", "anchor", "graph_seq", "joined",
     ),
     "pose": ("robot", "session", "seq", "stamp_s", "pose", "status"),
     "fused_map": (
@@ -115,19 +115,22 @@ KEYS = {
 }  # fmt: skip
 
 
-# What schemas 2 to 4 carried: their messages are still decoded (4 had no robot graph; 3 no free
-# space; 2 no pose status).
+# What schemas 2 to 5 carried: their messages are still decoded (5 had no joined flag; 4 no robot
+# graph; 3 no free space; 2 no pose status).
 _GRAPH_KEYS = (
     "n_keyframes", "n_edges", "kf_id", "kf_stamp", "kf_pose", "edge_ids", "edge_z", "edge_info", "anchor",
     "graph_seq",
 )  # fmt: skip
+KEYS_SCHEMA_5 = dict(KEYS, robot_map=tuple(k for k in KEYS["robot_map"] if k != "joined"))
 KEYS_SCHEMA_4 = dict(
-    {k: v for k, v in KEYS.items() if k != "robot_path"},
-    robot_map=tuple(k for k in KEYS["robot_map"] if k not in _GRAPH_KEYS),
+    {k: v for k, v in KEYS_SCHEMA_5.items() if k != "robot_path"},
+    robot_map=tuple(k for k in KEYS_SCHEMA_5["robot_map"] if k not in _GRAPH_KEYS),
 )
 KEYS_SCHEMA_3 = {k: v for k, v in KEYS_SCHEMA_4.items() if k not in ("free_space", "fused_free")}
 KEYS_SCHEMA_2 = dict(KEYS_SCHEMA_3, pose=tuple(k for k in KEYS["pose"] if k != "status"))
-_KEYS_BY_SCHEMA = {2: KEYS_SCHEMA_2, 3: KEYS_SCHEMA_3, 4: KEYS_SCHEMA_4, SCHEMA_VERSION: KEYS}
+_KEYS_BY_SCHEMA = {
+    2: KEYS_SCHEMA_2, 3: KEYS_SCHEMA_3, 4: KEYS_SCHEMA_4, 5: KEYS_SCHEMA_5, SCHEMA_VERSION: KEYS,
+}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -201,6 +204,7 @@ def _encode_robot_map(m: RobotMap) -> dict:
         "n_keyframes": 0 if m.kf_id is None else len(m.kf_id),
         "graph_seq": None if m.graph_seq is None else int(m.graph_seq),
         "n_edges": 0 if m.edge_ids is None else len(m.edge_ids),
+        "joined": bool(m.joined),
     }  # fmt: skip
 
 
@@ -404,6 +408,7 @@ def _decode_robot_map(r: _Reader) -> RobotMap:
         seg=r.array("seg", (n, 2, 2)), element=r.array("element", (n,)), members=r.array("members", (n,)),
         trust=r.array("trust", (n,)), hits=r.array("hits", (n,)), age=r.array("age", (n,)),
         prior=r.array("prior", (3,), optional=True), prior_sigma=r.array("prior_sigma", (3,), optional=True),
+        joined=r.flag("joined") if "joined" in r.fields else False,  # (schema 5 and before: none)
         **_decode_graph(r, n),
     )  # fmt: skip
 

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-SCHEMA_VERSION = 5  # 2: FusedMap.session; 3: PoseUpdate.status; 4: free space; 5: RobotMap keyframes
-# and graph (2 to 4 still read: codec)
+SCHEMA_VERSION = 6  # 2: FusedMap.session; 3: PoseUpdate.status; 4: free space; 5: RobotMap keyframes
+# and graph; 6: RobotMap.joined (2 to 5 still read: codec)
 
 MAX_CHUNK_ELEMENTS = 2048  # elements (segments) per chunk: ~64 KB per message
 MAX_CHUNKS = 64  # chunks per map
@@ -146,6 +146,9 @@ class RobotMap:
       observations merged, ``age (N,)`` filter steps since the element was born;
     - ``prior (3,)`` the robot's map frame in the global frame when known (a start-pose prior),
       with ``prior_sigma (3,)`` [m, m, rad]; ``None`` when the server must estimate it;
+      ``joined`` (schema 6): the prior is where the robot found itself in the fused map
+      (``fleet-slam agent --join``, robot_agent/join.py), in the fused map's frame — a claim the
+      server checks against the fused map and places the robot by, not a frame-defining prior;
     - the robot's pose graph as its back end last solved it (schema 5; ``None`` from a robot
       without one, whose map moves rigidly): keyframes ``kf_id (K,)`` (increasing identities),
       ``kf_stamp (K,)`` [s], ``kf_pose (K,3)`` in the map frame; edges ``edge_ids (E,2)`` (keyframe
@@ -181,6 +184,7 @@ class RobotMap:
     edge_info: np.ndarray | None = None
     anchor: np.ndarray | None = None
     graph_seq: int | None = None
+    joined: bool = False
 
     def __post_init__(self) -> None:
         check_id("robot", self.robot)
@@ -211,6 +215,10 @@ class RobotMap:
         )  # fmt: skip
         if (self.prior is None) != (self.prior_sigma is None):
             raise WireFormatError("prior and prior_sigma: give both or neither")
+        if not isinstance(self.joined, bool):
+            raise WireFormatError(f"joined: expected a bool, got {type(self.joined).__name__}")
+        if self.joined and self.prior is None:
+            raise WireFormatError("joined: needs the prior (where the robot found itself in the fused map)")
         if self.prior is not None:
             arrays["prior"] = _pose("prior", self.prior)
             arrays["prior_sigma"] = check_array("prior_sigma", self.prior_sigma, (3,), lo=0.0, hi=MAX_COORD_M)

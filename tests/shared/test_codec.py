@@ -156,6 +156,24 @@ def test_robot_map_round_trip(with_prior):
     assert (out.prior is None) == (not with_prior)
 
 
+def test_a_joined_robots_claim_round_trips_and_older_schemas_read_as_not_joined():
+    """Schema 6: ``joined`` says the prior is where the robot found itself in the fused map (agent
+    --join). A schema-5 sender has no such field: its maps read as not joined; a joined map
+    without its prior is refused."""
+    rng = np.random.default_rng(3)
+    msg = dataclasses.replace(robot_map(rng, n=8), joined=True)
+    out = decode(encode(msg), expect=RobotMap)
+    assert out.joined and np.array_equal(out.prior, msg.prior)
+    assert not decode(encode(robot_map(rng, n=8)), expect=RobotMap).joined
+    old = decode(repack(encode(msg), joined=..., schema=5), expect=RobotMap)
+    assert not old.joined and np.array_equal(old.prior, msg.prior)
+    rejects(repack(encode(msg), schema=5), "'joined': unknown field of robot_map")
+    rejects(repack(encode(msg), joined=1), "joined: expected a bool, got int")
+    rejects(repack(encode(msg), prior=None, prior_sigma=None), "joined: needs the prior")
+    with pytest.raises(WireFormatError, match="joined: needs the prior"):
+        dataclasses.replace(msg, prior=None, prior_sigma=None)
+
+
 def test_pose_round_trip_is_exact():
     msg = PoseUpdate("robot-7", "a1b2", 2**40, 1e6 + 0.125, np.array([1e5, -1e-9, np.pi]))
     out = decode(encode(msg), expect=PoseUpdate)
@@ -511,8 +529,8 @@ def test_refuses_a_top_level_that_is_not_a_map(obj, what):
 @pytest.mark.parametrize(
     "schema, match",
     [
-        (6, "schema: unknown schema version 6, this build speaks 5 \\(and reads 2, 3, 4, 5\\)"),
-        (1, "schema: unknown schema version 1, this build speaks 5"),
+        (7, "schema: unknown schema version 7, this build speaks 6 \\(and reads 2, 3, 4, 5, 6\\)"),
+        (1, "schema: unknown schema version 1, this build speaks 6"),
         (0, "schema: unknown schema version 0"),
         ("1", "schema: unknown schema version '1'"),
         (True, "schema: unknown schema version True"),
