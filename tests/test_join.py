@@ -1,6 +1,6 @@
 """A robot that joins a fleet finds itself in the fused map (robot_agent/join.py), and the server
 places it there once it checked the claim (map_server alignment.verify_join, Fleet) — without
-processes (the processes: tests/integration/test_join.py)."""
+processes (the processes: tests/integration/test_agent_join.py)."""
 
 from __future__ import annotations
 
