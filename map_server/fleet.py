@@ -448,6 +448,15 @@ class Fleet:
             fine, coarse = Samples.of(r.layer.seg, c.sample_step_m), Samples.of(r.layer.seg, c.coarse_step_m)
             samples = self._samples[r.robot] = (r.layer, (fine, coarse))
         kw = {"robot_samples": samples[1]}
+
+        def attempt(placed_map: np.ndarray, index: MapIndex | None = None, **more) -> Alignment:
+            if join:  # a place contradicted by the free space seen is not verified
+                veto = self._veto(r, placed_map)
+                return verify_join(r.layer.seg, placed_map, c, prior, sigma, index, veto=veto, **kw)
+            return estimate_alignment(
+                r.layer.seg, placed_map, c, prior, sigma, current, search, index=index, **kw, **more
+            )
+
         if start is not None and len(r.layer):
             box = global_box(r.layer.bounds[None], np.asarray(start, float)[None])[0]
             reach = query_reach(c)
@@ -456,21 +465,14 @@ class Fleet:
             if len(near):
                 index = MapIndex(near, c.sample_step_m, inner=(lo, hi), compiled=c.compiled)
                 try:
-                    if join:  # a place contradicted by the free space seen is not verified
-                        veto = self._veto(r, near)
-                        return verify_join(r.layer.seg, near, c, prior, sigma, index, veto=veto, **kw)
-                    return estimate_alignment(
-                        r.layer.seg, near, c, prior, sigma, current, search, index=index, **kw
-                    )
+                    return attempt(near, index)
                 except OutsideIndex:
                     log.debug("%s: refinement left its crop; done against the whole placed map", r.robot)
         placed_map = self._global_segments(r.robot, rigid=not r.alignment.placed)
-        if join:
-            return verify_join(r.layer.seg, placed_map, c, prior, sigma, veto=self._veto(r, placed_map), **kw)
         if prior is None and (current is None or search):  # a search: a place contradicted by the
             # free space seen is set aside (and a current one undone)
-            kw["veto"] = self._veto(r, placed_map)
-        return estimate_alignment(r.layer.seg, placed_map, c, prior, sigma, current, search, **kw)
+            return attempt(placed_map, veto=self._veto(r, placed_map))
+        return attempt(placed_map)
 
     def _veto(
         self, r: RobotState, placed_map: np.ndarray
@@ -547,6 +549,12 @@ class Fleet:
                 )
             return keys[id(r)]
 
+        def now_placed() -> None:  # a robot got placed in this round: the others see it
+            nonlocal placed, placed_total, placed_ids
+            placed = self._placed()
+            placed_total = sum(p.layer.length_m for p in placed)
+            placed_ids = {id(p) for p in placed}
+
         # which placed robots are refined: a settle's share (``only``), every due one (urgent), or
         # those whose turn it is
         turn = only if only is not None else (None if urgent else self._turns(placed, key_of, now_s))
@@ -568,9 +576,7 @@ class Fleet:
                     r.attempted(placed_m, key, now_s)
                     r.pending, r.pending_count = None, 0
                     r.mark_placed(now_s - self.epoch_s)
-                    placed = self._placed()
-                    placed_total = sum(p.layer.length_m for p in placed)
-                    placed_ids = {id(p) for p in placed}
+                    now_placed()
                     continue
                 # not verified: matched as any robot (below)
             others = [p for p in placed if p is not r]
@@ -597,9 +603,7 @@ class Fleet:
             r.alignment = a
             if a.placed and not was_placed:
                 r.mark_placed(now_s - self.epoch_s)
-                placed = self._placed()
-                placed_total = sum(p.layer.length_m for p in placed)
-                placed_ids = {id(p) for p in placed}
+                now_placed()
         if not fresh:
             return False
         for f in fresh:

@@ -103,7 +103,6 @@ class AgentCore:
         self._free_fingerprint: bytes | None = None
         self._in_doubt = False
         self.joiner: Joiner | None = None  # finds the map frame in the fused map (--join)
-        self.joined = False  # the prior is the map frame's place in the fused map
 
     def step(self, scan: Scan) -> Estimate:
         self.health.add(scan.ranges_m, scan.range_max_m)
@@ -124,7 +123,7 @@ class AgentCore:
             if self.corrector.tick():
                 self._next_map_s = -np.inf  # a new correction: the corrected map goes out now
         self._free_view(scan)
-        if self.joiner is not None and self.prior is None and self.joiner.due(float(scan.stamp_s)):
+        if self.joiner is not None and self.joiner.due(float(scan.stamp_s)):
             self._join(scan)
         if self.slam.lost:
             self.new_session()
@@ -141,9 +140,13 @@ class AgentCore:
         if self.joiner.step(float(scan.stamp_s), gm.seg[keep], gm.facing[keep], self.estimate.pose, rays):
             self.prior = self.joiner.transform.copy()
             self.prior_sigma = np.asarray(self.joiner.cfg.sigma, float)
-            self.joined = True
             self._next_map_s = self._next_free_s = -np.inf
             log.info("%s: joined the fused map: %s", self.robot, self.joiner.last.reason)
+
+    @property
+    def joined(self) -> bool:
+        """Whether the prior is the map frame's place in the fused map (--join found it)."""
+        return self.joiner is not None and self.joiner.transform is not None
 
     def _free_view(self, scan: Scan) -> None:
         """The scan's free space kept as a view when it adds some; none while the filter doubts
@@ -180,7 +183,7 @@ class AgentCore:
         self.session = uuid.uuid4().hex[:16]
         self.first_scan = self.scans
         self.prior = self.prior_sigma = None  # the new frame is nowhere known
-        self.joined, self.joiner = False, None
+        self.joiner = None
         self._fingerprint, self._rebuilt_graph, self._graph_sent = None, None, (None, None)
         self._next_map_s = -np.inf
         self.free = FreeSpaceViews(self.cfg.free)  # (the ended session's went out with its map)

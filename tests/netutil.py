@@ -16,6 +16,18 @@ def loopback_endpoint(port: int | None = None) -> str:
     return f"tcp/127.0.0.1:{free_port() if port is None else port}"
 
 
+def start_router_and_server(group, endpoint: str, state, startup_s: float = 30.0) -> tuple:
+    """A zenoh router on ``endpoint`` and a map server on ``state`` in ``group``, each waited for
+    until it says it is up; ``(router, server)``."""
+    from fleet_slam.procs import python_module
+
+    router = group.start("router", python_module("shared.bus", "router", "--listen", endpoint))
+    assert router.wait_for("listening", startup_s), router.output()
+    server = group.start("server", python_module("map_server", "--connect", endpoint, "--state", state))
+    assert server.wait_for("running", startup_s), server.output()
+    return router, server
+
+
 def wait_for(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:
     """Poll ``condition`` until it is true or ``timeout_s`` passed; its last value."""
     deadline = time.monotonic() + timeout_s

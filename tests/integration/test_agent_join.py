@@ -21,7 +21,7 @@ from shared.bus import Bus, BusConfig
 from shared.geometry import apply_segments, point_segment_distance, relative, segment_lengths
 from shared.keys import Keys
 from shared.metrics import map_quality
-from tests.netutil import loopback_endpoint, wait_for
+from tests.netutil import loopback_endpoint, start_router_and_server, wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -53,12 +53,7 @@ def test_a_robot_that_joins_is_placed_within_seconds_and_its_new_walls_join_the_
     truth = relative(world.starts[0], world.starts[1])  # robot2's map frame in robot1's (the global)
     endpoint = loopback_endpoint()
     with ProcGroup(tmp_path / "logs") as group:
-        router = group.start("router", python_module("shared.bus", "router", "--listen", endpoint))
-        assert router.wait_for("listening", STARTUP_S), router.output()
-        server = group.start(
-            "server", python_module("map_server", "--connect", endpoint, "--state", tmp_path / "s")
-        )
-        assert server.wait_for("running", STARTUP_S), server.output()
+        _router, server = start_router_and_server(group, endpoint, tmp_path / "s", STARTUP_S)
         first = group.start("robot1", agent_argv("robot1", 0, endpoint, FIRST_S, 3.0))
         with Bus(BusConfig(connect=(endpoint,))) as bus:
             watcher = FusedWatcher(bus, Keys())

@@ -14,7 +14,7 @@ from fleet_slam.procs import ProcGroup, python_module
 from fleet_slam.watch import FusedWatcher
 from shared.bus import Bus, BusConfig
 from shared.keys import Keys
-from tests.netutil import loopback_endpoint, wait_for
+from tests.netutil import loopback_endpoint, start_router_and_server, wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -24,12 +24,7 @@ STARTUP_S = 30.0
 def test_sigterm_publishes_the_final_corrected_map_and_exits_0_within_10_s(tmp_path):
     endpoint = loopback_endpoint()
     with ProcGroup(tmp_path / "logs") as group:
-        router = group.start("router", python_module("shared.bus", "router", "--listen", endpoint))
-        assert router.wait_for("listening", STARTUP_S), router.output()
-        server = group.start(
-            "server", python_module("map_server", "--connect", endpoint, "--state", tmp_path / "s")
-        )
-        assert server.wait_for("running", STARTUP_S), server.output()
+        _router, _server = start_router_and_server(group, endpoint, tmp_path / "s", STARTUP_S)
         # the office route comes back to its start after ~60 s of simulated time: at 4x, 15 s
         argv = ["--robot", "robot1", "--world", "office", "--particles", 10, "--speed", 4]
         argv += ["--connect", endpoint, "--out", tmp_path / "out"]
