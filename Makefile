@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml setup.py robot_agent/slam/_kernels.c shared/_kernels.c 
 
 test: $(STAMP) browser
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadfile
 
 browser:  # the headless browser of the live-view test (Debian's chromium + chromedriver), when missing
 	@.ci/browser
