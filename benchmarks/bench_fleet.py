@@ -671,7 +671,7 @@ def stop_profiler(spy: subprocess.Popen | None, wait: bool = True) -> None:
 
 # where the server's main thread spends the window: the first matching frame name decides
 PROFILE_PARTS = (
-    ("align", ("estimate_alignment (", "Fleet._global_segments (")),
+    ("align", ("estimate_alignment (", "Fleet.global_segments (")),
     ("fuse", ("Fleet.fuse (",)),
     ("persist", ("MapServer._persist (",)),
     ("publish", ("Bus.put (", "encode (", "split_fused_map (")),

@@ -286,7 +286,7 @@ def run_seed(
                 continue
 
             def checked(i=i, k=k, t=t, others=others, merged=merged):
-                """contradiction.Check's arguments, as Fleet._veto gives them."""
+                """contradiction.Check's arguments, as Placer.veto gives them."""
                 known = [(j, lj, area(j, t)) for j, lj in others if area(j, t) is not None]
                 theirs = [place_area(a, truth[names[j]]) for j, _, a in known]
                 theirs = shrink(shapely.union_all(theirs), ccfg.margin_m) if theirs else None

@@ -13,7 +13,8 @@ against the fused map of the robots already placed (never including themselves).
 arrive after a reference was chosen are in a frame nobody placed, so those robots are matched like
 the others.
 
-Matching is conservative at the fleet level too (alignment.py verifies one attempt):
+Matching is conservative at the fleet level too (alignment.py verifies one attempt, placing.py runs the
+rounds of attempts, policy.py says what a verdict means):
 
 - an unplaced robot is only tried once its map and every placed robot's map are *mature* (grown
   by at most ``mature_growth`` over ``mature_window_s``): partial maps of a symmetric or
@@ -59,24 +60,17 @@ import logging
 from collections.abc import Callable
 
 import numpy as np
-import shapely
 
-from map_server import contradiction, policy
 from map_server.alignment import (
     Alignment,
-    estimate_alignment,
     floored_prior_sigma,
     prior_gauge,
-    query_reach,
-    verify_join,
 )
 from map_server.config import FleetConfig
-from map_server.freespace import place_area
 from map_server.fusion import fuse_particles
 from map_server.incremental import MergedMap, Source
+from map_server.placing import Placer
 from map_server.posegraph import FleetGraph, Placed, RobotGraph
-from map_server.registration import MapIndex, OutsideIndex, Samples
-from map_server.schedule import Around, PlacedKey, global_box
 from map_server.state import RetiredPiece, RobotState
 from shared.geometry import apply_segments, compose, inverse, relative, wrap_angle
 from shared.messages import GRAPH_FIELDS, FusedMap, PoseUpdate, RobotMap, RobotPath, RobotStatus
@@ -101,18 +95,14 @@ class Fleet:
         # every placed robot's transform when it began
         self._settling: tuple[int, list[str], dict[str, np.ndarray]] | None = None
         self._merged = MergedMap(cfg.fusion)  # the merge of the placed layers, kept up to date
-        self._rigid_merged = MergedMap(cfg.fusion)  # ... each placed as a whole (_global_segments)
-        self._budget = cfg.refine_budget_segments  # layer segments left to refine in this fusion
+        self._rigid_merged = MergedMap(cfg.fusion)  # ... each placed as a whole (global_segments)
         self._statuses: dict[str, tuple] = {}  # robot -> (what its status is made of, status, key)
-        self._entries: dict[tuple, tuple] = {}  # parts of schedule.placed_key, per robot or retired piece
-        self._samples: dict[str, tuple] = {}  # robot -> (layer, its samples for alignment attempts)
         self.graph = FleetGraph(cfg.graph)  # the placed robots' keyframes solved together
         self._graph_key: tuple | None = None  # what the graph's last solve held
         # a robot session's free space in its map frame (shapely, or None): the server gives
         # freespace.FreeSpaces.area; without it no placement is checked for contradiction
         self.free_of: Callable[[str, str], object] | None = None
-        self._placed_free: tuple | None = None  # (what it was made of, area, noise)
-        self._noise_cache: dict[tuple[int, int], tuple] = {}  # Fleet._own_noise
+        self.placer = Placer(self)  # the alignment rounds (placing.py)
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -181,7 +171,7 @@ class Fleet:
                 r.robot, self.cfg.max_retired, old.session, len(old.layer),
             )  # fmt: skip
 
-    def _pieces(self) -> list[RetiredPiece]:
+    def pieces(self) -> list[RetiredPiece]:
         return [p for name in sorted(self.retired) for p in self.retired[name]]
 
     def put_pose(self, p: PoseUpdate, now_s: float) -> None:
@@ -203,14 +193,14 @@ class Fleet:
         """Recompute alignments where warranted, then the fused map; ``None`` if nothing changed."""
         if self.epoch_s is None:
             self.epoch_s = now_s
-        self._budget = self.cfg.refine_budget_segments
+        self.placer.new_fusion()
         for r in self.robots.values():
             if r.map is not None and r.layer is None:
                 r.layer = fuse_particles(r.map, self.cfg.fusion)
                 r.graph = RobotGraph.of(r.map, r.layer)
                 r.record_length(now_s, self.cfg.mature_window_s)
         self._choose_frame(now_s)
-        while self._align_round(now_s):
+        while self.placer.round(now_s):
             pass
         if self._left:
             self._left = False
@@ -229,7 +219,7 @@ class Fleet:
         and each robot's rows moved with its keyframes where they moved (``moved_m`` /
         ``moved_rad``). Without a constraint between robots every map stays rigid."""
         cfg = self.cfg.graph
-        placed = [r for r in self._placed() if r.map is not None and r.graph is not None]
+        placed = [r for r in self.placed() if r.map is not None and r.graph is not None]
         ids = {id(r) for r in placed if not r.graph.rigid}
         for r in self.robots.values():
             if id(r) not in ids:
@@ -280,7 +270,7 @@ class Fleet:
         budget, count = c.settle_budget_segments, c.settle_refinements
         while True:
             if not todo:  # a sweep is done (or none begun yet)
-                placed = self._placed()
+                placed = self.placed()
                 if sweeps >= c.settle_rounds or not placed or (before and self._still(before)):
                     self._settling = None
                     return
@@ -302,13 +292,13 @@ class Fleet:
                     count -= 1
             if take:
                 only = {id(r) for r in take}
-                while self._align_round(now_s, urgent=True, only=only):
+                while self.placer.round(now_s, urgent=True, only=only):
                     pass
 
     def _still(self, before: dict[str, np.ndarray]) -> bool:
         """Whether no placed robot moved from ``before`` (robot -> transform) by more than the
         settle thresholds."""
-        moved = [(r.alignment.transform, before[r.robot]) for r in self._placed() if r.robot in before]
+        moved = [(r.alignment.transform, before[r.robot]) for r in self.placed() if r.robot in before]
         if not moved:
             return True
         d = np.array([a - b for a, b in moved])
@@ -329,7 +319,7 @@ class Fleet:
         """Where each placed robot's keyframes are (the graph's solution, or its rigid placement;
         one keyframe at the map frame's origin for a map without a graph)."""
         out = []
-        for r in self._placed():
+        for r in self.placed():
             if r.map is None:
                 continue
             g = r.graph
@@ -345,30 +335,30 @@ class Fleet:
     def placements(self) -> dict[tuple[str, str], np.ndarray]:
         """Where each placed map is: ``(robot, session) -> transform (3,)`` (its map frame in
         the global frame), for the robots' current sessions and the retired pieces."""
-        out = {(r.robot, r.map.session): r.alignment.transform for r in self._placed() if r.map is not None}
-        for p in self._pieces():
+        out = {(r.robot, r.map.session): r.alignment.transform for r in self.placed() if r.map is not None}
+        for p in self.pieces():
             out[(p.robot, p.session)] = p.alignment.transform
         return out
 
     def sessions(self) -> set[tuple[str, str]]:
         """Every (robot, session) whose map the fleet keeps, placed or not."""
         out = {(r.robot, r.map.session) for r in self.robots.values() if r.map is not None}
-        return out | {(p.robot, p.session) for p in self._pieces()}
+        return out | {(p.robot, p.session) for p in self.pieces()}
 
-    def _placed(self) -> list[RobotState]:
-        return [r for r in self._ordered() if r.alignment.placed and r.layer is not None]
+    def placed(self) -> list[RobotState]:
+        return [r for r in self.ordered() if r.alignment.placed and r.layer is not None]
 
-    def _ordered(self) -> list[RobotState]:
+    def ordered(self) -> list[RobotState]:
         return sorted(self.robots.values(), key=lambda r: r.order)
 
     def _choose_frame(self, now_s: float) -> None:
-        with_map = [r for r in self._ordered() if r.layer is not None and len(r.layer)]
+        with_map = [r for r in self.ordered() if r.layer is not None and len(r.layer)]
         if self.frame is None and with_map:
             # (a joined robot's prior is its place in a fused map that exists: no frame of its own)
             framed = any(r.map.prior is not None and not r.map.joined for r in with_map)
             self.frame = "prior" if framed else "reference"
-        if self.frame != "reference" or self._placed() or self.retired or not with_map:
-            return  # priors define the frame (_align_round places them), or it is defined already
+        if self.frame != "reference" or self.placed() or self.retired or not with_map:
+            return  # priors define the frame (placing.Placer places them), or it is defined already
         first = min(with_map, key=lambda r: (r.first_map_s, r.order))
         self.reference = first.robot
         first.alignment = Alignment("reference", np.zeros(3), np.zeros(3), reason="first non-empty map")
@@ -377,46 +367,24 @@ class Fleet:
     def _sources(self, rigid: bool = False) -> list[Source]:
         """What the fused map merges, in the order of the merge: the placed robots by name (as
         the fleet's graph bent them, unless ``rigid``), then the retired pieces."""
-        robots = sorted(self._placed(), key=lambda r: r.robot)
+        robots = sorted(self.placed(), key=lambda r: r.robot)
         out = [
             Source(("robot", r.robot), r.robot, r.layer, r.alignment.transform)
             if r.bent is None or rigid
             else Source(("robot", r.robot), r.robot, r.bent, np.zeros(3))
             for r in robots
         ]
-        pieces = self._pieces()
+        pieces = self.pieces()
         return out + [
             Source(("piece", p.robot, p.session), p.robot, p.layer, p.alignment.transform) for p in pieces
         ]
 
     def _synced(self, hold: str | None = None) -> MergedMap:
-        """The merge brought up to date (but for robot ``hold``'s own layer: see _global_segments)."""
+        """The merge brought up to date (but for robot ``hold``'s own layer: see global_segments)."""
         self._merged.update(self._sources(), hold=None if hold is None else ("robot", hold))
         return self._merged
 
-    def _turns(self, placed: list[RobotState], key_of, now_s: float) -> set[int]:
-        """Which placed robots due for a refinement get it in this fusion: first those waiting
-        twice ``retry_interval_s`` or more, then those whose own map changed, the newest map first
-        (a robot whose map just came: its new layer and its new place are merged in one go), then
-        in arrival order; until their layers add up to ``refine_budget_segments`` (the first
-        always)."""
-        overdue = 2.0 * self.cfg.retry_interval_s
-
-        def rank(r: RobotState) -> tuple:
-            newest = -r.lengths[-1][0] if r.lengths else 0.0
-            return now_s - r.attempt_s < overdue, r.map.seq == r.attempt_seq, newest, r.order
-
-        turn: set[int] = set()
-        for r in sorted((r for r in placed if r.alignment.status != "reference"), key=rank):
-            spent = self._budget < self.cfg.refine_budget_segments  # in this round or an earlier one
-            if spent and len(r.layer) > self._budget:
-                continue  # (before asking whether it is due: that looks at the maps around it)
-            if r.due(self.cfg, *key_of(r), now_s):
-                turn.add(id(r))
-                self._budget -= len(r.layer)
-        return turn
-
-    def _global_segments(
+    def global_segments(
         self, exclude: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None, rigid: bool = False
     ):
         """The fused map of the placed robots except ``exclude``, with every retired piece (its
@@ -433,194 +401,12 @@ class Fleet:
             return self._rigid_merged.without(hold, lo, hi)
         return self._synced(hold=exclude).without(hold, lo, hi)
 
-    def _estimate(
-        self, r: RobotState, prior, sigma, current: Alignment | None, search: bool, join: bool = False
-    ) -> Alignment:
-        """An alignment attempt. A refinement where the robot is (from its prior, from its claim
-        of its place in the fused map when ``join``, or from its current place without a search)
-        looks at the placed map near the robot map only: every query stays within ``query_reach``
-        of the robot map's samples, and the index is a crop that answers exactly there
-        (registration.MapIndex); one that strays out of it is done again against the whole map."""
-        c = self.cfg.alignment
-        start = prior if prior is not None else (None if search or current is None else current.transform)
-        samples = self._samples.get(r.robot)
-        if samples is None or samples[0] is not r.layer:
-            fine, coarse = Samples.of(r.layer.seg, c.sample_step_m), Samples.of(r.layer.seg, c.coarse_step_m)
-            samples = self._samples[r.robot] = (r.layer, (fine, coarse))
-        kw = {"robot_samples": samples[1]}
-
-        def attempt(placed_map: np.ndarray, index: MapIndex | None = None, **more) -> Alignment:
-            if join:  # a place contradicted by the free space seen is not verified
-                veto = self._veto(r, placed_map)
-                return verify_join(r.layer.seg, placed_map, c, prior, sigma, index, veto=veto, **kw)
-            return estimate_alignment(
-                r.layer.seg, placed_map, c, prior, sigma, current, search, index=index, **kw, **more
-            )
-
-        if start is not None and len(r.layer):
-            box = global_box(r.layer.bounds[None], np.asarray(start, float)[None])[0]
-            reach = query_reach(c)
-            lo, hi = box[:2] - self.cfg.refine_margin_m, box[2:] + self.cfg.refine_margin_m
-            near = self._global_segments(r.robot, lo - reach, hi + reach, rigid=not r.alignment.placed)
-            if len(near):
-                index = MapIndex(near, c.sample_step_m, inner=(lo, hi), compiled=c.compiled)
-                try:
-                    return attempt(near, index)
-                except OutsideIndex:
-                    log.debug("%s: refinement left its crop; done against the whole placed map", r.robot)
-        placed_map = self._global_segments(r.robot, rigid=not r.alignment.placed)
-        if prior is None and (current is None or search):  # a search: a place contradicted by the
-            # free space seen is set aside (and a current one undone)
-            return attempt(placed_map, veto=self._veto(r, placed_map))
-        return attempt(placed_map)
-
-    def _veto(
-        self, r: RobotState, placed_map: np.ndarray
-    ) -> Callable[[np.ndarray, float], str | None] | None:
-        """Why a place found for ``r`` is contradicted — its walls where the placed robots saw
-        free space, or theirs where it did (contradiction.py) — or None."""
-        cc = self.cfg.contradiction
-        if self.free_of is None or not cc.enabled:
-            return None
-        own = contradiction.shrink(self.free_of(r.robot, r.map.session), cc.margin_m)
-        placed = [
-            (x.robot, x.map.session, x.layer, x.alignment.transform) for x in self._placed() if x is not r
-        ]
-        placed += [(p.robot, p.session, p.layer, p.alignment.transform) for p in self._pieces()]
-        parts = [(a, lay, t) for robot, ses, lay, t in placed if (a := self.free_of(robot, ses)) is not None]
-        made_of = tuple((id(a), id(lay), *np.round(t, 4)) for a, lay, t in parts)
-        if self._placed_free is None or self._placed_free[0] != made_of:
-            union = shapely.union_all([place_area(a, t) for a, _, t in parts]) if parts else None
-            noise = contradiction.placed_noise(
-                [(n, t) for n, (_, _, t) in zip(self._own_noise(parts), parts, strict=True)]
-            )
-            # (the ids it is known by stay theirs: _noise_cache holds the parts)
-            self._placed_free = (made_of, contradiction.shrink(union, cc.margin_m), noise)
-        theirs, noise = self._placed_free[1:]
-        if own is None and theirs is None:
-            return None
-        return contradiction.Check(r.layer.seg, own, placed_map, theirs, cc, noise)
-
-    def _own_noise(self, parts: list) -> list[tuple[np.ndarray, np.ndarray]]:
-        """contradiction.own_noise of each placed ``(free area, layer, pose)``, in its own frame:
-        kept while the area and the layer are the same objects (a placement that moves needs only
-        its transform, not the area shrunk again)."""
-        cc, out, keep = self.cfg.contradiction, [], {}
-        for a, lay, _ in parts:
-            hit = self._noise_cache.get((id(a), id(lay)))
-            if hit is None or hit[0] is not a or hit[1] is not lay:
-                hit = (
-                    a,
-                    lay,
-                    contradiction.own_noise(lay.seg, contradiction.shrink(a, cc.margin_m), cc.step_m),
-                )
-            keep[(id(a), id(lay))] = hit
-            out.append(hit[2])
-        self._noise_cache = keep  # (only the current parts: bounded by the placed robots)
-        return out
-
-    def _align_round(self, now_s: float, urgent: bool = False, only: set[int] | None = None) -> bool:
-        """One pass over the robots that deserve an attempt; True if a robot got placed.
-
-        Of the unplaced robots that matched, only the most decisive one (highest rival ratio)
-        is taken this round; the others are tried again against the grown placed map — a robot
-        matched against more of the fleet has fewer mirror images to fall for."""
-        fresh: list[tuple[RobotState, Alignment, float, str]] = []
-        pieces = self._pieces()
-        if len(self._entries) > 2 * (len(self.robots) + len(pieces)) + 16:  # forget replaced pieces
-            self._entries = {(r.robot, None): self._entries[(r.robot, None)] for r in self.robots.values()
-                             if (r.robot, None) in self._entries}  # fmt: skip
-        placed = self._placed()
-        around = Around(placed + pieces, self.cfg.refine_margin_m)
-        pieces_m = sum(p.layer.length_m for p in pieces)
-        keys: dict[int, tuple[float, PlacedKey]] = {}
-        placed_total = sum(p.layer.length_m for p in placed)
-        placed_ids = {id(p) for p in placed}
-
-        def key_of(r: RobotState) -> tuple[float, PlacedKey]:
-            if id(r) not in keys:
-                if id(r) in placed_ids:
-                    placed_m = placed_total - r.layer.length_m + pieces_m
-                else:
-                    placed_m = placed_total + pieces_m
-                keys[id(r)] = (
-                    placed_m,
-                    PlacedKey(r, lambda: [p for p in placed if p is not r] + pieces, around, self._entries),
-                )
-            return keys[id(r)]
-
-        def now_placed() -> None:  # a robot got placed in this round: the others see it
-            nonlocal placed, placed_total, placed_ids
-            placed = self._placed()
-            placed_total = sum(p.layer.length_m for p in placed)
-            placed_ids = {id(p) for p in placed}
-
-        # which placed robots are refined: a settle's share (``only``), every due one (urgent), or
-        # those whose turn it is
-        turn = only if only is not None else (None if urgent else self._turns(placed, key_of, now_s))
-        for r in self._ordered():
-            if r.layer is None or r.alignment.status == "reference":
-                continue
-            if turn is not None and r.alignment.placed and id(r) not in turn:
-                continue  # a refinement whose turn comes in a later fusion (or not due)
-            prior = r.map.prior if self.frame == "prior" and not r.map.joined else None
-            placed_m, key = key_of(r)
-            if not r.due(self.cfg, placed_m, key, now_s, urgent):
-                continue
-            key = key()
-            if r.map.joined and not r.alignment.placed and placed:  # it found itself in the fused map
-                a = self._estimate(r, r.map.prior, r.map.prior_sigma, None, search=False, join=True)
-                log.info("%s: join at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
-                r.alignment = a
-                if a.placed:  # verified: placed at once, no maturity, no confirmation (its own evidence)
-                    r.attempted(placed_m, key, now_s)
-                    r.pending, r.pending_count = None, 0
-                    r.mark_placed(now_s - self.epoch_s)
-                    now_placed()
-                    continue
-                # not verified: matched as any robot (below)
-            others = [p for p in placed if p is not r]
-            if prior is None and not r.alignment.placed and not policy.mature([r, *others], now_s, self.cfg):
-                if r.alignment.score_m == 0.0:  # no candidate to report yet: say why
-                    r.alignment = Alignment(
-                        "unaligned", np.zeros(3), np.zeros(3), reason=policy.waiting(self.cfg)
-                    )
-                continue  # not even attempted: a young map's match is not evidence yet
-            current = r.alignment if r.alignment.status == "aligned" else None
-            sigma = r.map.prior_sigma if prior is not None else None
-            a = self._estimate(r, prior, sigma, current, search=current is None or r.grew(self.cfg))
-            if not r.alignment.placed or a.status != r.alignment.status:  # why a robot is (not) placed
-                log.info("%s: attempt at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
-            if a.status == "aligned" and not r.alignment.placed:
-                fresh.append((r, a, placed_m, key))
-                continue
-            r.attempted(placed_m, key, now_s)
-            if a.status == "aligned" and current is not None and policy.moved(r, current, a, self.cfg):
-                a = policy.confirm(r, a, current, self.cfg, now_s)  # a revision: not before it is confirmed
-            else:
-                r.pending, r.pending_count = None, 0
-            was_placed = r.alignment.placed
-            r.alignment = a
-            if a.placed and not was_placed:
-                r.mark_placed(now_s - self.epoch_s)
-                now_placed()
-        if not fresh:
-            return False
-        for f in fresh:
-            f[0].attempted(f[2], f[3], now_s)
-        r, a = max(fresh, key=lambda f: f[1].rival_ratio)[:2]
-        r.alignment = policy.confirm(r, a, None, self.cfg, now_s)
-        if r.alignment.placed:
-            r.mark_placed(now_s - self.epoch_s)
-            return True
-        return False
-
     def _hold_prior_gauge(self) -> None:
         """Move every placed frame (robots and retired pieces) by the common rigid motion that
         balances the prior-placed ones against their priors (alignment.prior_gauge): each prior
         robot is refined against the others, which fixes where they are relative to each other
         but not where the whole set is. A motion below a millimetre is left alone."""
-        placed = self._placed() + self._pieces()
+        placed = self.placed() + self.pieces()
         held = [x for x in placed if x.alignment.status == "prior" and x.map.prior is not None]
         if not held:
             return
@@ -698,8 +484,8 @@ class Fleet:
         arrays = merged.result(row)
         key = tuple(a.tobytes() for a in arrays) + tuple(k for s, k in rows if s is not None)
         extra = {
-            "robots_merged": float(len(self._placed())), "segments_in": float(len(merged)),
-            "retired_pieces": float(len(self._pieces())),
+            "robots_merged": float(len(self.placed())), "segments_in": float(len(merged)),
+            "retired_pieces": float(len(self.pieces())),
         }  # fmt: skip
         return tuple(table), arrays, {"key": key, "extra": extra}
 
@@ -755,7 +541,7 @@ class Fleet:
             retired={name: [p.to_dict() for p in pieces] for name, pieces in self.retired.items()},
         )  # fmt: skip
         maps = {name: r.map for name, r in self.robots.items() if r.map is not None}
-        maps.update((p.blob, p.map) for p in self._pieces())
+        maps.update((p.blob, p.map) for p in self.pieces())
         return meta, maps
 
     def graph_state(self) -> dict[str, tuple[str, int, np.ndarray]]:

@@ -1,9 +1,9 @@
 """The merge policy: when a robot's alignment verdict is acted on. Conservative, since a wrong
 merge ruins the fused map while "unaligned" only delays it (fleet.py's module docstring): a robot
 without a prior is matched only once the maps involved are mature, and a new place (or a
-revision of one) counts only once ``confirmations`` attempts in a row put the robot there. Fleet
-(fleet.py) decides *which* robots get an attempt and in what order (the most decisive first);
-this module decides what an attempt's verdict means."""
+revision of one) counts only once ``confirmations`` attempts in a row put the robot there. The
+rounds (placing.py) decide *which* robots get an attempt and in what order (the most decisive
+first); this module decides what an attempt's verdict means."""
 
 from __future__ import annotations
 

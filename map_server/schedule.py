@@ -1,5 +1,5 @@
 """Which placed maps are near which, and what a robot's alignment attempt was made against: the
-bookkeeping by which Fleet decides that an attempt is due again (fleet.py; state.RobotState.due).
+bookkeeping by which the rounds decide that an attempt is due again (placing.py; state.RobotState.due).
 A placed robot is refined again only when the maps near it changed, so its key names those maps
 — their lengths and places — and nothing farther away."""
 

@@ -51,6 +51,7 @@ PURE = [
     "map_server.freespace",
     "map_server.fusion",
     "map_server.incremental",
+    "map_server.placing",
     "map_server.policy",
     "map_server.registration",
     "map_server.schedule",

@@ -91,7 +91,7 @@ def exact_pair(world, a, b, duration_s):
 
 
 def veto_for(world, a, b, duration_s):
-    """What Fleet._veto gives for robot ``b`` against robot ``a`` placed at its truth (exact maps
+    """What Placer.veto gives for robot ``b`` against robot ``a`` placed at its truth (exact maps
     and free space, from scans at the true poses), recording each place it checks."""
     args, truth = exact_pair(world, a, b, duration_s)
     veto, calls = cd.Check(*args), []

@@ -283,8 +283,8 @@ def test_a_settle_spread_over_fusions_ends_where_one_in_one_fusion_does(runs, fu
         fleet.put_map(dataclasses.replace(m, seg=apply_segments(delta, m.seg), seq=m.seq + 200), 400.0)
         fleet.set_online("r0", False)
         calls = []
-        original = fleet._align_round
-        fleet._align_round = lambda *a, calls=calls, original=original, **k: (
+        original = fleet.placer.round
+        fleet.placer.round = lambda *a, calls=calls, original=original, **k: (
             calls.append(k.get("only")) or original(*a, **k)
         )
         fusions = 0

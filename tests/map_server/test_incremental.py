@@ -302,10 +302,8 @@ def test_a_refinement_on_the_crop_is_the_one_on_the_whole_placed_map():
         f = copy.deepcopy(fleet)
         f.cfg = FleetConfig(refine_margin_m=margin)
         for name, r in sorted(f.robots.items()):
-            got = f._estimate(r, r.map.prior, r.map.prior_sigma, None, False)
-            want = estimate_alignment(
-                r.layer.seg, f._global_segments(name), c, r.map.prior, r.map.prior_sigma
-            )
+            got = f.placer.estimate(r, r.map.prior, r.map.prior_sigma, None, False)
+            want = estimate_alignment(r.layer.seg, f.global_segments(name), c, r.map.prior, r.map.prior_sigma)
             assert (got.status, got.reason) == (want.status, want.reason)
             np.testing.assert_allclose(got.transform, want.transform, rtol=0, atol=1e-9)
             assert got.score_m == pytest.approx(want.score_m, abs=1e-6)

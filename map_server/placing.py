@@ -1,0 +1,275 @@
+"""The alignment rounds: which robots get an attempt in a fusion, against what, and what is done
+with the verdict (policy.py says what a verdict means; alignment.py makes one attempt).
+
+A round goes over the robots in arrival order. An unplaced robot without a prior is tried only
+once its map and every placed robot's map are mature; a robot that joined the fused map (its
+agent found itself in it: ``RobotMap.joined``) has its claim verified and is placed at once if it
+holds. Of the unplaced robots that matched in one round only the most decisive (highest rival
+ratio) is taken; the others are tried again against the grown placed map. Placed robots are
+refined where they are when due (state.RobotState.due: their map or the maps near them changed,
+or ``retry_interval_s`` passed), a few per fusion (``refine_budget_segments``). A place found by a
+search is checked against the free space the robots saw (contradiction.py).
+
+Fleet (fleet.py) owns the robots, the merge and the frame; :class:`Placer` keeps what the rounds
+cache between fusions (each robot's samples, the placed robots' free space and its noise, the
+parts of the keys that say an attempt is due).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Protocol
+
+import numpy as np
+import shapely
+
+from map_server import contradiction, policy
+from map_server.alignment import Alignment, estimate_alignment, query_reach, verify_join
+from map_server.config import FleetConfig
+from map_server.freespace import place_area
+from map_server.registration import MapIndex, OutsideIndex, Samples
+from map_server.schedule import Around, PlacedKey, global_box
+from map_server.state import RetiredPiece, RobotState
+
+log = logging.getLogger("fleet_slam.fleet")
+
+
+class FleetView(Protocol):
+    """What the rounds read of the fleet (fleet.Fleet)."""
+
+    cfg: FleetConfig
+    robots: dict[str, RobotState]
+    frame: str | None
+    epoch_s: float | None
+    free_of: Callable[[str, str], object] | None
+
+    def placed(self) -> list[RobotState]: ...
+
+    def pieces(self) -> list[RetiredPiece]: ...
+
+    def ordered(self) -> list[RobotState]: ...
+
+    def global_segments(
+        self, exclude: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None, rigid: bool = False
+    ) -> np.ndarray: ...
+
+
+class Placer:
+    def __init__(self, fleet: FleetView):
+        self.fleet = fleet
+        self._budget = fleet.cfg.refine_budget_segments  # layer segments left to refine in this fusion
+        self._entries: dict[tuple, tuple] = {}  # parts of schedule.placed_key, per robot or retired piece
+        self._samples: dict[str, tuple] = {}  # robot -> (layer, its samples for alignment attempts)
+        self._placed_free: tuple | None = None  # (what it was made of, area, noise)
+        self._noise_cache: dict[tuple[int, int], tuple] = {}  # Placer._own_noise
+
+    @property
+    def cfg(self) -> FleetConfig:
+        return self.fleet.cfg
+
+    def new_fusion(self) -> None:
+        """A fusion begins: its refinement budget is whole again."""
+        self._budget = self.cfg.refine_budget_segments
+
+    def _turns(self, placed: list[RobotState], key_of, now_s: float) -> set[int]:
+        """Which placed robots due for a refinement get it in this fusion: first those waiting
+        twice ``retry_interval_s`` or more, then those whose own map changed, the newest map first
+        (a robot whose map just came: its new layer and its new place are merged in one go), then
+        in arrival order; until their layers add up to ``refine_budget_segments`` (the first
+        always)."""
+        overdue = 2.0 * self.cfg.retry_interval_s
+
+        def rank(r: RobotState) -> tuple:
+            newest = -r.lengths[-1][0] if r.lengths else 0.0
+            return now_s - r.attempt_s < overdue, r.map.seq == r.attempt_seq, newest, r.order
+
+        turn: set[int] = set()
+        for r in sorted((r for r in placed if r.alignment.status != "reference"), key=rank):
+            spent = self._budget < self.cfg.refine_budget_segments  # in this round or an earlier one
+            if spent and len(r.layer) > self._budget:
+                continue  # (before asking whether it is due: that looks at the maps around it)
+            if r.due(self.cfg, *key_of(r), now_s):
+                turn.add(id(r))
+                self._budget -= len(r.layer)
+        return turn
+
+    def estimate(
+        self, r: RobotState, prior, sigma, current: Alignment | None, search: bool, join: bool = False
+    ) -> Alignment:
+        """An alignment attempt. A refinement where the robot is (from its prior, from its claim
+        of its place in the fused map when ``join``, or from its current place without a search)
+        looks at the placed map near the robot map only: every query stays within ``query_reach``
+        of the robot map's samples, and the index is a crop that answers exactly there
+        (registration.MapIndex); one that strays out of it is done again against the whole map."""
+        c = self.cfg.alignment
+        start = prior if prior is not None else (None if search or current is None else current.transform)
+        samples = self._samples.get(r.robot)
+        if samples is None or samples[0] is not r.layer:
+            fine, coarse = Samples.of(r.layer.seg, c.sample_step_m), Samples.of(r.layer.seg, c.coarse_step_m)
+            samples = self._samples[r.robot] = (r.layer, (fine, coarse))
+        kw = {"robot_samples": samples[1]}
+
+        def attempt(placed_map: np.ndarray, index: MapIndex | None = None, **more) -> Alignment:
+            if join:  # a place contradicted by the free space seen is not verified
+                veto = self.veto(r, placed_map)
+                return verify_join(r.layer.seg, placed_map, c, prior, sigma, index, veto=veto, **kw)
+            return estimate_alignment(
+                r.layer.seg, placed_map, c, prior, sigma, current, search, index=index, **kw, **more
+            )
+
+        if start is not None and len(r.layer):
+            box = global_box(r.layer.bounds[None], np.asarray(start, float)[None])[0]
+            reach = query_reach(c)
+            lo, hi = box[:2] - self.cfg.refine_margin_m, box[2:] + self.cfg.refine_margin_m
+            near = self.fleet.global_segments(r.robot, lo - reach, hi + reach, rigid=not r.alignment.placed)
+            if len(near):
+                index = MapIndex(near, c.sample_step_m, inner=(lo, hi), compiled=c.compiled)
+                try:
+                    return attempt(near, index)
+                except OutsideIndex:
+                    log.debug("%s: refinement left its crop; done against the whole placed map", r.robot)
+        placed_map = self.fleet.global_segments(r.robot, rigid=not r.alignment.placed)
+        if prior is None and (current is None or search):  # a search: a place contradicted by the
+            # free space seen is set aside (and a current one undone)
+            return attempt(placed_map, veto=self.veto(r, placed_map))
+        return attempt(placed_map)
+
+    def veto(self, r: RobotState, placed_map: np.ndarray) -> Callable[[np.ndarray, float], str | None] | None:
+        """Why a place found for ``r`` is contradicted — its walls where the placed robots saw
+        free space, or theirs where it did (contradiction.py) — or None."""
+        cc = self.cfg.contradiction
+        if self.fleet.free_of is None or not cc.enabled:
+            return None
+        free_of = self.fleet.free_of
+        own = contradiction.shrink(free_of(r.robot, r.map.session), cc.margin_m)
+        others = [x for x in self.fleet.placed() if x is not r]
+        placed = [(x.robot, x.map.session, x.layer, x.alignment.transform) for x in others]
+        placed += [(p.robot, p.session, p.layer, p.alignment.transform) for p in self.fleet.pieces()]
+        parts = [(a, lay, t) for robot, ses, lay, t in placed if (a := free_of(robot, ses)) is not None]
+        made_of = tuple((id(a), id(lay), *np.round(t, 4)) for a, lay, t in parts)
+        if self._placed_free is None or self._placed_free[0] != made_of:
+            union = shapely.union_all([place_area(a, t) for a, _, t in parts]) if parts else None
+            noise = contradiction.placed_noise(
+                [(n, t) for n, (_, _, t) in zip(self._own_noise(parts), parts, strict=True)]
+            )
+            # (the ids it is known by stay theirs: _noise_cache holds the parts)
+            self._placed_free = (made_of, contradiction.shrink(union, cc.margin_m), noise)
+        theirs, noise = self._placed_free[1:]
+        if own is None and theirs is None:
+            return None
+        return contradiction.Check(r.layer.seg, own, placed_map, theirs, cc, noise)
+
+    def _own_noise(self, parts: list) -> list[tuple[np.ndarray, np.ndarray]]:
+        """contradiction.own_noise of each placed ``(free area, layer, pose)``, in its own frame:
+        kept while the area and the layer are the same objects (a placement that moves needs only
+        its transform, not the area shrunk again)."""
+        cc, out, keep = self.cfg.contradiction, [], {}
+        for a, lay, _ in parts:
+            hit = self._noise_cache.get((id(a), id(lay)))
+            if hit is None or hit[0] is not a or hit[1] is not lay:
+                hit = (
+                    a,
+                    lay,
+                    contradiction.own_noise(lay.seg, contradiction.shrink(a, cc.margin_m), cc.step_m),
+                )
+            keep[(id(a), id(lay))] = hit
+            out.append(hit[2])
+        self._noise_cache = keep  # (only the current parts: bounded by the placed robots)
+        return out
+
+    def round(self, now_s: float, urgent: bool = False, only: set[int] | None = None) -> bool:
+        """One pass over the robots that deserve an attempt; True if a robot got placed.
+
+        Of the unplaced robots that matched, only the most decisive one (highest rival ratio)
+        is taken this round; the others are tried again against the grown placed map — a robot
+        matched against more of the fleet has fewer mirror images to fall for."""
+        fresh: list[tuple[RobotState, Alignment, float, str]] = []
+        pieces, robots = self.fleet.pieces(), self.fleet.robots.values()
+        if len(self._entries) > 2 * (len(robots) + len(pieces)) + 16:  # forget replaced pieces
+            self._entries = {(r.robot, None): self._entries[(r.robot, None)] for r in robots
+                             if (r.robot, None) in self._entries}  # fmt: skip
+        placed = self.fleet.placed()
+        around = Around(placed + pieces, self.cfg.refine_margin_m)
+        pieces_m = sum(p.layer.length_m for p in pieces)
+        keys: dict[int, tuple[float, PlacedKey]] = {}
+        placed_total = sum(p.layer.length_m for p in placed)
+        placed_ids = {id(p) for p in placed}
+
+        def key_of(r: RobotState) -> tuple[float, PlacedKey]:
+            if id(r) not in keys:
+                if id(r) in placed_ids:
+                    placed_m = placed_total - r.layer.length_m + pieces_m
+                else:
+                    placed_m = placed_total + pieces_m
+                keys[id(r)] = (
+                    placed_m,
+                    PlacedKey(r, lambda: [p for p in placed if p is not r] + pieces, around, self._entries),
+                )
+            return keys[id(r)]
+
+        def now_placed() -> None:  # a robot got placed in this round: the others see it
+            nonlocal placed, placed_total, placed_ids
+            placed = self.fleet.placed()
+            placed_total = sum(p.layer.length_m for p in placed)
+            placed_ids = {id(p) for p in placed}
+
+        # which placed robots are refined: a settle's share (``only``), every due one (urgent), or
+        # those whose turn it is
+        turn = only if only is not None else (None if urgent else self._turns(placed, key_of, now_s))
+        for r in self.fleet.ordered():
+            if r.layer is None or r.alignment.status == "reference":
+                continue
+            if turn is not None and r.alignment.placed and id(r) not in turn:
+                continue  # a refinement whose turn comes in a later fusion (or not due)
+            prior = r.map.prior if self.fleet.frame == "prior" and not r.map.joined else None
+            placed_m, key = key_of(r)
+            if not r.due(self.cfg, placed_m, key, now_s, urgent):
+                continue
+            key = key()
+            if r.map.joined and not r.alignment.placed and placed:  # it found itself in the fused map
+                a = self.estimate(r, r.map.prior, r.map.prior_sigma, None, search=False, join=True)
+                log.info("%s: join at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
+                r.alignment = a
+                if a.placed:  # verified: placed at once, no maturity, no confirmation (its own evidence)
+                    r.attempted(placed_m, key, now_s)
+                    r.pending, r.pending_count = None, 0
+                    r.mark_placed(now_s - self.fleet.epoch_s)
+                    now_placed()
+                    continue
+                # not verified: matched as any robot (below)
+            others = [p for p in placed if p is not r]
+            if prior is None and not r.alignment.placed and not policy.mature([r, *others], now_s, self.cfg):
+                if r.alignment.score_m == 0.0:  # no candidate to report yet: say why
+                    r.alignment = Alignment(
+                        "unaligned", np.zeros(3), np.zeros(3), reason=policy.waiting(self.cfg)
+                    )
+                continue  # not even attempted: a young map's match is not evidence yet
+            current = r.alignment if r.alignment.status == "aligned" else None
+            sigma = r.map.prior_sigma if prior is not None else None
+            a = self.estimate(r, prior, sigma, current, search=current is None or r.grew(self.cfg))
+            if not r.alignment.placed or a.status != r.alignment.status:  # why a robot is (not) placed
+                log.info("%s: attempt at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
+            if a.status == "aligned" and not r.alignment.placed:
+                fresh.append((r, a, placed_m, key))
+                continue
+            r.attempted(placed_m, key, now_s)
+            if a.status == "aligned" and current is not None and policy.moved(r, current, a, self.cfg):
+                a = policy.confirm(r, a, current, self.cfg, now_s)  # a revision: not before it is confirmed
+            else:
+                r.pending, r.pending_count = None, 0
+            was_placed = r.alignment.placed
+            r.alignment = a
+            if a.placed and not was_placed:
+                r.mark_placed(now_s - self.fleet.epoch_s)
+                now_placed()
+        if not fresh:
+            return False
+        for f in fresh:
+            f[0].attempted(f[2], f[3], now_s)
+        r, a = max(fresh, key=lambda f: f[1].rival_ratio)[:2]
+        r.alignment = policy.confirm(r, a, None, self.cfg, now_s)
+        if r.alignment.placed:
+            r.mark_placed(now_s - self.fleet.epoch_s)
+            return True
+        return False
