@@ -140,3 +140,6 @@ def test_bench_join_counts_a_true_join_and_the_placement():
         row = bench.run_pair(("office", 0, 1, 60.0, 10.0))
     assert row["joined_s"] is not None and not row["wrong_join"], row
     assert row["join_error_m"] <= 0.1 and row["placed_status"] == "aligned" and row["placed_s"] <= 8.0
+    # fed to the end of the run (with both robots' free space): still where the truth says
+    assert row["final_status"] == "aligned" and row["final_error_m"] <= 0.1, row
+    assert not row["wrong_placed"] and not row["wrong_at_end"] and row["undone_s"] is None
