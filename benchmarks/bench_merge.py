@@ -198,23 +198,27 @@ def run_seed(
     placed_at: dict[str, float] = {}
     first_place: dict[str, np.ndarray] = {}
     t0 = time.perf_counter()
-    for t, is_map, i, k in events:
-        if not is_map:
-            free.put(recs[i].free[k])
-            continue
-        fleet.put_map(recs[i].maps[k], t)
+
+    def fuse(t: float) -> None:
         fleet.fuse(t)
         for n, r in fleet.robots.items():
             if r.alignment.placed and n not in placed_at:
                 placed_at[n] = t
                 first_place[n] = r.alignment.transform.copy()
+
+    for t, is_map, i, k in events:
+        if not is_map:
+            free.put(recs[i].free[k])
+            continue
+        fleet.put_map(recs[i].maps[k], t)
+        fuse(t)
     t_end = events[-1][0] if events else 0.0
     for n in names:  # the agents finish: each leaves (the server solves its graph again, settles)
         fleet.set_online(n, False)
-    for extra in range(1, 31):
-        fleet.fuse(t_end + extra)
-        if not fleet.pending_work:
-            break
+    for extra in range(1, 31):  # the server goes on fusing (server.py: every idle period) ...
+        fuse(t_end + extra)
+        if not fleet.pending_work and all(r.pending is None for r in fleet.robots.values()):
+            break  # ... and a candidate awaiting confirmation gets its next attempt (retry_interval_s)
     fuse_s = time.perf_counter() - t0
     ref = fleet.reference or names[0]
     iref = names.index(ref)
