@@ -220,6 +220,9 @@ class Fleet:
         ``moved_rad``). Without a constraint between robots every map stays rigid."""
         cfg = self.cfg.graph
         placed = [r for r in self.placed() if r.map is not None and r.graph is not None]
+        for robot in self.graph.sync([_graph_item(r) for r in placed]):  # what the graph found where
+            # the robot was would hold it there
+            log.info("%s: unplaced or moved far: the fleet graph forgets where it had it", robot)
         ids = {id(r) for r in placed if not r.graph.rigid}
         for r in self.robots.values():
             if id(r) not in ids:

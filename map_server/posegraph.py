@@ -120,6 +120,40 @@ class FleetGraph:
     pending: bool = False  # keyframes wait to be matched (more than one fusion's budget)
     _matched: dict = field(default_factory=dict)  # robot -> {keyframe id: its poses when matched
     # (6,): where the graph put it, where the robot put it in its own frame}
+    _placed_at: dict = field(default_factory=dict)  # robot -> its rigid placement at the last solve
+
+    def sync(self, placed: list[Placed]) -> list[str]:
+        """Forget what the graph holds of a robot that is no longer placed, or whose placement
+        jumped since the last solve by more than twice its placement edge's sigma (undone and
+        placed elsewhere, or revised): its last solution and the constraints found where it was
+        (its own, and the others' on it) would hold it there. Returns the robots forgotten."""
+        cfg, now, out = self.cfg, {p.robot: p for p in placed}, []
+        for robot in sorted(
+            set(self.solution) | set(self.constraints) | set(self._matched) | set(self._placed_at)
+        ):
+            p, was = now.get(robot), self._placed_at.get(robot)
+            if p is not None and was is None:
+                continue
+            if p is not None:
+                d = relative(was, p.transform)
+                if (
+                    np.hypot(d[0], d[1]) <= 2.0 * cfg.placement_sigma_m
+                    and abs(d[2]) <= 2.0 * cfg.placement_sigma_rad
+                ):
+                    continue
+            self.forget(robot)
+            out.append(robot)
+        return out
+
+    def forget(self, robot: str) -> None:
+        """Drop the robot's solution, its constraints and the others' constraints on it (their
+        keyframes are matched again)."""
+        for held in (self.solution, self.constraints, self._matched, self._placed_at):
+            held.pop(robot, None)
+        for other, cons in self.constraints.items():
+            for k in [k for k, c in cons.items() if c.other == robot]:
+                cons.pop(k)
+                self._matched.get(other, {}).pop(k, None)
 
     def refresh(self) -> None:
         """Every keyframe due again (the robots' maps are final: a robot left), each keeping its
@@ -131,6 +165,8 @@ class FleetGraph:
         if robot in self.solution:
             graph, x = self.solution[robot]
             self.solution[robot] = (graph, compose(g, x))
+        if robot in self._placed_at:
+            self._placed_at[robot] = compose(g, self._placed_at[robot])
         if robot in self._matched:
             self._matched[robot] = {
                 k: np.concatenate([compose(g, v[:3]), v[3:]]) for k, v in self._matched[robot].items()
@@ -380,6 +416,7 @@ class FleetGraph:
             s = start[p.robot]
             out[p.robot] = x[s : s + len(p.graph)]
             self.solution[p.robot] = (p.graph, out[p.robot])
+            self._placed_at[p.robot] = np.array(p.transform, float)
         for gone in set(self.solution) - set(start):
             del self.solution[gone]
         return out

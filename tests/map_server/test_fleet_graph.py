@@ -137,6 +137,30 @@ def test_the_solution_survives_a_restart(bent):
         np.testing.assert_array_equal(back.robots[name].bent_x, fleet.robots[name].bent_x)
 
 
+def test_a_robot_unplaced_or_moved_far_is_forgotten_by_the_graph(bent):
+    """What the graph found where a robot was (its solution, its constraints and the others' on
+    it) would hold it there: a robot undone and placed elsewhere ended 34 m / 180 deg from where
+    its alignment put it (bench_merge, warehouse seed 2). Unplaced, or moved by more than twice
+    the placement edge's sigma since the last solve, it is forgotten; a refinement is not."""
+    import copy
+
+    from map_server.fleet import _graph_item
+
+    fleet, _ = bent
+    items = {name: _graph_item(fleet.robots[name]) for name in ("r0", "r1")}
+    g = copy.deepcopy(fleet.graph)
+    assert "r1" in g.solution and any(c.other == "r1" for c in g.constraints["r0"].values())
+    assert g.sync([items["r0"]]) == ["r1"]  # r1 unplaced
+    assert "r1" not in g.solution and "r1" not in g.constraints
+    assert all(c.other != "r1" for cons in g.constraints.values() for c in cons.values())
+    g = copy.deepcopy(fleet.graph)
+    t = items["r1"].transform
+    near = dataclasses.replace(items["r1"], transform=compose(t, np.array([0.3, 0.0, 0.01])))
+    assert g.sync([items["r0"], near]) == [] and "r1" in g.solution
+    far = dataclasses.replace(items["r1"], transform=compose(t, np.array([0.0, 0.0, np.pi])))
+    assert g.sync([items["r0"], far]) == ["r1"] and "r1" not in g.solution
+
+
 def test_a_map_without_a_graph_stays_whole_and_the_others_bend_to_it():
     fleet, runs = fleet_of(True, rigid_r0=True)
     r0 = fleet.robots["r0"]
