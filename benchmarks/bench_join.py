@@ -33,6 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 from _results import save_results  # noqa: E402
 
+from fleet_slam.report import WRONG_MERGE_DEG, WRONG_MERGE_M  # noqa: E402
 from map_server.config import FleetConfig  # noqa: E402
 from map_server.fleet import Fleet  # noqa: E402
 from map_server.freespace import FreeSpaces  # noqa: E402
@@ -42,8 +43,6 @@ from robot_agent.sim import SimConfig, builtin_world, simulate_robot  # noqa: E4
 from robot_agent.slam.fastslam import FastSLAM, SlamConfig  # noqa: E402
 from shared import codec  # noqa: E402
 from shared.geometry import relative  # noqa: E402
-
-WRONG_M, WRONG_RAD = 0.3, np.radians(3.0)
 
 
 def fused_of(world_name: str, route: int, first_s: float) -> tuple[Fleet, FreeSpaces]:
@@ -64,9 +63,10 @@ def fused_of(world_name: str, route: int, first_s: float) -> tuple[Fleet, FreeSp
 
 
 def _off(truth: np.ndarray, t: np.ndarray) -> tuple[float, float, bool]:
+    """How far ``t`` is from ``truth``: metres, degrees (signed), and whether that is a wrong merge."""
     e = relative(truth, t)
-    m, rad = float(np.hypot(e[0], e[1])), float(e[2])
-    return m, float(np.degrees(rad)), bool(m > WRONG_M or abs(rad) > WRONG_RAD)
+    m, deg = float(np.hypot(e[0], e[1])), float(np.degrees(e[2]))
+    return m, deg, bool(m > WRONG_MERGE_M or abs(deg) > WRONG_MERGE_DEG)
 
 
 def run_pair(job: tuple) -> dict:
@@ -78,9 +78,10 @@ def run_pair(job: tuple) -> dict:
     core = AgentCore("robot2", FastSLAM(SlamConfig(), np.random.default_rng(b + 1)), AgentConfig(speed=0))
     core.joiner = Joiner(fused.seg)
     row = dict(world=world_name, mapped=a, joining=b, fused_segments=len(fused.seg), joined_s=None,
-               join_error_m=None, join_error_deg=None, placed_s=None, placed_status=None, placed_error_m=None,
-               placed_error_deg=None, wrong_placed=False, undone_s=None, final_status="unaligned",
-               final_error_m=None, final_error_deg=None, reason="")  # fmt: skip
+               join_error_m=None, join_error_deg=None, wrong_join=False, placed_s=None, placed_status=None,
+               placed_error_m=None, placed_error_deg=None, wrong_placed=False, undone_s=None,
+               final_status="unaligned", final_error_m=None, final_error_deg=None, wrong_at_end=False,
+               reason="")  # fmt: skip
     sim = simulate_robot(world, b, join_s, b + 1, SimConfig())
     t0 = None
     for scan in sim.to_log().scans():
@@ -88,8 +89,8 @@ def run_pair(job: tuple) -> dict:
         now = float(scan.stamp_s - t0)
         core.step(scan)
         if core.joined and row["joined_s"] is None:
-            m, deg, _ = _off(truth, core.prior)
-            row.update(joined_s=now, join_error_m=m, join_error_deg=deg)
+            m, deg, wrong = _off(truth, core.prior)
+            row.update(joined_s=now, join_error_m=m, join_error_deg=deg, wrong_join=wrong)
         if not core.map_messages():
             continue
         if core.free_message() is not None:  # (the agent sends both together)
@@ -106,14 +107,9 @@ def run_pair(job: tuple) -> dict:
                        wrong_placed=wrong)  # fmt: skip
         if row["wrong_placed"] and row["undone_s"] is None and not wrong:  # unplaced, or moved to the truth
             row["undone_s"] = now
-        row.update(final_status=s.status, final_error_m=m, final_error_deg=deg)
+        row.update(final_status=s.status, final_error_m=m, final_error_deg=deg, wrong_at_end=wrong)
     j = core.joiner
     row["reason"] = j.last.reason if j is not None and j.last is not None else ""
-    row["wrong_join"] = row["joined_s"] is not None and bool(
-        row["join_error_m"] > WRONG_M or abs(np.radians(row["join_error_deg"])) > WRONG_RAD
-    )
-    end_m, end_deg = row["final_error_m"], row["final_error_deg"]
-    row["wrong_at_end"] = end_m is not None and bool(end_m > WRONG_M or abs(np.radians(end_deg)) > WRONG_RAD)
     return row
 
 

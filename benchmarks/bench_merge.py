@@ -47,6 +47,7 @@ sys.path.insert(0, str(ROOT))
 
 from _results import save_results  # noqa: E402
 
+from fleet_slam.report import WRONG_MERGE_DEG, WRONG_MERGE_M  # noqa: E402
 from map_server.alignment import estimate_alignment  # noqa: E402
 from map_server.config import FleetConfig  # noqa: E402
 from map_server.contradiction import Check, own_noise, placed_noise, shrink  # noqa: E402
@@ -58,7 +59,6 @@ from shared.geometry import apply_segments, compose, inverse, relative  # noqa: 
 from shared.messages import FreeSpace, RobotMap  # noqa: E402
 
 CACHE_FORMAT = 3  # 2: with the free space; 3: the end of the run (corrected, rebuilt maps)
-WRONG_M, WRONG_DEG = 0.3, 3.0  # = fleet_slam/report.py's wrong merge
 
 
 # -- recording -----------------------------------------------------------------------------------
@@ -160,7 +160,7 @@ def _error(t: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 
 def _wrong(t: np.ndarray, truth: np.ndarray) -> bool:
     m, deg = _error(t, truth)
-    return m > WRONG_M or deg > WRONG_DEG
+    return m > WRONG_MERGE_M or deg > WRONG_MERGE_DEG
 
 
 def _with_overrides(cfg, sets: list[str]):

@@ -220,8 +220,8 @@ class Fleet:
         ``moved_rad``). Without a constraint between robots every map stays rigid."""
         cfg = self.cfg.graph
         placed = [r for r in self.placed() if r.map is not None and r.graph is not None]
-        for robot in self.graph.sync([_graph_item(r) for r in placed]):  # what the graph found where
-            # the robot was would hold it there
+        items = [_graph_item(r) for r in placed]
+        for robot in self.graph.sync(items):  # what the graph found where the robot was would hold it
             log.info("%s: unplaced or moved far: the fleet graph forgets where it had it", robot)
         ids = {id(r) for r in placed if not r.graph.rigid}
         for r in self.robots.values():
@@ -231,7 +231,6 @@ class Fleet:
             for r in placed:
                 r.bent = r.bent_x = r.bent_of = None
             return
-        items = [_graph_item(r) for r in placed]
         tried = self.graph.match(items)
         key = tuple(
             (r.robot, id(r.graph), r.alignment.transform.tobytes(), r.alignment.status) for r in placed

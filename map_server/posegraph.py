@@ -126,23 +126,22 @@ class FleetGraph:
         """Forget what the graph holds of a robot that is no longer placed, or whose placement
         jumped since the last solve by more than twice its placement edge's sigma (undone and
         placed elsewhere, or revised): its last solution and the constraints found where it was
-        (its own, and the others' on it) would hold it there. Returns the robots forgotten."""
-        cfg, now, out = self.cfg, {p.robot: p for p in placed}, []
-        for robot in sorted(
-            set(self.solution) | set(self.constraints) | set(self._matched) | set(self._placed_at)
-        ):
+        (its own, and the others' on it) would hold it there. Returns the robots forgotten. Called
+        before :meth:`match` and :meth:`solve` with the same robots (they hold nothing of others)."""
+        cfg, now = self.cfg, {p.robot: p for p in placed}
+
+        def kept(robot: str) -> bool:
             p, was = now.get(robot), self._placed_at.get(robot)
-            if p is not None and was is None:
-                continue
-            if p is not None:
-                d = relative(was, p.transform)
-                if (
-                    np.hypot(d[0], d[1]) <= 2.0 * cfg.placement_sigma_m
-                    and abs(d[2]) <= 2.0 * cfg.placement_sigma_rad
-                ):
-                    continue
+            if p is None or was is None:
+                return p is not None  # (placed, not solved yet: nothing held of it)
+            d = relative(was, p.transform)
+            near = np.hypot(d[0], d[1]) <= 2.0 * cfg.placement_sigma_m
+            return bool(near and abs(d[2]) <= 2.0 * cfg.placement_sigma_rad)
+
+        held = set(self.solution) | set(self.constraints) | set(self._matched) | set(self._placed_at)
+        out = sorted(robot for robot in held if not kept(robot))
+        for robot in out:
             self.forget(robot)
-            out.append(robot)
         return out
 
     def forget(self, robot: str) -> None:
@@ -233,10 +232,6 @@ class FleetGraph:
         """Seek constraints for the keyframes due (:meth:`_due`), at most ``budget_keyframes``
         of them, the robots in turn; how many were tried."""
         cfg = self.cfg
-        names = {p.robot for p in placed}
-        for gone in (set(self.constraints) | set(self._matched)) - names:
-            self.constraints.pop(gone, None)
-            self._matched.pop(gone, None)
         self.pending = False
         if len(placed) < 2:
             return 0
@@ -417,6 +412,4 @@ class FleetGraph:
             out[p.robot] = x[s : s + len(p.graph)]
             self.solution[p.robot] = (p.graph, out[p.robot])
             self._placed_at[p.robot] = np.array(p.transform, float)
-        for gone in set(self.solution) - set(start):
-            del self.solution[gone]
         return out
