@@ -17,6 +17,7 @@ parts of the keys that say an attempt is due).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from typing import Protocol
@@ -132,7 +133,20 @@ class Placer:
         placed_map = self.fleet.global_segments(r.robot, rigid=not r.alignment.placed)
         if prior is None and (current is None or search):  # a search: a place contradicted by the
             # free space seen is set aside (and a current one undone)
-            return attempt(placed_map, veto=self.veto(r, placed_map))
+            a = attempt(placed_map, veto=self.veto(r, placed_map))
+            if a.placed or r.alignment.placed or not any(x.bent is not None for x in self.fleet.placed()):
+                return a
+            # Not placed against the placed maps as their alignments put them: searched again
+            # against them as the fleet's graph bent them. Either can hide a true overlap — the
+            # bend pulls two placed maps toward each other where they disagree, away from a third
+            # that agrees with one as it was (Intel in 3 pieces); a placed map held rigidly by its
+            # overlap with the reference is off where it bends on its own, and the newcomer meets
+            # it there (MIT-CSAIL in 3 pieces: 50 m matched bent, 10 m rigid).
+            bent_map = self.fleet.global_segments(r.robot)
+            b = attempt(bent_map, veto=self.veto(r, bent_map))
+            if not b.placed:
+                return a
+            return dataclasses.replace(b, reason=f"{b.reason} (the placed maps as the graph bent them)")
         return attempt(placed_map)
 
     def veto(self, r: RobotState, placed_map: np.ndarray) -> Callable[[np.ndarray, float], str | None] | None:

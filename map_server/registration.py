@@ -155,11 +155,14 @@ class MapIndex:
 
     def opposed(self, pose: np.ndarray, robot: Samples, perp_m: float) -> float:
         """Robot-map length [m] on a placed wall's line but facing the other way (a wall seen from
-        a side the placed map says is inside it): a contradiction."""
+        a side the placed map says is inside it): a contradiction. Not where the placed map has
+        that wall's face this robot sees as well: a thin wall both sides of which were seen (a
+        partition between a room and a corridor, both entered; MIT-CSAIL) is not a contradiction."""
         if self.tree is None or len(robot) == 0:
             return 0.0
         valid, _, _, dang, perp = self._near(pose, robot, float(np.hypot(perp_m, robot_step(robot))))
-        bad = _any_row(valid & (dang >= OTHER_FACE_RAD) & (perp <= perp_m))
+        line = valid & (perp <= perp_m)
+        bad = _any_row(line & (dang >= OTHER_FACE_RAD)) & ~_any_row(line & (dang < OTHER_FACE_RAD))
         return float(robot.length[bad].sum())
 
     def crossings(self, moved: np.ndarray, margin_m: float, min_angle_rad: float) -> np.ndarray:

@@ -218,3 +218,19 @@ def test_nothing_placed_and_tiny_maps():
     assert estimate_alignment(seg, np.zeros((0, 2, 2)), CFG).reason == "nothing placed yet"
     tiny = estimate_alignment(seg[:2], placed, CFG)
     assert tiny.status == "unaligned" and "robot map only" in tiny.reason
+
+
+def test_a_wall_seen_from_the_other_side_is_opposed_unless_both_faces_are_placed():
+    """A robot wall on a placed wall's line facing the other way contradicts the place — unless
+    the placed map holds that face too: a thin partition both sides of which were seen (MIT-CSAIL
+    cut in 3: 40 m of a room's walls, seen from the corridor and from inside by both pieces, had
+    the true place refused)."""
+    outside = np.array([[[0.0, 0.0], [10.0, 0.0]]])  # faces +y (left normal of p0 -> p1)
+    inside = outside[:, ::-1]  # the same wall's other face, 3 cm across
+    inside = inside + np.array([0.0, 0.03])
+    robot = Samples.of(inside, CFG.sample_step_m)
+    one_face = registration.MapIndex(outside, CFG.sample_step_m)
+    both_faces = registration.MapIndex(np.concatenate([outside, inside]), CFG.sample_step_m)
+    at = np.zeros(3)
+    assert one_face.opposed(at, robot, CFG.opposed_perp_m) == pytest.approx(10.0, abs=0.2)
+    assert both_faces.opposed(at, robot, CFG.opposed_perp_m) == 0.0
