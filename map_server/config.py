@@ -140,6 +140,8 @@ class FleetConfig:
     retry_growth_share: float = 0.05  # ... or by this share of its length (whichever is larger)
     retry_placed_growth_m: float = 10.0  # an unaligned robot is retried when the placed map grew so
     retry_interval_s: float = 10.0  # ... or when anything changed (or a candidate waits) this long ago
+    regroup_pairs: int = 2  # pairs of unplaced robots matched with each other a fusion while the
+    # reference is the only placed robot (placing.Placer.regroup)
     confirmations: int = 2  # consecutive attempts that must agree on a new place ...
     confirm_s: float = 0.0  # ... over this long at least (the first to the last)
     same_place_m: float = 0.3  # two verdicts agree when they move the robot map this little (mean)

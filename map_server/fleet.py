@@ -9,7 +9,11 @@ round the whole placed set is moved by the rigid motion that balances the prior 
 their priors (``prior_gauge``: one robot at a time fixes the robots relative to each other, not
 where the set is); robots without a prior are matched against them. Otherwise the first robot to
 publish a non-empty map becomes the *reference* (identity transform) and the others are matched
-against the fused map of the robots already placed (never including themselves). Priors that
+against the fused map of the robots already placed (never including themselves). While the
+reference is the only placed robot, the others are also matched with each other: a pair that
+matches (mature, verified, confirmed, as any placement) takes the frame over — the larger map
+becomes the reference — and the old reference is matched against the two (placing.Placer.regroup:
+which map comes first is chance, and a middle piece of a real log can overlap neither end). Priors that
 arrive after a reference was chosen are in a frame nobody placed, so those robots are matched like
 the others.
 
@@ -200,7 +204,7 @@ class Fleet:
                 r.graph = RobotGraph.of(r.map, r.layer)
                 r.record_length(now_s, self.cfg.mature_window_s)
         self._choose_frame(now_s)
-        while self.placer.round(now_s):
+        while self.placer.round(now_s) or self.placer.regroup(now_s):
             pass
         if self._left:
             self._left = False

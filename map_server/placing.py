@@ -42,6 +42,7 @@ class FleetView(Protocol):
     cfg: FleetConfig
     robots: dict[str, RobotState]
     frame: str | None
+    reference: str | None
     epoch_s: float | None
     free_of: Callable[[str, str], object] | None
 
@@ -64,6 +65,9 @@ class Placer:
         self._samples: dict[str, tuple] = {}  # robot -> (layer, its samples for alignment attempts)
         self._placed_free: tuple | None = None  # (what it was made of, area, noise)
         self._noise_cache: dict[tuple[int, int], tuple] = {}  # Placer._own_noise
+        # regroup(): per pair of unplaced robots (names), what its last attempt was made of (the
+        # two maps' seqs), when, and the place awaiting confirmation with its count and first time
+        self._pairs: dict[tuple[str, str], tuple] = {}
 
     @property
     def cfg(self) -> FleetConfig:
@@ -287,3 +291,100 @@ class Placer:
             r.mark_placed(now_s - self.fleet.epoch_s)
             return True
         return False
+
+    def regroup(self, now_s: float) -> bool:
+        """While the reference is the only placed robot, the unplaced robots are matched with each
+        other; a pair that matches hands the frame over: the larger map of the two becomes the
+        reference, the other is placed in it, and the old reference is matched as any robot
+        (against the two). True if it did.
+
+        Which robot becomes the reference is chance (the first map to arrive), and a real log cut
+        in three shows it: MIT-CSAIL's middle piece meets the others by 7-15 m of wall, while the
+        first and the last share 115 m — with the middle one as reference nothing was ever placed.
+        The pair is held to what any placement is: mature maps, a search verified by the same
+        checks (the free space both saw included), and ``confirmations`` attempts in a row at
+        the same place. Only robots whose current map was tried against the reference and not
+        placed take part; at most ``regroup_pairs`` pair attempts a fusion, each pair again when
+        one of its maps changed (or its place awaits confirmation) and ``retry_interval_s`` passed."""
+        f, cfg = self.fleet, self.cfg
+        placed = f.placed()
+        if f.frame != "reference" or len(placed) != 1 or f.pieces():
+            return False
+        ref = placed[0]
+        waiting = [
+            r for r in f.ordered()
+            if r is not ref and r.layer is not None and len(r.layer) and not r.map.joined
+            and r.attempt_seq == r.map.seq and r.pending is None
+        ]  # fmt: skip
+        if len(waiting) < 2 or not policy.mature([ref, *waiting], now_s, cfg):
+            return False
+        names = {r.robot for r in waiting}
+        self._pairs = {k: v for k, v in self._pairs.items() if k[0] in names and k[1] in names}
+        pairs = [(x, y) for i, x in enumerate(waiting) for y in waiting[i + 1 :]]
+        found, tried = [], 0
+        for x, y in pairs:
+            if tried == cfg.regroup_pairs:
+                break
+            a, b = (x, y) if x.layer.length_m >= y.layer.length_m else (y, x)  # b searched in a
+            key, seqs = (x.robot, y.robot), (a.robot, a.map.seq, b.robot, b.map.seq)
+            last = self._pairs.get(key)
+            if last is not None and (
+                now_s - last[1] < cfg.retry_interval_s or (last[0] == seqs and last[2] is None)
+            ):  # (a place awaiting its confirmation is attempted again on the same maps, as a robot's)
+                continue
+            tried += 1
+            v = self._pair_attempt(a, b)
+            if v.status != "aligned":
+                self._pairs[key] = (seqs, now_s, None, 0, now_s)
+                continue
+            log.info("%s in %s: pair attempt at %.1f s: %s (%s)", b.robot, a.robot, now_s, v.status, v.reason)
+            held = last is not None and last[2] is not None and last[2][0] is a
+            if held and not policy.moved(b, last[2][1], v, cfg):
+                count, first_s = last[3] + 1, last[4]
+            else:
+                count, first_s = 1, now_s
+            self._pairs[key] = (seqs, now_s, (a, v), count, first_s)
+            if count >= cfg.confirmations and now_s - first_s >= cfg.confirm_s:
+                found.append((a, b, v))
+        if not found:
+            return False
+        a, b, v = max(found, key=lambda x: x[2].rival_ratio)
+        self._hand_over(ref, a, b, v, now_s)
+        return True
+
+    def _pair_attempt(self, a: RobotState, b: RobotState) -> Alignment:
+        """``b``'s map searched in ``a``'s (in ``a``'s frame), checked against the free space
+        both saw (contradiction.Check, with what ``a``'s map contradicts itself by)."""
+        c, cc = self.cfg.alignment, self.cfg.contradiction
+        veto = None
+        if self.fleet.free_of is not None and cc.enabled:
+            own = contradiction.shrink(self.fleet.free_of(b.robot, b.map.session), cc.margin_m)
+            theirs = contradiction.shrink(self.fleet.free_of(a.robot, a.map.session), cc.margin_m)
+            if own is not None or theirs is not None:
+                noise = (
+                    contradiction.own_noise(a.layer.seg, theirs, cc.step_m) if theirs is not None else None
+                )
+                veto = contradiction.Check(b.layer.seg, own, a.layer.seg, theirs, cc, noise)
+        return estimate_alignment(b.layer.seg, a.layer.seg, c, veto=veto)
+
+    def _hand_over(self, old: RobotState, a: RobotState, b: RobotState, v: Alignment, now_s: float) -> None:
+        f = self.fleet
+        log.info(
+            "the frame is handed over from %s to %s: %s matched %s (%s), neither matched %s",
+            old.robot, a.robot, b.robot, a.robot, v.reason, old.robot,
+        )  # fmt: skip
+        epoch = f.epoch_s or 0.0
+        f.reference = a.robot
+        a.alignment = Alignment(
+            "reference", np.zeros(3), np.zeros(3), reason=f"the frame handed over from {old.robot}"
+        )
+        a.mark_placed(now_s - epoch)
+        b.alignment = dataclasses.replace(v, reason=f"{v.reason} (with {a.robot}: the frame handed over)")
+        b.mark_placed(now_s - epoch)
+        old.alignment = Alignment(
+            "unaligned", np.zeros(3), np.zeros(3),
+            reason=f"the frame handed over to {a.robot} (this map matched neither {a.robot} nor {b.robot})",
+        )  # fmt: skip
+        old.aligned_at_s = None
+        old.attempt_len_m, old.attempt_seq = None, -1  # due at once against the two
+        self._pairs.clear()

@@ -47,3 +47,34 @@ def test_a_robot_not_placed_against_the_rigid_maps_is_searched_against_the_bent_
     assert a.status == "aligned" and "as the graph bent them" in a.reason
     err_m, err_rad = transform_error(a.transform, truth)
     assert err_m < 0.05 and err_rad < np.radians(0.5)
+
+
+def test_two_robots_that_match_each_other_but_not_the_reference_take_the_frame_over():
+    """The reference is whichever map came first; when the others match each other but not it
+    (MIT-CSAIL in 3 pieces, the middle one first), the larger of the pair becomes the reference,
+    the other is placed in it once confirmed, and the old reference is matched against the two."""
+    f = Fleet(FleetConfig(), "server")
+    far, _ = scan_map("warehouse", 0, 175.0)  # a map that overlaps neither office robot
+    (seg1, start1), (seg2, start2) = scan_map("office", 0, 175.0), scan_map("office", 1, 175.0)
+    f.put_map(robot_map_from_segments(far, "robot0"), 0.0)
+    f.fuse(0.0)
+    f.put_map(robot_map_from_segments(seg1, "robot1"), 1.0)
+    f.put_map(robot_map_from_segments(seg2, "robot2"), 1.0)
+    f.fuse(1.0)
+    assert f.reference == "robot0"
+    f.fuse(40.0)  # mature: each tried against the reference (no place), then the pair: a candidate
+    assert f.reference == "robot0" and not f.robots["robot2"].alignment.placed
+    f.fuse(45.0)  # the pair's place is not attempted again before retry_interval_s
+    assert f.reference == "robot0"
+    f.fuse(51.0)  # confirmed: the frame is handed over
+    big, small = ("robot1", "robot2") if len(seg1) >= len(seg2) else ("robot2", "robot1")
+    assert f.reference == big and f.robots[big].alignment.status == "reference"
+    b = f.robots[small].alignment
+    assert b.status == "aligned"
+    truth = compose(inverse(start1), start2) if small == "robot2" else compose(inverse(start2), start1)
+    err_m, err_rad = transform_error(b.transform, truth)
+    assert err_m < 0.05 and err_rad < np.radians(0.5)
+    old = f.robots["robot0"].alignment
+    assert old.status == "unaligned" and "handed over" not in old.reason  # tried at once against the two
+    fused = f.latest()
+    assert {s.robot: s.status for s in fused.robots}[big] == "reference"
