@@ -52,7 +52,8 @@ class PlacedKey:
     """What robot ``r`` is aligned against, as a string that changes when that changes (lazily:
     most checks do not need it): the placed maps — robots and retired pieces — with their lengths
     and places; for a placed robot only those near it (:class:`Around`): a map far away does not
-    change where the robot fits."""
+    change where the robot fits; for an unplaced one also where the fleet's graph bent them (to
+    the centimetre: its first and newest keyframe)."""
 
     def __init__(self, r: RobotState, against: Callable[[], list], around: Around, entries: dict):
         self.r, self.against, self.around, self.entries = r, against, around, entries
@@ -63,7 +64,15 @@ class PlacedKey:
             near = self.around.near(self.r) if self.r.alignment.placed else None
             if near is not None:  # the maps near it at the start of the round but itself
                 near = [p for p in near if p is not self.r]
-            self._text = placed_key(self.against() if near is None else near, self.entries)
+            against = self.against() if near is None else near
+            self._text = placed_key(against, self.entries)
+            if not self.r.alignment.placed:  # where the fleet's graph bent them too: an unplaced
+                # robot is searched against the bent maps when the rigid ones give no place
+                self._text += "".join(
+                    f"~{p.robot}:" + ":".join(f"{v:.2f}" for v in p.bent_x[[0, -1]].ravel())
+                    for p in against
+                    if getattr(p, "bent", None) is not None
+                )
         return self._text
 
 

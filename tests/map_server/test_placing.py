@@ -78,3 +78,25 @@ def test_two_robots_that_match_each_other_but_not_the_reference_take_the_frame_o
     assert old.status == "unaligned" and "handed over" not in old.reason  # tried at once against the two
     fused = f.latest()
     assert {s.robot: s.status for s in fused.robots}[big] == "reference"
+
+
+def test_an_unplaced_robot_is_due_again_when_the_graph_bends_the_placed_maps():
+    """What an unplaced robot is matched against includes where the fleet's graph bent the placed
+    maps (it is searched against them when the rigid ones give no place): a bend alone makes it
+    due again (MIT-CSAIL in 3 pieces: the last piece tried once before the first bend, never after)."""
+    from map_server.schedule import Around, PlacedKey
+
+    f, _ = _fleet_of_two()
+    ref, r = f.robots["robot0"], f.robots["robot1"]
+
+    def key(robot):
+        return PlacedKey(robot, lambda: [ref], Around([ref], 2.0), {})()
+
+    rigid = key(r)
+    ref.bent, ref.bent_x = ref.layer, np.zeros((4, 3))
+    bent = key(r)
+    assert bent != rigid
+    ref.bent_x = ref.bent_x + np.array([0.004, 0.0, 0.0])  # under a centimetre: the same
+    assert key(r) == bent
+    ref.bent_x = ref.bent_x + np.array([0.05, 0.0, 0.0])
+    assert key(r) != bent
