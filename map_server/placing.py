@@ -65,6 +65,7 @@ class Placer:
         self._samples: dict[str, tuple] = {}  # robot -> (layer, its samples for alignment attempts)
         self._placed_free: tuple | None = None  # (what it was made of, area, noise)
         self._noise_cache: dict[tuple[int, int], tuple] = {}  # Placer._own_noise
+        self._shrunk: dict[int, tuple] = {}  # Placer._shrink: id(area) -> (area, shrunk)
         # regroup(): per pair of unplaced robots (names), what its last attempt was made of (the
         # two maps' seqs), when, and the place awaiting confirmation with its count and first time
         self._pairs: dict[tuple[str, str], tuple] = {}
@@ -160,7 +161,7 @@ class Placer:
         if self.fleet.free_of is None or not cc.enabled:
             return None
         free_of = self.fleet.free_of
-        own = contradiction.shrink(free_of(r.robot, r.map.session), cc.margin_m)
+        own = self._shrink(free_of(r.robot, r.map.session))
         others = [x for x in self.fleet.placed() if x is not r]
         placed = [(x.robot, x.map.session, x.layer, x.alignment.transform) for x in others]
         placed += [(p.robot, p.session, p.layer, p.alignment.transform) for p in self.fleet.pieces()]
@@ -178,6 +179,20 @@ class Placer:
             return None
         return contradiction.Check(r.layer.seg, own, placed_map, theirs, cc, noise)
 
+    def _shrink(self, area):
+        """contradiction.shrink of a robot's free space, kept while it is the same object: a free
+        space of a real log's 361-beam scans (7,000-12,000 vertices) takes 2-10 s to shrink, and
+        every search of an unplaced robot shrank its own again (MIT-CSAIL in 3 pieces: fusions of
+        5-20 s). The newest few are kept (the robots' current free spaces)."""
+        if area is None:
+            return None
+        hit = self._shrunk.get(id(area))
+        if hit is None or hit[0] is not area:
+            hit = self._shrunk[id(area)] = (area, contradiction.shrink(area, self.cfg.contradiction.margin_m))
+            while len(self._shrunk) > 2 * len(self.fleet.robots) + 8:
+                del self._shrunk[next(iter(self._shrunk))]  # (the oldest first)
+        return hit[1]
+
     def _own_noise(self, parts: list) -> list[tuple[np.ndarray, np.ndarray]]:
         """contradiction.own_noise of each placed ``(free area, layer, pose)``, in its own frame:
         kept while the area and the layer are the same objects (a placement that moves needs only
@@ -189,7 +204,7 @@ class Placer:
                 hit = (
                     a,
                     lay,
-                    contradiction.own_noise(lay.seg, contradiction.shrink(a, cc.margin_m), cc.step_m),
+                    contradiction.own_noise(lay.seg, self._shrink(a), cc.step_m),
                 )
             keep[(id(a), id(lay))] = hit
             out.append(hit[2])
@@ -358,8 +373,8 @@ class Placer:
         c, cc = self.cfg.alignment, self.cfg.contradiction
         veto = None
         if self.fleet.free_of is not None and cc.enabled:
-            own = contradiction.shrink(self.fleet.free_of(b.robot, b.map.session), cc.margin_m)
-            theirs = contradiction.shrink(self.fleet.free_of(a.robot, a.map.session), cc.margin_m)
+            own = self._shrink(self.fleet.free_of(b.robot, b.map.session))
+            theirs = self._shrink(self.fleet.free_of(a.robot, a.map.session))
             if own is not None or theirs is not None:
                 noise = (
                     contradiction.own_noise(a.layer.seg, theirs, cc.step_m) if theirs is not None else None

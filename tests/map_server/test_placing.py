@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from map_server.config import FleetConfig
 from map_server.fleet import Fleet
@@ -100,3 +101,24 @@ def test_an_unplaced_robot_is_due_again_when_the_graph_bends_the_placed_maps():
     assert key(r) == bent
     ref.bent_x = ref.bent_x + np.array([0.05, 0.0, 0.0])
     assert key(r) != bent
+
+
+def test_a_free_space_is_shrunk_once_while_it_is_the_same(monkeypatch):
+    """A real log's free space takes seconds to shrink (MIT-CSAIL: 2-10 s a robot): it is shrunk
+    again only when the robot's free space is a new one, and only the newest few are kept."""
+    import shapely
+
+    from map_server import contradiction
+
+    f, _ = _fleet_of_two()
+    shrunk, real = [], contradiction.shrink
+    monkeypatch.setattr(contradiction, "shrink", lambda a, m: shrunk.append(a) or real(a, m))
+    area = shapely.box(0.0, 0.0, 10.0, 5.0)
+    first = f.placer._shrink(area)
+    assert f.placer._shrink(area) is first and len(shrunk) == 1
+    assert first.area == pytest.approx(9.4 * 4.4)  # (0.3 m off every side)
+    again = shapely.box(0.0, 0.0, 10.0, 5.0)  # a new free space (the same shape)
+    assert f.placer._shrink(again) is not first and len(shrunk) == 2
+    for k in range(40):
+        f.placer._shrink(shapely.box(0.0, 0.0, 10.0 + k, 5.0))
+    assert len(f.placer._shrunk) <= 2 * len(f.robots) + 8
