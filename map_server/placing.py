@@ -183,13 +183,13 @@ class Placer:
         """contradiction.shrink of a robot's free space, kept while it is the same object: a free
         space of a real log's 361-beam scans (7,000-12,000 vertices) takes 2-10 s to shrink, and
         every search of an unplaced robot shrank its own again (MIT-CSAIL in 3 pieces: fusions of
-        5-20 s). The newest few are kept (the robots' current free spaces)."""
+        5-20 s). The newest few are kept (the robots' and retired pieces' current free spaces)."""
         if area is None:
             return None
         hit = self._shrunk.get(id(area))
         if hit is None or hit[0] is not area:
             hit = self._shrunk[id(area)] = (area, contradiction.shrink(area, self.cfg.contradiction.margin_m))
-            while len(self._shrunk) > 2 * len(self.fleet.robots) + 8:
+            while len(self._shrunk) > 2 * (len(self.fleet.robots) + len(self.fleet.pieces())) + 8:
                 del self._shrunk[next(iter(self._shrunk))]  # (the oldest first)
         return hit[1]
 

@@ -121,4 +121,4 @@ def test_a_free_space_is_shrunk_once_while_it_is_the_same(monkeypatch):
     assert f.placer._shrink(again) is not first and len(shrunk) == 2
     for k in range(40):
         f.placer._shrink(shapely.box(0.0, 0.0, 10.0 + k, 5.0))
-    assert len(f.placer._shrunk) <= 2 * len(f.robots) + 8
+    assert len(f.placer._shrunk) <= 2 * (len(f.robots) + len(f.pieces())) + 8
