@@ -388,14 +388,13 @@ class Placer:
             "the frame is handed over from %s to %s: %s matched %s (%s), neither matched %s",
             old.robot, a.robot, b.robot, a.robot, v.reason, old.robot,
         )  # fmt: skip
-        epoch = f.epoch_s or 0.0
         f.reference = a.robot
         a.alignment = Alignment(
             "reference", np.zeros(3), np.zeros(3), reason=f"the frame handed over from {old.robot}"
         )
-        a.mark_placed(now_s - epoch)
+        a.mark_placed(now_s - f.epoch_s)
         b.alignment = dataclasses.replace(v, reason=f"{v.reason} (with {a.robot}: the frame handed over)")
-        b.mark_placed(now_s - epoch)
+        b.mark_placed(now_s - f.epoch_s)
         old.alignment = Alignment(
             "unaligned", np.zeros(3), np.zeros(3),
             reason=f"the frame handed over to {a.robot} (this map matched neither {a.robot} nor {b.robot})",
