@@ -10,8 +10,11 @@ without processes or network, in simulated time:
 
 - **evidence**: every map of every robot but the reference is matched, by the server's own
   matcher (``alignment.estimate_alignment``, one attempt's verification: corners, overlap, rival
-  ratio, places contradicted by the free space seen set aside), against the other robots' maps
-  of the same moment placed where they truly are. The
+  ratio, places contradicted by the free space seen set aside), against the maps of the same
+  moment placed where they truly are: of the reference and of the robots whose own evidence came
+  before (``--evidence chain``, the default: what a server that placed every robot the moment its
+  evidence was there would have had placed), or of every other robot (``--evidence all``: a
+  lower bound no server reaches — it matches against robots nobody has placed yet). The
   *evidence time* is the first snapshot at which the verdict is "aligned" at the true place
   (within 0.3 m / 3°, as a wrong merge is counted); a verdict "aligned" somewhere else is a *false
   verdict* — what a policy that took every verdict at once would have merged wrongly.
@@ -179,7 +182,13 @@ def _with_overrides(cfg, sets: list[str]):
 
 
 def run_seed(
-    world: str, seed: int, robots: int, paths: list[Path], sets: list[str], known: dict | None = None
+    world: str,
+    seed: int,
+    robots: int,
+    paths: list[Path],
+    sets: list[str],
+    known: dict | None = None,
+    evidence: str = "chain",
 ) -> dict:
     """Evidence and the fleet's placements for one seed's recorded robots (``known``: the
     evidence rows of an earlier run on the same recordings, not measured again)."""
@@ -247,6 +256,76 @@ def run_seed(
             areas[(i, k)] = one.area(m.robot, m.session)
         return areas[(i, k)]
 
+    def match(i: int, k: int, t: float, pool: list[int]):
+        """Robot ``i``'s map ``k`` against the maps of the robots in ``pool`` at ``t``, placed at
+        the truth: the verdict and the contradiction (m) at its place, or None."""
+        others = []
+        for j in pool:
+            kj = np.searchsorted(recs[j].stamps, t, side="right") - 1
+            if kj >= 0:
+                others.append((j, layer(j, kj)))
+        if not others:
+            return None
+        seg = np.concatenate([apply_segments(truth[names[j]], lj.seg) for j, lj in others])
+        w = np.concatenate([lj.weight for _, lj in others])
+        owner = np.concatenate([np.full(len(lj), j) for j, lj in others])
+        merged = merge_segments(seg, w, owner, cfg.fusion)[0]
+        if len(layer(i, k)) == 0 or len(merged) == 0:
+            return None
+
+        def checked():
+            """contradiction.Check's arguments, as Placer.veto gives them."""
+            known = [(j, lj, area(j, t)) for j, lj in others if area(j, t) is not None]
+            theirs = [place_area(a, truth[names[j]]) for j, _, a in known]
+            theirs = shrink(shapely.union_all(theirs), ccfg.margin_m) if theirs else None
+            noise = placed_noise(
+                [
+                    (own_noise(lj.seg, shrink(a, ccfg.margin_m), ccfg.step_m), truth[names[j]])
+                    for j, lj, a in known
+                ]
+            )
+            return layer(i, k).seg, shrink(area(i, t), ccfg.margin_m), merged, theirs, ccfg, noise
+
+        check = Check(*checked()) if ccfg.enabled else None
+        a = estimate_alignment(layer(i, k).seg, merged, cfg.alignment, veto=check)
+        if a.status != "aligned":
+            return None
+        check = check or Check(*checked())  # contradiction (m), matched (m), the maps' own (m)
+        return a, (check.contradicted_m(a.transform), a.score_m, check.noise_m(a.transform))
+
+    # evidence, in time order over every robot's maps: "chain" matches a robot against the
+    # reference and the robots whose own evidence came before (what a server that placed each
+    # robot as soon as its evidence was there would have placed); "all" against every other robot
+    found = {iref: 0.0}  # robot index -> its evidence time
+    ev = {i: dict(evidence_s=None, false_verdicts=0, false_after=0, first_false_s=None,
+                  contradiction_true=[], contradiction_false=[], verdicts=[])
+          for i, n in enumerate(names) if n != ref and known is None}  # fmt: skip
+    snaps = sorted((float(t), i, k) for i in ev for k, t in enumerate(recs[i].stamps))
+    for t, i, k in snaps:
+        e = ev[i]
+        if e["evidence_s"] is not None and t - e["evidence_s"] > 60.0:
+            continue  # enough seen after the evidence (false verdicts: before and shortly after)
+        pool = [j for j in range(robots) if j != i and (evidence == "all" or j in found)]
+        hit = match(i, k, t, pool)
+        if hit is None:
+            continue
+        a, contradicted = hit
+        bad = _wrong(a.transform, truth[names[i]])
+        e["verdicts"].append(
+            (t, not bad, round(a.rival_ratio, 2), round(a.score_m, 1), round(a.inlier_share, 2),
+             *np.round(a.transform, 3).tolist())
+        )  # fmt: skip
+        if bad:
+            e["false_verdicts"] += 1
+            e["first_false_s"] = t if e["first_false_s"] is None else e["first_false_s"]
+            e["false_after"] += e["evidence_s"] is not None
+            e["contradiction_false"].append(contradicted)
+        else:
+            e["contradiction_true"].append(contradicted)
+            if e["evidence_s"] is None:
+                e["evidence_s"] = t
+                found[i] = t
+
     out = {}
     for i, n in enumerate(names):
         row = dict(robot=n, reference=n == ref, placed_s=placed_at.get(n))
@@ -258,78 +337,14 @@ def run_seed(
             p = paths_now[n]
             frame = compose(p.pose[0], inverse(p.local[0]))  # its map frame by its first keyframe
             row["error_m"], row["error_deg"] = _error(frame, truth[n])
-        if n == ref:
-            out[n] = row
-            continue
-        if known is not None:
-            keep = ("evidence_s", "false_verdicts", "false_after", "first_false_s", "verdicts")
-            row.update({k: known[n][k] for k in keep if k in known.get(n, {})})
+        if n != ref:
+            if known is not None:
+                keep = ("evidence_s", "false_verdicts", "false_after", "first_false_s", "verdicts")
+                row.update({k: known[n][k] for k in keep if k in known.get(n, {})})
+            else:
+                row.update(ev[i])
             if row.get("evidence_s") is not None and row["placed_s"] is not None:
                 row["delay_s"] = row["placed_s"] - row["evidence_s"]
-            out[n] = row
-            continue
-        ts = recs[i].stamps
-        evidence, false_verdicts, first_false, false_after = None, 0, None, 0
-        c_true, c_false = [], []  # contradiction (m) at the truth, at each false verdict
-        verdicts = []  # (t, true?, rival ratio, matched m, share) of every "aligned" verdict
-        for k, t in enumerate(ts):
-            others = []
-            for j in range(robots):
-                if j == i:
-                    continue
-                kj = np.searchsorted(recs[j].stamps, t, side="right") - 1
-                if kj >= 0:
-                    others.append((j, layer(j, kj)))
-            if not others:
-                continue
-            seg = np.concatenate([apply_segments(truth[names[j]], lj.seg) for j, lj in others])
-            w = np.concatenate([lj.weight for _, lj in others])
-            owner = np.concatenate([np.full(len(lj), j) for j, lj in others])
-            merged = merge_segments(seg, w, owner, cfg.fusion)[0]
-            if len(layer(i, k)) == 0 or len(merged) == 0:
-                continue
-
-            def checked(i=i, k=k, t=t, others=others, merged=merged):
-                """contradiction.Check's arguments, as Placer.veto gives them."""
-                known = [(j, lj, area(j, t)) for j, lj in others if area(j, t) is not None]
-                theirs = [place_area(a, truth[names[j]]) for j, _, a in known]
-                theirs = shrink(shapely.union_all(theirs), ccfg.margin_m) if theirs else None
-                noise = placed_noise(
-                    [
-                        (own_noise(lj.seg, shrink(a, ccfg.margin_m), ccfg.step_m), truth[names[j]])
-                        for j, lj, a in known
-                    ]
-                )
-                return layer(i, k).seg, shrink(area(i, t), ccfg.margin_m), merged, theirs, ccfg, noise
-
-            check = Check(*checked()) if ccfg.enabled else None
-            a = estimate_alignment(layer(i, k).seg, merged, cfg.alignment, veto=check)
-            if a.status != "aligned":
-                continue
-            verdicts.append((float(t), not _wrong(a.transform, truth[n]), round(a.rival_ratio, 2),
-                             round(a.score_m, 1), round(a.inlier_share, 2)))  # fmt: skip
-            check = check or Check(*checked())  # contradiction (m), matched (m), the maps' own (m)
-            contradicted = (check.contradicted_m(a.transform), a.score_m, check.noise_m(a.transform))
-            if _wrong(a.transform, truth[n]):
-                false_verdicts += 1
-                first_false = t if first_false is None else first_false
-                false_after += evidence is not None
-                c_false.append(contradicted)
-            else:
-                c_true.append(contradicted)
-                if evidence is None:
-                    evidence = float(t)
-            if evidence is not None and t - evidence > 60.0:
-                break  # enough seen after the evidence (the false verdicts counted: before and shortly after)
-        row.update(
-            evidence_s=evidence,
-            false_verdicts=false_verdicts,
-            false_after=false_after,
-            first_false_s=first_false,
-        )
-        row.update(contradiction_true=c_true, contradiction_false=c_false, verdicts=verdicts)
-        if evidence is not None and row["placed_s"] is not None:
-            row["delay_s"] = row["placed_s"] - evidence
         out[n] = row
     return dict(world=world, seed=seed, fuse_s=fuse_s, robots=out)
 
@@ -359,6 +374,9 @@ def main() -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a FleetConfig override")
     p.add_argument("--evidence-from", type=Path, default=None,
                    help="a bench_merge JSON of the same recordings and matcher: its evidence")  # fmt: skip
+    p.add_argument("--evidence", choices=["chain", "all"], default="chain",
+                   help="match each robot against the reference and the robots evidenced before it "
+                        "(chain), or against every other robot (all)")  # fmt: skip
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "bench_merge.json")
     args = p.parse_args()
     _with_overrides(FleetConfig(), args.set)  # a bad override fails before any work
@@ -383,7 +401,14 @@ def main() -> int:
                 known[(res["world"], res["seed"])] = res["robots"]
         futures = [
             pool.submit(
-                run_seed, w, s, args.robots, paths[(w, s)], args.set, known.get((w, s)) if known else None
+                run_seed,
+                w,
+                s,
+                args.robots,
+                paths[(w, s)],
+                args.set,
+                known.get((w, s)) if known else None,
+                args.evidence,
             )
             for w, s in runs
         ]
