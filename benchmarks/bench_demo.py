@@ -4,6 +4,7 @@ verdicts, transform errors, fused-map quality, relations error across pieces.
     .venv/bin/python benchmarks/bench_demo.py [--seeds 0 1 ... 9] [--unknown-starts]
         [--robots 3] [--world office] [--duration 175] [--out out/bench_demo]
     .venv/bin/python benchmarks/bench_demo.py --logs DIR... [--splits 2 3] [--seeds 0]
+        [--server-set SECTION.KEY=VALUE ...]
 
 Each seed is one full `fleet-slam demo` (router, server, agents as processes on loopback, about
 3 minutes at the default duration). Prints one row per seed — every robot's status and transform
@@ -95,7 +96,8 @@ def main_logs(args) -> int:
     cases = [
         (f"{e.name}/split{k}/seed{seed}",
          DemoConfig(out=f"{args.out}/{e.name}-split{k}-seed{seed}", log=str(e.log), split=k,
-                    relations=str(e.relations), speed=0.0, seed=seed, progress=False),
+                    relations=str(e.relations), speed=0.0, seed=seed, progress=False,
+                    server_set=tuple(args.server_set)),
          lambda m, e=e, k=k, seed=seed: log_row(e.name, k, seed, m))
         for e in entries for k in args.splits for seed in args.seeds
     ]  # fmt: skip
@@ -115,6 +117,8 @@ def main() -> int:
     p.add_argument("--out", default="out/bench_demo")
     p.add_argument("--logs", nargs="+", default=None, help="real logs (directories or files) cut into pieces")
     p.add_argument("--splits", type=int, nargs="+", default=[2, 3], help="--logs: pieces per log")
+    p.add_argument("--server-set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="a map-server (FleetConfig) override, e.g. mature_window_s=20")  # fmt: skip
     args = p.parse_args()
     if args.seeds is None:
         args.seeds = [0] if args.logs else list(range(10))
@@ -124,7 +128,8 @@ def main() -> int:
     cases = [
         (seed,
          DemoConfig(out=f"{args.out}/seed{seed}", robots=args.robots, world=args.world,
-                    duration_s=args.duration, seed=seed, unknown_starts=args.unknown_starts, progress=False),
+                    duration_s=args.duration, seed=seed, unknown_starts=args.unknown_starts, progress=False,
+                    server_set=tuple(args.server_set)),
          lambda m, seed=seed: row(seed, m))
         for seed in args.seeds
     ]  # fmt: skip

@@ -33,7 +33,6 @@ the whole fleet on loopback.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import itertools
 import json
 import sys
@@ -58,6 +57,7 @@ from map_server.fleet import Fleet  # noqa: E402
 from map_server.freespace import FreeSpaces, place_area  # noqa: E402
 from map_server.fusion import fuse_particles, merge_segments  # noqa: E402
 from shared import codec  # noqa: E402
+from shared.config import apply_overrides  # noqa: E402
 from shared.geometry import apply_segments, compose, inverse, relative  # noqa: E402
 from shared.messages import FreeSpace, RobotMap  # noqa: E402
 
@@ -166,21 +166,6 @@ def _wrong(t: np.ndarray, truth: np.ndarray) -> bool:
     return m > WRONG_MERGE_M or deg > WRONG_MERGE_DEG
 
 
-def _with_overrides(cfg, sets: list[str]):
-    """``key=value`` (``alignment.min_share=0.3``: a nested config's field) over ``cfg``."""
-    for s in sets:
-        key, _, value = s.partition("=")
-        head, _, rest = key.partition(".")
-        if rest:
-            cfg = dataclasses.replace(cfg, **{head: _with_overrides(getattr(cfg, head), [f"{rest}={value}"])})
-            continue
-        old = getattr(cfg, head)  # an unknown field: AttributeError names it
-        cfg = dataclasses.replace(
-            cfg, **{head: type(old)(json.loads(value) if isinstance(old, bool) else value)}
-        )
-    return cfg
-
-
 def run_seed(
     world: str,
     seed: int,
@@ -192,7 +177,7 @@ def run_seed(
 ) -> dict:
     """Evidence and the fleet's placements for one seed's recorded robots (``known``: the
     evidence rows of an earlier run on the same recordings, not measured again)."""
-    cfg = _with_overrides(FleetConfig(), sets)
+    cfg = apply_overrides(FleetConfig(), sets)
     recs = [load(p) for p in paths]
     names = [f"robot{i + 1}" for i in range(robots)]
     events = sorted(
@@ -379,7 +364,7 @@ def main() -> int:
                         "(chain), or against every other robot (all)")  # fmt: skip
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "bench_merge.json")
     args = p.parse_args()
-    _with_overrides(FleetConfig(), args.set)  # a bad override fails before any work
+    apply_overrides(FleetConfig(), args.set)  # a bad override fails before any work
 
     runs = [(w, s) for w in args.worlds for s in args.seeds]
     paths = {

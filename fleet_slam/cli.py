@@ -139,6 +139,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         split=args.split,
         relations=args.relations,
         view=args.view,
+        server_set=tuple(args.server_set),
     )
     print_summary(run_demo(cfg), cfg)
     return 0
@@ -167,6 +168,10 @@ def _add_fleet_commands(sub) -> None:
     d.add_argument("--relations", default=None, help="--log: relations file to score the global poses")
     d.add_argument("--out", default="out/demo", help="output directory")
     d.add_argument("--view", action="store_true", help="serve the live web view while the fleet runs")
+    d.add_argument(
+        "--server-set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+        help="override a map-server parameter (the server's --set)",
+    )  # fmt: skip
     d.set_defaults(func=_cmd_demo)
 
     a = sub.add_parser("agent", help="one robot agent: FastSLAM on a simulated robot or a log, on the bus")

@@ -49,6 +49,7 @@ class DemoConfig:
     fleet: str = "default"
     view: bool = False  # serve the live web view (fleet-slam view) while the fleet runs
     view_listen: str = "127.0.0.1:8090"  # its address (a busy port: any free one)
+    server_set: tuple[str, ...] = ()  # the map server's --set overrides (FleetConfig)
 
     def robot_names(self) -> list[str]:
         return [f"robot{i + 1}" for i in range(self.split if self.log else self.robots)]
@@ -90,6 +91,10 @@ class LogSplit:
 
 
 def _check(cfg: DemoConfig) -> LogSplit | None:
+    if cfg.server_set:  # a bad override fails here, not in the server's log
+        from map_server.service import fleet_config
+
+        fleet_config(list(cfg.server_set))
     if cfg.log:
         from robot_agent.sources import read_log
 
@@ -129,7 +134,14 @@ def run_demo(cfg: DemoConfig) -> dict:
         server = group.start(
             "server",
             python_module(
-                "map_server", "--connect", endpoint, "--state", out / "state", "--fleet", cfg.fleet
+                "map_server",
+                "--connect",
+                endpoint,
+                "--state",
+                out / "state",
+                "--fleet",
+                cfg.fleet,
+                *(a for kv in cfg.server_set for a in ("--set", kv)),
             ),
         )
         if not server.wait_for("running", STARTUP_TIMEOUT_S):

@@ -18,6 +18,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--min-gap", type=float, default=0.05, help="seconds between fusions at least (coalescing)"
     )
+    p.add_argument(
+        "--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+        help="override a fleet parameter (map_server/config.py: FleetConfig), e.g. mature_window_s=45 "
+        "or alignment.min_overlap_m=40",
+    )  # fmt: skip
     p.add_argument("--verbose", action="store_true", help="log every rejected message")
 
 
@@ -30,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.min_gap < 0:
         raise ValueError(f"--min-gap must be >= 0, got {args.min_gap}")
+    fleet_config(args.set)  # a bad override fails before the state is locked or the bus joined
     lock = StateLock(args.state) if args.state else None  # first: a second server exits 2 at once
     if lock is not None and lock.stale:
         print(
@@ -46,6 +52,14 @@ def run(args: argparse.Namespace) -> int:
             lock.release()
 
 
+def fleet_config(overrides: list[str]):
+    """The fleet's parameters: the defaults with ``--set`` overrides (shared.config)."""
+    from map_server.config import FleetConfig
+    from shared.config import apply_overrides
+
+    return apply_overrides(FleetConfig(), overrides)
+
+
 def _serve(args: argparse.Namespace, stop: threading.Event, store) -> int:
     from map_server.server import MapServer, ServerConfig
     from shared.bus import Bus, client_config
@@ -57,6 +71,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event, store) -> int:
             bus,
             Keys(args.fleet),
             ServerConfig(min_fuse_gap_s=args.min_gap),
+            fleet_cfg=fleet_config(args.set),
             store=store,
             server_id=args.server_id,
         )
