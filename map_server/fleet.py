@@ -21,9 +21,7 @@ Matching is conservative at the fleet level too (alignment.py verifies one attem
 rounds of attempts, policy.py says what a verdict means):
 
 - an unplaced robot is only tried once its map and every placed robot's map are *mature* (grown
-  by at most ``mature_growth`` over ``mature_window_s`` of the robot's own time, from its maps'
-  stamps: a log replayed faster than recorded matures as fast as it was recorded, not ten times
-  slower; state.RobotState.clock): partial maps of a symmetric or
+  by at most ``mature_growth`` over ``mature_window_s``): partial maps of a symmetric or
   repetitive building match their mirror image as well as the truth or better (office, 60-90 s:
   the half-turned placement scored up to 1.7x the truth, with exact maps too);
 - of the unplaced robots that match in one round only the most decisive (highest rival ratio)
@@ -137,7 +135,6 @@ class Fleet:
             if self.reference == m.robot:
                 self.reference = None  # its old frame lives on only through the robots placed in it
         r.map, r.layer = m, None
-        r.heard(m.stamp_s, now_s)
         if r.first_map_s is None and len(m.seg):
             r.first_map_s = now_s
 

@@ -87,7 +87,7 @@ class Placer:
         overdue = 2.0 * self.cfg.retry_interval_s
 
         def rank(r: RobotState) -> tuple:
-            newest = -r.layer_s
+            newest = -r.lengths[-1][0] if r.lengths else 0.0
             return now_s - r.attempt_s < overdue, r.map.seq == r.attempt_seq, newest, r.order
 
         turn: set[int] = set()

@@ -44,12 +44,7 @@ class RobotState:
     pending: Alignment | None = None
     pending_count: int = 0
     pending_s: float = 0.0  # server time of the first verdict of the pending place
-    lengths: list[tuple[float, float]] = field(default_factory=list)  # (robot time, map length)
-    # the robot's clock: server time plus the largest lead its maps' stamps had on the server's
-    # clock when they came (a log replayed faster than it was recorded runs ahead; a clock that
-    # stands still or lags counts as the server's)
-    lead_s: float | None = None
-    layer_s: float = 0.0  # server time the layer was made (the newest map first: placing._turns)
+    lengths: list[tuple[float, float]] = field(default_factory=list)  # (server time, map length)
     graph: RobotGraph | None = None  # the map's pose graph (posegraph.RobotGraph), with the layer
     bent: RobotLayer | None = None  # the layer's rows in the global frame as the fleet's graph
     # moved them (None: the map is placed rigidly by its alignment's transform)
@@ -64,33 +59,19 @@ class RobotState:
         self.attempt_len_m, self.attempt_placed_m, self.attempt_placed_key = None, 0.0, ""
         self.attempt_seq = -1
         self.pending, self.pending_count = None, 0
-        self.lengths, self.lead_s = [], None
-
-    def heard(self, stamp_s: float, now_s: float) -> None:
-        """A map stamped ``stamp_s`` (the robot's clock) came at server time ``now_s``."""
-        lead = stamp_s - now_s
-        self.lead_s = lead if self.lead_s is None else max(self.lead_s, lead)
-
-    def clock(self, now_s: float) -> float:
-        """The robot's time at server time ``now_s``: how long its maps had to grow is counted in
-        it, so that a log replayed at ten times its speed matures as fast as it was recorded."""
-        return now_s + (self.lead_s or 0.0)
+        self.lengths = []
 
     def record_length(self, now_s: float, keep_s: float) -> None:
-        """Remember the layer's length now (robot time); forget what is older than ``keep_s`` but
-        the newest."""
-        t_now = self.clock(now_s)
-        self.layer_s = now_s
-        self.lengths.append((t_now, self.layer.length_m))
-        old = [i for i, (t, _) in enumerate(self.lengths) if t <= t_now - keep_s]
+        """Remember the layer's length now; forget what is older than ``keep_s`` but the newest."""
+        self.lengths.append((now_s, self.layer.length_m))
+        old = [i for i, (t, _) in enumerate(self.lengths) if t <= now_s - keep_s]
         if len(old) > 1:
             del self.lengths[: old[-1]]
 
     def mature(self, now_s: float, window_s: float, max_growth: float) -> bool:
-        """Whether the map grew by at most ``max_growth`` (a share) over the last ``window_s`` of
-        the robot's time; a map not seen that long is not mature."""
-        t_now = self.clock(now_s)
-        before = [length for t, length in self.lengths if t <= t_now - window_s]
+        """Whether the map grew by at most ``max_growth`` (a share) over the last ``window_s``;
+        a map not seen that long is not mature."""
+        before = [length for t, length in self.lengths if t <= now_s - window_s]
         if not before or self.layer is None:
             return False
         return self.layer.length_m <= (1.0 + max_growth) * before[-1]

@@ -197,23 +197,6 @@ def test_nothing_is_merged_while_the_maps_still_grow():
     assert fleet.robots["r1"].alignment.reason.startswith("waiting for mature maps")
 
 
-@pytest.mark.parametrize("stamped", [True, False])
-def test_maturity_is_counted_in_the_robots_time(stamped):
-    """A log replayed ten times faster than it was recorded: its maps' stamps run ahead of the
-    server's clock, and the 30 s a map must have stopped growing are 30 s of the robot's time
-    (3 s of the server's). Maps whose stamps stand still count in the server's time: the same
-    maps at the same server times are still young."""
-    fleet = Fleet(FleetConfig(), "srv")
-    for k, (stamp, duration) in enumerate(((0.0, 60.0), (30.0, 90.0), (45.0, 90.0), (62.0, 90.0))):
-        for i, name in enumerate(("r0", "r1")):
-            seg, _ = scan_map("office", i, duration)
-            m = robot_map_from_segments(seg, name, seq=k + 1)
-            fleet.put_map(dataclasses.replace(m, stamp_s=1000.0 + stamp if stamped else 5.0), stamp / 10.0)
-        fleet.fuse(stamp / 10.0)
-    reason = fleet.robots["r1"].alignment.reason
-    assert reason.startswith("waiting for mature maps") != stamped, reason
-
-
 def test_an_aligned_robot_follows_its_rebuilt_map(runs, fused):
     """An agent's back end rebuilds its map at the end of a run (the same walls, the frame error
     it drifted by removed): the server refines the aligned robot where it is when its map
