@@ -260,13 +260,13 @@ def run_seed(
 
         def checked():
             """contradiction.Check's arguments, as Placer.veto gives them."""
-            known = [(j, lj, area(j, t)) for j, lj in others if area(j, t) is not None]
-            theirs = [place_area(a, truth[names[j]]) for j, _, a in known]
+            seen = [(j, lj, a) for j, lj in others if (a := area(j, t)) is not None]
+            theirs = [place_area(a, truth[names[j]]) for j, _, a in seen]
             theirs = shrink(shapely.union_all(theirs), ccfg.margin_m) if theirs else None
             noise = placed_noise(
                 [
                     (own_noise(lj.seg, shrink(a, ccfg.margin_m), ccfg.step_m), truth[names[j]])
-                    for j, lj, a in known
+                    for j, lj, a in seen
                 ]
             )
             return layer(i, k).seg, shrink(area(i, t), ccfg.margin_m), merged, theirs, ccfg, noise
@@ -281,7 +281,7 @@ def run_seed(
     # evidence, in time order over every robot's maps: "chain" matches a robot against the
     # reference and the robots whose own evidence came before (what a server that placed each
     # robot as soon as its evidence was there would have placed); "all" against every other robot
-    found = {iref: 0.0}  # robot index -> its evidence time
+    found = {iref}  # the robots (indices) whose evidence came: the reference's is its own map
     ev = {i: dict(evidence_s=None, false_verdicts=0, false_after=0, first_false_s=None,
                   contradiction_true=[], contradiction_false=[], verdicts=[])
           for i, n in enumerate(names) if n != ref and known is None}  # fmt: skip
@@ -309,7 +309,7 @@ def run_seed(
             e["contradiction_true"].append(contradicted)
             if e["evidence_s"] is None:
                 e["evidence_s"] = t
-                found[i] = t
+                found.add(i)
 
     out = {}
     for i, n in enumerate(names):

@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.min_gap < 0:
         raise ValueError(f"--min-gap must be >= 0, got {args.min_gap}")
-    fleet_config(args.set)  # a bad override fails before the state is locked or the bus joined
+    fleet_cfg = fleet_config(args.set)  # a bad override fails before the state is locked or the bus joined
     lock = StateLock(args.state) if args.state else None  # first: a second server exits 2 at once
     if lock is not None and lock.stale:
         print(
@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     stop_on_signals(stop)
     try:
-        return _serve(args, stop, Store(args.state) if args.state else None)
+        return _serve(args, stop, Store(args.state) if args.state else None, fleet_cfg)
     finally:
         if lock is not None:
             lock.release()
@@ -60,7 +60,7 @@ def fleet_config(overrides: list[str]):
     return apply_overrides(FleetConfig(), overrides)
 
 
-def _serve(args: argparse.Namespace, stop: threading.Event, store) -> int:
+def _serve(args: argparse.Namespace, stop: threading.Event, store, fleet_cfg) -> int:
     from map_server.server import MapServer, ServerConfig
     from shared.bus import Bus, client_config
     from shared.keys import Keys
@@ -71,7 +71,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event, store) -> int:
             bus,
             Keys(args.fleet),
             ServerConfig(min_fuse_gap_s=args.min_gap),
-            fleet_cfg=fleet_config(args.set),
+            fleet_cfg=fleet_cfg,
             store=store,
             server_id=args.server_id,
         )

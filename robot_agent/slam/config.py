@@ -10,20 +10,13 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from robot_agent.slam.fastslam import SlamConfig
-from shared.config import ConfigError, replace_from
-from shared.config import apply_overrides as _apply
+from shared.config import ConfigError, apply_overrides, replace_from
 
 __all__ = ["ConfigError", "apply_overrides", "command_line_config", "config_from_dict"]
 
 
 def config_from_dict(values: Mapping[str, Any], base: SlamConfig | None = None) -> SlamConfig:
     return replace_from(base or SlamConfig(), values)
-
-
-def apply_overrides(cfg: SlamConfig, overrides: Iterable[str]) -> SlamConfig:
-    """Apply ``section.key=value`` strings (``particles=50`` for top-level keys). ``compiled=false``
-    sets every section's ``compiled`` (the numpy code instead of the compiled kernels)."""
-    return _apply(cfg, overrides)
 
 
 def command_line_config(overrides: Iterable[str] = (), particles: int | None = None) -> SlamConfig:
