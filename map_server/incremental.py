@@ -145,13 +145,15 @@ class MergedMap:
         self._edit(np.concatenate([empty, *old]), np.concatenate([empty, *new]))
         return True
 
-    def moved(self, g: np.ndarray, sources: list[Source]) -> None:
+    def moved(self, g: np.ndarray, sources: list[Source], relaid: frozenset = frozenset()) -> None:
         """Every source moved by the same rigid motion ``g (3,)`` to the transforms ``sources``
-        give (same layers): the components stay, the merged segments move by ``g``."""
+        give (same layers; those named in ``relaid`` may come as new layers of the same rows,
+        moved by ``g`` themselves): the components stay, the merged segments move by ``g``."""
         for s in sources:
             e = self._entries[s.key]
-            if e.layer is not s.layer:
-                raise ValueError(f"{s.key}: moved() takes the same layers")
+            if e.layer is not s.layer and (s.key not in relaid or len(e.layer) != len(s.layer)):
+                raise ValueError(f"{s.key}: moved() takes the same layers (or their rows moved: relaid)")
+            e.layer = s.layer
             e.transform = np.array(s.transform, float)
             self._place(e.nodes, s)
         self._g_seg = apply_segments(g, self._g_seg)
