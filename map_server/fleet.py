@@ -228,10 +228,12 @@ class Fleet:
             self._carry()
         return self._publish(now_s)
 
-    def bend(self) -> None:
+    def bend(self, stop: Callable[[], bool] | None = None) -> None:
         """The fleet's graph matched and solved (what :meth:`fuse` with ``bend`` does before
-        building the fused map); the next fusion publishes what it moved."""
-        self._bend()
+        building the fused map); the next fusion publishes what it moved. ``stop()`` (the server:
+        a map waits) cuts it short — one robot's keyframes matched and one iteration of the solve
+        at least; the rest stays due (``graph_stale``)."""
+        self._bend(stop)
 
     @property
     def graph_stale(self) -> bool:
@@ -240,7 +242,7 @@ class Fleet:
         keyframes (which may be due again where it moved them)."""
         if not self.cfg.graph.enabled:
             return False
-        if self._graph_moved or self.graph.pending:
+        if self._graph_moved or self.graph.pending or self.graph.unsolved:
             return True
         return self._bend_key(self._bend_placed()) != self._graph_key
 
@@ -257,16 +259,23 @@ class Fleet:
     def _carry(self) -> None:
         """A bent robot whose map changed since the graph's last solve: its new layer moved by the
         last solution (:meth:`FleetGraph.poses`: new keyframes carried by their neighbours'
-        correction) rather than its old layer kept, until the graph is solved again."""
+        correction) rather than its old layer kept, until the graph is solved again. One placed
+        elsewhere since (undone and placed again, revised far: what the graph forgets) is
+        merged rigidly where it is now, not bent where it was."""
         for r in self.placed():
-            if r.bent is None or r.bent_of is r.layer or r.graph is None or r.graph.rigid:
+            if r.bent is None or r.graph is None or r.graph.rigid:
                 continue
             p = _graph_item(r)
+            if self.graph.jumped(p):
+                r.bent = r.bent_x = r.bent_of = None
+                continue
+            if r.bent_of is r.layer:
+                continue
             x = self.graph.poses(p)
             r.bent = dataclasses.replace(r.layer, seg=self.graph.rows(p, x))
             r.bent_x, r.bent_of = x, r.layer
 
-    def _bend(self) -> None:
+    def _bend(self, stop: Callable[[], bool] | None = None) -> None:
         """The fleet's pose graph (posegraph.py) over the placed robots: constraints sought for
         this fusion's share of keyframes, the graph solved again when anything it holds changed,
         and each robot's rows moved with its keyframes where they moved (``moved_m`` /
@@ -285,13 +294,13 @@ class Fleet:
                 r.bent = r.bent_x = r.bent_of = None
             self._graph_key, self._graph_moved = self._bend_key(placed), False  # (nothing to solve)
             return
-        tried = self.graph.match(items)
+        tried = self.graph.match(items, stop)
         key = self._bend_key(placed)
-        self._graph_moved = bool(tried) or key != self._graph_key
+        self._graph_moved = bool(tried) or key != self._graph_key or self.graph.unsolved
         if not self._graph_moved:
             return
         self._graph_key = key
-        x = self.graph.solve(items)
+        x = self.graph.solve(items, stop)
         if not self.graph.stats.get("constraints_kept"):
             for r in placed:
                 r.bent = r.bent_x = r.bent_of = None

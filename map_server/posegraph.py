@@ -35,6 +35,7 @@ pose, ``P`` the robot's own).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -148,7 +149,8 @@ class FleetGraph:
     solution: dict = field(default_factory=dict)  # robot -> (graph, X (K,3)): the last solve
     constraints: dict = field(default_factory=dict)  # robot -> {keyframe id: Constraint}
     stats: dict = field(default_factory=dict)
-    pending: bool = False  # keyframes wait to be matched (more than one fusion's budget)
+    pending: bool = False  # keyframes wait to be matched (more than one fusion's budget, or cut short)
+    unsolved: bool = False  # the last solve was cut short (``stop``): solve again
     _matched: dict = field(default_factory=dict)  # robot -> Matched: its keyframes tried
     _placed_at: dict = field(default_factory=dict)  # robot -> its rigid placement at the last solve
 
@@ -158,21 +160,27 @@ class FleetGraph:
         placed elsewhere, or revised): its last solution and the constraints found where it was
         (its own, and the others' on it) would hold it there. Returns the robots forgotten. Called
         before :meth:`match` and :meth:`solve` with the same robots (they hold nothing of others)."""
-        cfg, now = self.cfg, {p.robot: p for p in placed}
+        now = {p.robot: p for p in placed}
 
         def kept(robot: str) -> bool:
-            p, was = now.get(robot), self._placed_at.get(robot)
-            if p is None or was is None:
-                return p is not None  # (placed, not solved yet: nothing held of it)
-            d = relative(was, p.transform)
-            near = np.hypot(d[0], d[1]) <= 2.0 * cfg.placement_sigma_m
-            return bool(near and abs(d[2]) <= 2.0 * cfg.placement_sigma_rad)
+            p = now.get(robot)
+            return p is not None and not self.jumped(p)
 
         held = set(self.solution) | set(self.constraints) | set(self._matched) | set(self._placed_at)
         out = sorted(robot for robot in held if not kept(robot))
         for robot in out:
             self.forget(robot)
         return out
+
+    def jumped(self, p: Placed) -> bool:
+        """Whether the robot's placement moved since the last solve by more than twice its
+        placement edge's sigma (False if not solved yet: nothing held of it)."""
+        was = self._placed_at.get(p.robot)
+        if was is None:
+            return False
+        d = relative(was, p.transform)
+        near = np.hypot(d[0], d[1]) <= 2.0 * self.cfg.placement_sigma_m
+        return not (near and abs(d[2]) <= 2.0 * self.cfg.placement_sigma_rad)
 
     def forget(self, robot: str) -> None:
         """Drop the robot's solution, its constraints and the others' constraints on it (their
@@ -277,9 +285,10 @@ class FleetGraph:
             out.append((cand[order], wide))
         return out
 
-    def match(self, placed: list[Placed]) -> int:
+    def match(self, placed: list[Placed], stop: Callable[[], bool] | None = None) -> int:
         """Seek constraints for the keyframes due (:meth:`_due`), at most ``budget_keyframes``
-        of them, the robots in turn; how many were tried."""
+        of them, the robots in turn (no robot after the first once ``stop()`` says so: the rest
+        stay due); how many were tried."""
         cfg = self.cfg
         self.pending = False
         if len(placed) < 2:
@@ -306,6 +315,8 @@ class FleetGraph:
             for c in found:
                 cons[c.b_id] = c
             tried += len(ks)
+            if stop is not None and stop():
+                break
         self.pending = tried < total
         self.stats["matched_keyframes"] = self.stats.get("matched_keyframes", 0) + tried
         return tried
@@ -394,8 +405,10 @@ class FleetGraph:
 
     # -- the solve -----------------------------------------------------------------------------
 
-    def solve(self, placed: list[Placed]) -> dict[str, np.ndarray]:
-        """Every placed robot's keyframes in the global frame (robot -> X (K,3)), solved together."""
+    def solve(self, placed: list[Placed], stop: Callable[[], bool] | None = None) -> dict[str, np.ndarray]:
+        """Every placed robot's keyframes in the global frame (robot -> X (K,3)), solved together;
+        one Gauss-Newton iteration at least, no further one once ``stop()`` says so (``unsolved``:
+        the next solve goes on from there)."""
         cfg = self.cfg
         start, x0 = {}, [np.zeros((1, 3))]
         n = 1
@@ -446,11 +459,15 @@ class FleetGraph:
         z, info = np.vstack(z), np.concatenate(info)
         keep = np.ones(len(a), bool)
         x = x0
+        self.unsolved = False
         for _round in range(3):
             x = posegraph.optimize(
                 x0, a[keep], b[keep], z[keep], info[keep], iterations=cfg.iterations, tol=cfg.tol,
-                robust_from=int(keep[:robust_from].sum()), robust_k=cfg.robust_k,
+                robust_from=int(keep[:robust_from].sum()), robust_k=cfg.robust_k, stop=stop,
             )  # fmt: skip
+            if stop is not None and stop():
+                self.unsolved = True  # (maybe converged: the next solve says so cheaply)
+                break
             if not cons:
                 break
             r = relative(x[a[robust_from:]], x[b[robust_from:]]) - z[robust_from:]

@@ -342,10 +342,14 @@ class MapServer:
         if time.monotonic() - self._bend_s < self.cfg.graph_every_s:
             return
         t0 = time.perf_counter()
-        self.fleet.bend()
+        self.fleet.bend(stop=self._map_waits)  # (cut short for a map: the rest in the next bend)
         self._bend_s = time.monotonic()
         self._bent = True
         self.bend_ms.append((time.perf_counter() - t0) * 1e3)
+
+    def _map_waits(self) -> bool:
+        with self._lock:
+            return bool(self._maps)
 
     @property
     def owes(self) -> bool:
