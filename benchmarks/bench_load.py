@@ -394,6 +394,9 @@ def span_figures(run: LoadRun, lo: float, hi: float, t_put: np.ndarray, lat: np.
         "fuse_p50_ms": _pct(f["server_fuse_ms_last"][u], 50),
         "fuse_p95_ms": _pct(f["server_fuse_ms_last"][u], 95),
         "fuse_max_ms": _max(f["server_fuse_ms_last"][u]),
+        # the fleet graph's matching and solve, after the fused map is out (not in fuse_*)
+        "graph_p50_ms": _pct(f["server_bend_ms_last"][u], 50) if "server_bend_ms_last" in f else None,
+        "graph_p95_ms": _pct(f["server_bend_ms_last"][u], 95) if "server_bend_ms_last" in f else None,
         "latency_p50_ms": _pct(lat[p] * 1e3, 50),
         "latency_p95_ms": _pct(lat[p] * 1e3, 95),
         "latency_max_ms": _max(lat[p] * 1e3),
@@ -552,6 +555,7 @@ WINDOW_COLUMNS = {
     "t_s": "t s", "maps_put_per_s": "maps put/s", "fused_per_s": "fused/s", "queue_maps_mean": "queue maps",
     "queue_maps_max": "q maps max", "queue_poses_max": "q poses max", "maps_per_fusion": "maps/fusion",
     "fuse_p50_ms": "fuse p50", "fuse_p95_ms": "fuse p95", "fuse_max_ms": "fuse max",
+    "graph_p50_ms": "graph p50", "graph_p95_ms": "graph p95",
     "latency_p50_ms": "lat p50", "latency_p95_ms": "lat p95", "server_rss_mb": "server MB",
     "server_cpu_pct": "server %cpu", "router_rss_mb": "router MB", "others_cpu_pct": "others %cpu",
     "load1": "load1",
