@@ -223,17 +223,10 @@ class Fleet:
         if self.frame == "prior":
             self._hold_prior_gauge()
         if bend:
-            self._bend()
+            self.bend()
         else:
             self._carry()
         return self._publish(now_s)
-
-    def bend(self, stop: Callable[[], bool] | None = None) -> None:
-        """The fleet's graph matched and solved (what :meth:`fuse` with ``bend`` does before
-        building the fused map); the next fusion publishes what it moved. ``stop()`` (the server:
-        a map waits) cuts it short — one robot's keyframes matched and one iteration of the solve
-        at least; the rest stays due (``graph_stale``)."""
-        self._bend(stop)
 
     @property
     def graph_stale(self) -> bool:
@@ -275,11 +268,15 @@ class Fleet:
             r.bent = dataclasses.replace(r.layer, seg=self.graph.rows(p, x))
             r.bent_x, r.bent_of = x, r.layer
 
-    def _bend(self, stop: Callable[[], bool] | None = None) -> None:
+    def bend(self, stop: Callable[[], bool] | None = None) -> None:
         """The fleet's pose graph (posegraph.py) over the placed robots: constraints sought for
         this fusion's share of keyframes, the graph solved again when anything it holds changed,
         and each robot's rows moved with its keyframes where they moved (``moved_m`` /
-        ``moved_rad``). Without a constraint between robots every map stays rigid."""
+        ``moved_rad``). Without a constraint between robots every map stays rigid. :meth:`fuse`
+        runs it before building the fused map unless told not to (the server runs it after
+        publishing: the next fusion publishes what it moved). ``stop()`` (the server: a map waits)
+        cuts it short — one robot's keyframes matched and one iteration of the solve at least;
+        the rest stays due (``graph_stale``)."""
         cfg = self.cfg.graph
         placed = self._bend_placed()
         items = [_graph_item(r) for r in placed]
