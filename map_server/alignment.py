@@ -40,6 +40,7 @@ import numpy as np
 from map_server import candidates as cand
 from map_server.candidates import Scored
 from map_server.config import AlignmentConfig
+from map_server.contradiction import Check
 from map_server.registration import MapIndex, Samples, refine
 from shared.geometry import compose, segment_lengths, transform_points, wrap_angle
 from shared.messages import ALIGNMENT_STATUSES
@@ -52,7 +53,10 @@ class Alignment:
     """A verdict on one robot's frame. ``transform (3,)`` maps its map frame into the global frame
     (for ``unaligned``: the rejected best candidate, for diagnostics), ``sigma (3,)`` [m, m, rad],
     ``score_m`` verified overlap length, ``inlier_share`` its share of the robot map's length,
-    ``rival_ratio`` net score over the best distinct rival's, ``reason`` why accepted or rejected."""
+    ``rival_ratio`` net score over the best distinct rival's, ``reason`` why accepted or rejected.
+    A search's place checked against the free space seen (``veto``: contradiction.Check) carries
+    ``contradicted_m``, its walls where free space was seen (both ways), and ``seen_m2``, the
+    free space both sides saw there (policy.quiet); None and 0 when not checked."""
 
     status: str
     transform: np.ndarray
@@ -61,6 +65,8 @@ class Alignment:
     inlier_share: float = 0.0
     rival_ratio: float = 0.0
     reason: str = ""
+    contradicted_m: float | None = None
+    seen_m2: float = 0.0
 
     def __post_init__(self) -> None:
         if self.status not in ALIGNMENT_STATUSES:
@@ -190,6 +196,31 @@ def _set_aside(
     return [c for c in cands if id(c) not in gone], aside, len(contradicted)
 
 
+def _rivals_aside(
+    best: Scored, cands: list[Scored], veto, points: np.ndarray, cfg: AlignmentConfig, budget: int
+) -> tuple[list[Scored], list[tuple[Scored, str]]]:
+    """While the best distinct rival keeps ``best`` below ``min_rival_ratio``, the rival is checked
+    by ``veto``; a contradicted one (and the candidates at its place) is set aside, at most
+    ``budget`` places checked. A symmetric building's true place often ties with a mirror image
+    that the free space seen rules out (the simulated warehouse: rival ratios 1.000-1.02 at the end
+    of a run, the rival half-turned). Returns the candidates left and those set aside with why."""
+    aside = []
+    for _ in range(max(budget, 0)):
+        far = [c for c in cands if cand.mean_displacement(c.pose, best.pose, points) > cfg.distinct_m]
+        if not far:
+            break
+        r = max(far, key=lambda s: s.net)
+        if best.net >= cfg.min_rival_ratio * r.net:
+            break
+        why = veto(r.pose, r.matched_m)
+        if why is None:
+            break
+        gone = [c for c in far if cand.mean_displacement(c.pose, r.pose, points) <= cfg.distinct_m]
+        aside += [(c, why) for c in gone]
+        cands = [c for c in cands if all(c is not g for g in gone)]
+    return cands, aside
+
+
 def _accept_best(cands: list[Scored], robot_seg, index, robot, total, cfg, veto=None) -> Alignment:
     set_aside = []
     if veto is not None:
@@ -199,17 +230,25 @@ def _accept_best(cands: list[Scored], robot_seg, index, robot, total, cfg, veto=
             reason = f"rejected: the best {distinct} distinct places contradicted (best: {why})"
             return _verdict("unaligned", s, total, 1.0, reason)
     best = max(cands, key=lambda s: s.net)
+    rivals_aside = []
+    if veto is not None:  # a rival too close to call is checked too: a contradicted one is no rival
+        cands, rivals_aside = _rivals_aside(best, cands, veto, robot.points, cfg, MAX_VETOED - distinct)
     ratio = best.net / max(cand.rival(best, cands, robot.points, cfg.distinct_m), 1e-9)
     problems = _problems(best, total, index, robot, robot_seg, cfg)
     if ratio < cfg.min_rival_ratio:
         problems.append(f"rival ratio {ratio:.3f} < {cfg.min_rival_ratio:g}")
     aside = f"; {len(set_aside)} better-scored place(s) contradicted ({set_aside[0][1]})" if set_aside else ""
+    if rivals_aside:
+        aside += f"; {len(rivals_aside)} rival place(s) contradicted ({rivals_aside[0][1]})"
     if problems:
         return _verdict("unaligned", best, total, ratio, "rejected: " + "; ".join(problems) + aside)
     why = (
         f"overlap {best.matched_m:.1f} m ({best.matched_m / total:.0%}), {ratio:.2f}x the best rival" + aside
     )
-    return _verdict("aligned", best, total, ratio, "matched: " + why)
+    a = _verdict("aligned", best, total, ratio, "matched: " + why)
+    if isinstance(veto, Check):  # what the free space seen says of the place (policy.quiet)
+        a = dataclasses.replace(a, contradicted_m=veto.contradicted_m(best.pose), seen_m2=veto.seen_m2(best.pose))
+    return a
 
 
 def _revise(

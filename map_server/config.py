@@ -154,6 +154,17 @@ class FleetConfig:
     # (placed at 125-170 s), one with 0.4; warehouse: maps never mature below 0.15
     mature_window_s: float = 30.0
     mature_growth: float = 0.25
+    # ... unless nothing contradicts the place found: a verdict on young maps counts (confirmed as
+    # any) when at most this much wall falls where free space was seen (both ways) ...
+    young_max_contradicted_m: float = 0.0
+    # ... over at least this much free space both sides saw there (bench_merge, office and
+    # warehouse, 10 seeds: every mirror image before maturity contradicted 0.1-9 m, the true places
+    # 0 in 9 of 10 verdicts, over 36-225 m2 seen by both). Negative: young maps wait for maturity
+    young_min_seen_m2: float = 20.0
+    # ... and such an attempt is made at most this often a robot (a young map grows fast: a real
+    # log's piece was searched every 0.5-2 s, 0.3-1 s a search, and its verdicts are never quiet:
+    # a real map contradicts itself); once the maps are mature the robot is attempted at once
+    young_retry_s: float = 5.0
     # retired pieces (module docstring) kept per robot: a robot that keeps restarting re-maps the
     # same places, so the oldest piece is mostly covered by the newer ones; bounds memory and state
     max_retired: int = 3

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
+from map_server.freespace import place_area
 from shared.geometry import apply_points, apply_segments, inverse, sample_segments
 
 
@@ -144,6 +145,7 @@ class Check:
             placed_noise if placed_noise is not None else (np.zeros((0, 2)), np.zeros(0))
         )
         self._reach = None  # the robot's map and free space: its box in its frame
+        self._last: tuple[np.ndarray, float] | None = None  # the last place measured, and its metres
         boxes = [robot_seg.reshape(-1, 2)] if len(robot_seg) else []
         if robot_free is not None:
             boxes.append(np.reshape(robot_free.bounds, (2, 2)))
@@ -153,9 +155,19 @@ class Check:
             self._reach = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
 
     def contradicted_m(self, pose: np.ndarray) -> float:
-        return contradiction_m(
-            pose, self.robot_seg, self.robot_free, self.placed_seg, self.placed_free, self.cfg
-        )
+        pose = np.asarray(pose, float)
+        if self._last is not None and np.array_equal(self._last[0], pose):
+            return self._last[1]  # (the place just checked: a search's best is measured again)
+        m = contradiction_m(pose, self.robot_seg, self.robot_free, self.placed_seg, self.placed_free, self.cfg)
+        self._last = (pose.copy(), m)
+        return m
+
+    def seen_m2(self, pose: np.ndarray) -> float:
+        """The area both sides saw free (as :func:`shrink` gives it) with the robot's map frame at
+        ``pose``: where a wrong place could have been contradicted at all (0: either is unknown)."""
+        if self.robot_free is None or self.placed_free is None:
+            return 0.0
+        return float(shapely.intersection(place_area(self.robot_free, pose), self.placed_free).area)
 
     def noise_m(self, pose: np.ndarray) -> float:
         """What the robot and the placed robots within its reach at ``pose`` contradict

@@ -257,7 +257,19 @@ class Placer:
                 continue  # a refinement whose turn comes in a later fusion (or not due)
             prior = r.map.prior if self.fleet.frame == "prior" and not r.map.joined else None
             placed_m, key = key_of(r)
-            if not r.due(self.cfg, placed_m, key, now_s, urgent):
+            young = prior is None and not r.alignment.placed and not policy.mature(
+                [r, *(p for p in placed if p is not r)], now_s, self.cfg
+            )
+            if young and (self.cfg.young_max_contradicted_m < 0.0 or (
+                r.young_s is not None and now_s - r.young_s < self.cfg.young_retry_s
+            )):  # fmt: skip
+                if r.alignment.score_m == 0.0:  # no candidate to report yet: say why
+                    r.alignment = Alignment(
+                        "unaligned", np.zeros(3), np.zeros(3), reason=policy.waiting(self.cfg)
+                    )
+                continue  # a young map's match is not evidence yet (unless quiet: below)
+            matured = r.young_s is not None and not young  # (attempted young: at once when mature)
+            if not r.due(self.cfg, placed_m, key, now_s, urgent) and not matured:
                 continue
             key = key()
             if r.map.joined and not r.alignment.placed and placed:  # it found itself in the fused map
@@ -271,16 +283,19 @@ class Placer:
                     now_placed()
                     continue
                 # not verified: matched as any robot (below)
-            others = [p for p in placed if p is not r]
-            if prior is None and not r.alignment.placed and not policy.mature([r, *others], now_s, self.cfg):
-                if r.alignment.score_m == 0.0:  # no candidate to report yet: say why
-                    r.alignment = Alignment(
-                        "unaligned", np.zeros(3), np.zeros(3), reason=policy.waiting(self.cfg)
-                    )
-                continue  # not even attempted: a young map's match is not evidence yet
             current = r.alignment if r.alignment.status == "aligned" else None
             sigma = r.map.prior_sigma if prior is not None else None
             a = self.estimate(r, prior, sigma, current, search=current is None or r.grew(self.cfg))
+            r.young_s = now_s if young else None
+            if young and a.status == "aligned" and not policy.quiet(a, self.cfg):
+                # a young map's match is not evidence yet, unless nothing contradicts it
+                found = f"the place found ({a.reason.removeprefix('matched: ')})"
+                if a.contradicted_m is None:
+                    found += " not checked against the free space seen"
+                else:
+                    found += f": {a.contradicted_m:.1f} m of wall contradicted over {a.seen_m2:.0f} m2 seen by both"
+                why = f"{policy.waiting(self.cfg)}; {found}"
+                a = dataclasses.replace(a, status="unaligned", reason=why)
             if not r.alignment.placed or a.status != r.alignment.status:  # why a robot is (not) placed
                 log.info("%s: attempt at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
             if a.status == "aligned" and not r.alignment.placed:

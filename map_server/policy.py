@@ -1,6 +1,7 @@
 """The merge policy: when a robot's alignment verdict is acted on. Conservative, since a wrong
 merge ruins the fused map while "unaligned" only delays it (fleet.py's module docstring): a robot
-without a prior is matched only once the maps involved are mature, and a new place (or a
+without a prior is matched only once the maps involved are mature (or, before, when nothing the
+robots saw contradicts the place found: ``quiet``), and a new place (or a
 revision of one) counts only once ``confirmations`` attempts in a row put the robot there. The
 rounds (placing.py) decide *which* robots get an attempt and in what order (the most decisive
 first); this module decides what an attempt's verdict means."""
@@ -26,6 +27,20 @@ def mature(robots: list[RobotState], now_s: float, cfg: FleetConfig) -> bool:
     """Whether every one of ``robots``' maps grew by at most ``mature_growth`` over the last
     ``mature_window_s`` (a young map's match is not evidence yet)."""
     return all(r.mature(now_s, cfg.mature_window_s, cfg.mature_growth) for r in robots)
+
+
+def quiet(a: Alignment, cfg: FleetConfig) -> bool:
+    """Whether a verdict found on young maps counts all the same: its place is checked against
+    the free space seen, where both sides saw enough of it, and nothing contradicts it. A mirror
+    image of a young map matches as well as the truth but puts some wall where a laser saw through
+    (contradiction.py); a real map contradicts itself anyway (a door open once, people), so its
+    verdicts wait for maturity."""
+    return (
+        cfg.young_max_contradicted_m >= 0.0
+        and a.contradicted_m is not None
+        and a.contradicted_m <= cfg.young_max_contradicted_m
+        and a.seen_m2 >= cfg.young_min_seen_m2
+    )
 
 
 def moved(r: RobotState, a: Alignment, b: Alignment, cfg: FleetConfig) -> bool:

@@ -44,6 +44,8 @@ class RobotState:
     pending: Alignment | None = None
     pending_count: int = 0
     pending_s: float = 0.0  # server time of the first verdict of the pending place
+    young_s: float | None = None  # server time of the last attempt made before the maps were
+    # mature (policy.quiet), None once one is made on mature maps
     lengths: list[tuple[float, float]] = field(default_factory=list)  # (server time, map length)
     graph: RobotGraph | None = None  # the map's pose graph (posegraph.RobotGraph), with the layer
     bent: RobotLayer | None = None  # the layer's rows in the global frame as the fleet's graph
@@ -59,6 +61,7 @@ class RobotState:
         self.attempt_len_m, self.attempt_placed_m, self.attempt_placed_key = None, 0.0, ""
         self.attempt_seq = -1
         self.pending, self.pending_count = None, 0
+        self.young_s = None
         self.lengths = []
 
     def record_length(self, now_s: float, keep_s: float) -> None:
@@ -183,9 +186,9 @@ def retired_blob(robot: str, session: str) -> str:
 _SCALARS = (
     "order", "online", "aligned_at_s", "first_map_s", "attempt_len_m", "attempt_placed_m",
     "attempt_placed_key", "attempt_s", "attempt_seq",
-    "pending_count", "pending_s",
+    "pending_count", "pending_s", "young_s",
 )  # fmt: skip
-_ADDED = {"attempt_seq": -1, "pending_s": 0.0}  # fields newer than some snapshots: their value when missing
+_ADDED = {"attempt_seq": -1, "pending_s": 0.0, "young_s": None}  # fields newer than some snapshots: their value when missing
 
 
 def _floats(a: np.ndarray) -> list[float]:
@@ -196,6 +199,7 @@ def alignment_to_dict(a: Alignment) -> dict:
     return dict(
         status=a.status, transform=_floats(a.transform), sigma=_floats(a.sigma), score_m=float(a.score_m),
         inlier_share=float(a.inlier_share), rival_ratio=float(a.rival_ratio), reason=a.reason,
+        contradicted_m=None if a.contradicted_m is None else float(a.contradicted_m), seen_m2=float(a.seen_m2),
     )  # fmt: skip
 
 
@@ -203,4 +207,5 @@ def alignment_from_dict(d: dict) -> Alignment:
     return Alignment(
         d["status"], np.array(d["transform"], float), np.array(d["sigma"], float), float(d["score_m"]),
         float(d["inlier_share"]), float(d["rival_ratio"]), str(d["reason"]),
+        d.get("contradicted_m"), float(d.get("seen_m2", 0.0)),
     )  # fmt: skip

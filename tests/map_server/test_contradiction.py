@@ -177,3 +177,92 @@ def test_a_contradicted_place_found_many_times_over_counts_once():
     left, aside, distinct = alignment._set_aside([*copies, *others, truth], veto, points, 0.5)
     assert left == [truth] and len(aside) == 11 and distinct == 4  # the mirror once, 3 others
     assert len(checked) == 5  # 4 contradicted places and the truth, not the mirror's 7 copies
+
+
+def test_a_search_verdict_says_what_the_free_space_seen_says_of_its_place():
+    """Exact office maps: robot 2's map at 70 s is found at its truth in robot 0's, nothing
+    contradicts it over ~95 m2 both saw; robot 1's at 60 s matches robot 0's best half-turned (9 m
+    off, 1.46x the best rival: a young map's mirror image), and some of its walls stand where
+    robot 0 saw free space (measured 0.86 m) — too little for the veto (max_m), not nothing."""
+    from map_server import policy
+    from map_server.config import FleetConfig
+
+    args, truth = exact_pair("office", 0, 2, 70.0)
+    a = estimate_alignment(args[0], args[2], CFG, veto=cd.Check(*args))
+    assert a.status == "aligned" and transform_error(a.transform, truth)[0] < 0.05, a.reason
+    assert a.contradicted_m == 0.0 and a.seen_m2 > 50.0
+    assert policy.quiet(a, FleetConfig())
+    args, truth = exact_pair("office", 0, 1, 60.0)
+    m = estimate_alignment(args[0], args[2], CFG, veto=cd.Check(*args))
+    assert m.status == "aligned" and transform_error(m.transform, truth)[0] > 5.0, m.reason
+    assert 0.3 < m.contradicted_m < CC.max_m and m.seen_m2 > 20.0
+    assert not policy.quiet(m, FleetConfig())
+    # unchecked (no free space known), or checked over too little free space: not quiet
+    assert estimate_alignment(args[0], args[2], CFG).contradicted_m is None
+    cfg = FleetConfig()
+    assert not policy.quiet(dataclasses.replace(a, contradicted_m=None), cfg)
+    assert not policy.quiet(dataclasses.replace(a, seen_m2=cfg.young_min_seen_m2 - 1.0), cfg)
+    assert not policy.quiet(a, dataclasses.replace(cfg, young_max_contradicted_m=-1.0))  # off
+
+
+@pytest.mark.parametrize("young", [True, False])
+def test_young_maps_are_placed_when_nothing_contradicts_them(young):
+    """The fleet, no priors, exact office maps fed for 20 s (never mature: the window is 30 s):
+    robot 2, whose place nothing contradicts, is placed at its truth at once (its second attempt
+    confirms it); robot 1, whose young map's best place is the half-turned mirror image with a
+    little wall in robot 0's free space, is not placed — it waits for maturity. With the quiet
+    test off (``young_max_contradicted_m`` < 0) neither is even attempted."""
+    from map_server.config import FleetConfig
+    from map_server.fleet import Fleet
+    from tests.map_server.robots import robot_map_from_segments
+
+    cfg = FleetConfig(young_max_contradicted_m=0.0 if young else -1.0)
+    maps = {i: scan_map("office", i, t) for i, t in ((0, 70.0), (1, 60.0), (2, 70.0))}
+    areas = {i: scan_free("office", i, t) for i, t in ((0, 70.0), (1, 60.0), (2, 70.0))}
+    for b in (1, 2):
+        fleet = Fleet(cfg, "srv")
+        fleet.free_of = lambda robot, session: areas[int(robot[1])]
+        for k, t in enumerate(np.arange(0.0, 21.0, 2.0)):
+            for i in (0, b):
+                seg = maps[i][0] if k else maps[i][0][: len(maps[i][0]) // 2]  # (grown once: due again)
+                fleet.put_map(robot_map_from_segments(seg, f"r{i}", seq=k + 1), t)
+            fleet.fuse(t)
+        assert fleet.reference == "r0"
+        a = fleet.robots[f"r{b}"].alignment
+        if not young:
+            assert not a.placed and a.reason.startswith("waiting for mature maps"), a.reason
+        elif b == 1:
+            assert not a.placed and a.reason.startswith("waiting for mature maps"), a.reason
+            assert "m of wall contradicted over" in a.reason and transform_error(a.transform, maps[1][1])[0] > 5.0
+        else:
+            truth = compose(inverse(maps[0][1]), maps[2][1])
+            assert a.placed and transform_error(a.transform, truth)[0] < 0.05, a.reason
+
+
+def test_a_rival_too_close_to_call_is_checked_and_a_contradicted_one_is_no_rival():
+    """The best place ties with a distinct rival (a symmetric building's mirror image): the rival
+    is checked; contradicted, it (and the candidates at its place) is set aside and the next
+    distinct rival counts; a rival that is not contradicted stays and keeps the ratio low; a rival
+    far enough behind is not even checked."""
+    from map_server import alignment
+    from map_server.candidates import Scored
+
+    points = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 3.0]])
+    best = Scored(np.zeros(3), 100.0, 0.0, 100.0, None)
+    mirror = [Scored(np.array([10.0 + 0.01 * k, 0.0, np.pi]), 99.0, 0.0, 99.0 - k, None) for k in range(3)]
+    other = Scored(np.array([-20.0, 5.0, 0.0]), 60.0, 0.0, 60.0, None)
+    checked = []
+
+    def veto(pose, matched_m):
+        checked.append(np.asarray(pose).copy())
+        return "contradicted" if pose[2] == np.pi else None
+
+    left, aside = alignment._rivals_aside(best, [best, *mirror, other], veto, points, CFG, 20)
+    assert left == [best, other] and len(aside) == 3 and len(checked) == 1  # the mirror once
+    checked.clear()
+    left, aside = alignment._rivals_aside(best, [best, other], lambda p, m: checked.append(p), points, CFG, 20)
+    assert left == [best, other] and aside == [] and checked == []  # 100 / 60: far enough behind
+    close = Scored(np.array([-20.0, 5.0, 0.0]), 98.0, 0.0, 98.0, None)
+    left, aside = alignment._rivals_aside(best, [best, close], lambda p, m: None, points, CFG, 20)
+    assert left == [best, close] and aside == []  # checked, not contradicted: it stays a rival
+    assert alignment._rivals_aside(best, [best, *mirror], veto, points, CFG, 0)[1] == []  # no budget

@@ -302,3 +302,24 @@ def test_a_settle_spread_over_fusions_ends_where_one_in_one_fusion_does(runs, fu
     for n in ROBOTS:
         err_m, err_deg = transform_error(spread[n], at_once[n])
         assert err_m < 1e-4 and err_deg < 1e-3, (n, err_m, err_deg)  # measured 2 um
+
+
+def test_a_robot_state_keeps_its_young_attempt_and_its_verdicts_free_space_check():
+    """RobotState.young_s (an attempt made on young maps: policy.quiet) and an alignment's
+    contradicted_m / seen_m2 survive a snapshot; a snapshot from before them restores None / 0."""
+    from map_server.alignment import Alignment
+    from map_server.state import RobotState
+
+    a = Alignment("unaligned", np.ones(3), np.zeros(3), 40.0, 0.3, 1.4, "waiting", 0.7, 55.0)
+    r = RobotState("r1", 0, alignment=a, pending=a, young_s=12.5)
+    d = json.loads(json.dumps(r.to_dict(), allow_nan=False))
+    back = RobotState.from_dict("r1", d, None)
+    assert back.young_s == 12.5
+    assert (back.alignment.contradicted_m, back.alignment.seen_m2) == (0.7, 55.0)
+    assert back.pending.contradicted_m == 0.7
+    for k in ("young_s",):
+        del d[k]
+    for x in (d["alignment"], d["pending"]):
+        del x["contradicted_m"], x["seen_m2"]
+    old = RobotState.from_dict("r1", d, None)
+    assert old.young_s is None and old.alignment.contradicted_m is None and old.alignment.seen_m2 == 0.0

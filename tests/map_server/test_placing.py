@@ -122,3 +122,34 @@ def test_a_free_space_is_shrunk_once_while_it_is_the_same(monkeypatch):
     for k in range(40):
         f.placer._shrink(shapely.box(0.0, 0.0, 10.0 + k, 5.0))
     assert len(f.placer._shrunk) <= 2 * (len(f.robots) + len(f.pieces())) + 8
+
+
+def test_a_young_map_is_attempted_at_most_every_young_retry_s_and_at_once_when_mature(monkeypatch):
+    """Before the maps are mature a robot is searched at most every ``young_retry_s`` (a young map
+    grows fast; its verdict counts only when quiet); when they become mature it is searched at
+    once, though its map did not change since (a verdict refused for youth is not its last word)."""
+    from tests.map_server.robots import scan_free
+
+    cfg = FleetConfig()
+    f = Fleet(cfg, "server")
+    areas = {"robot0": scan_free("office", 0, 60.0), "robot1": scan_free("office", 1, 60.0)}
+    f.free_of = lambda robot, session: areas[robot]
+    maps = {"robot0": scan_map("office", 0, 60.0)[0], "robot1": scan_map("office", 1, 60.0)[0]}
+    searched, clock, estimate = [], [0.0], f.placer.estimate
+
+    def recorded(r, *a, **k):
+        searched.append(clock[0])
+        return estimate(r, *a, **k)
+
+    monkeypatch.setattr(f.placer, "estimate", recorded)
+    for k, t in enumerate(np.arange(0.0, 60.0, 1.0)):
+        for name, seg in maps.items():  # the maps grow every second until 20 s, then not
+            n = len(seg) if t >= 20.0 else max(1, int(len(seg) * (0.5 + t / 40.0)))
+            f.put_map(robot_map_from_segments(seg[:n], name, seq=min(k, 20) + 1), t)
+        clock[0] = t
+        f.fuse(t)
+    r = f.robots["robot1"]
+    mature_at = next(t for t in np.arange(20.0, 60.0, 1.0) if r.mature(t, cfg.mature_window_s, cfg.mature_growth))
+    young = [t for t in searched if t < mature_at]
+    assert len(young) >= 3 and np.diff(young).min() >= cfg.young_retry_s, searched
+    assert mature_at in searched, (mature_at, searched)  # the map unchanged since 20 s, and searched
