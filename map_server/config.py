@@ -165,6 +165,12 @@ class FleetConfig:
     # log's piece was searched every 0.5-2 s, 0.3-1 s a search, and its verdicts are never quiet:
     # a real map contradicts itself); once the maps are mature the robot is attempted at once
     young_retry_s: float = 5.0
+    # ... and only while its own walls stand in its own free space by at most this much (m): a map
+    # that contradicts itself (a real log's piece: 3-8 m by 11 s of ACES, doors, people, its bent
+    # path) will not be found quiet against another, and its searches cost the server (and, on
+    # one machine, the agents: Intel and ACES in 3 pieces merged a piece wrongly when its maps grew
+    # slower and matured early); the simulated maps contradict themselves by 0-1 m
+    young_max_self_m: float = 1.0
     # retired pieces (module docstring) kept per robot: a robot that keeps restarting re-maps the
     # same places, so the oldest piece is mostly covered by the newer ones; bounds memory and state
     max_retired: int = 3

@@ -179,6 +179,16 @@ class Placer:
             return None
         return contradiction.Check(r.layer.seg, own, placed_map, theirs, cc, noise)
 
+    def own_noise_m(self, r: RobotState) -> float | None:
+        """How much of ``r``'s walls stand in its own free space (contradiction.own_noise), or None
+        when its free space is not known (or the check is off)."""
+        if self.fleet.free_of is None or not self.cfg.contradiction.enabled:
+            return None
+        own = self._shrink(self.fleet.free_of(r.robot, r.map.session))
+        if own is None:
+            return None
+        return float(contradiction.own_noise(r.layer.seg, own, self.cfg.contradiction.step_m)[1].sum())
+
     def _shrink(self, area):
         """contradiction.shrink of a robot's free space, kept while it is the same object: a free
         space of a real log's 361-beam scans (7,000-12,000 vertices) takes 2-10 s to shrink, and
@@ -268,6 +278,11 @@ class Placer:
                         "unaligned", np.zeros(3), np.zeros(3), reason=policy.waiting(self.cfg)
                     )
                 continue  # a young map's match is not evidence yet (unless quiet: below)
+            if young and ((noisy := self.own_noise_m(r)) is None or noisy > self.cfg.young_max_self_m):
+                r.young_s = now_s  # (looked at again after young_retry_s)
+                why = "its free space is not known" if noisy is None else f"its map contradicts itself by {noisy:.1f} m"
+                r.alignment = dataclasses.replace(r.alignment, reason=f"{policy.waiting(self.cfg)}; {why}")
+                continue  # it would not be quiet: searched once the maps are mature
             matured = r.young_s is not None and not young  # (attempted young: at once when mature)
             if not r.due(self.cfg, placed_m, key, now_s, urgent) and not matured:
                 continue
