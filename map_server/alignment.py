@@ -247,7 +247,9 @@ def _accept_best(cands: list[Scored], robot_seg, index, robot, total, cfg, veto=
     )
     a = _verdict("aligned", best, total, ratio, "matched: " + why)
     if isinstance(veto, Check):  # what the free space seen says of the place (policy.quiet)
-        a = dataclasses.replace(a, contradicted_m=veto.contradicted_m(best.pose), seen_m2=veto.seen_m2(best.pose))
+        a = dataclasses.replace(
+            a, contradicted_m=veto.contradicted_m(best.pose), seen_m2=veto.seen_m2(best.pose)
+        )
     return a
 
 

@@ -158,7 +158,9 @@ class Check:
         pose = np.asarray(pose, float)
         if self._last is not None and np.array_equal(self._last[0], pose):
             return self._last[1]  # (the place just checked: a search's best is measured again)
-        m = contradiction_m(pose, self.robot_seg, self.robot_free, self.placed_seg, self.placed_free, self.cfg)
+        m = contradiction_m(
+            pose, self.robot_seg, self.robot_free, self.placed_seg, self.placed_free, self.cfg
+        )
         self._last = (pose.copy(), m)
         return m
 

@@ -267,20 +267,26 @@ class Placer:
                 continue  # a refinement whose turn comes in a later fusion (or not due)
             prior = r.map.prior if self.fleet.frame == "prior" and not r.map.joined else None
             placed_m, key = key_of(r)
-            young = prior is None and not r.alignment.placed and not policy.mature(
-                [r, *(p for p in placed if p is not r)], now_s, self.cfg
+            young = (
+                prior is None
+                and not r.alignment.placed
+                and not policy.mature([r, *(p for p in placed if p is not r)], now_s, self.cfg)
             )
             if young and (self.cfg.young_max_contradicted_m < 0.0 or (
                 r.young_s is not None and now_s - r.young_s < self.cfg.young_retry_s
             )):  # fmt: skip
-                if r.alignment.score_m == 0.0:  # no candidate to report yet: say why
+                if r.alignment.score_m == 0.0 and r.young_s is None:  # nothing to report yet: say why
                     r.alignment = Alignment(
                         "unaligned", np.zeros(3), np.zeros(3), reason=policy.waiting(self.cfg)
                     )
                 continue  # a young map's match is not evidence yet (unless quiet: below)
             if young and ((noisy := self.own_noise_m(r)) is None or noisy > self.cfg.young_max_self_m):
                 r.young_s = now_s  # (looked at again after young_retry_s)
-                why = "its free space is not known" if noisy is None else f"its map contradicts itself by {noisy:.1f} m"
+                why = (
+                    "its free space is not known"
+                    if noisy is None
+                    else f"its map contradicts itself by {noisy:.1f} m"
+                )
                 r.alignment = dataclasses.replace(r.alignment, reason=f"{policy.waiting(self.cfg)}; {why}")
                 continue  # it would not be quiet: searched once the maps are mature
             matured = r.young_s is not None and not young  # (attempted young: at once when mature)
@@ -308,7 +314,8 @@ class Placer:
                 if a.contradicted_m is None:
                     found += " not checked against the free space seen"
                 else:
-                    found += f": {a.contradicted_m:.1f} m of wall contradicted over {a.seen_m2:.0f} m2 seen by both"
+                    c, seen = a.contradicted_m, a.seen_m2
+                    found += f": {c:.1f} m of wall contradicted over {seen:.0f} m2 seen by both"
                 why = f"{policy.waiting(self.cfg)}; {found}"
                 a = dataclasses.replace(a, status="unaligned", reason=why)
             if not r.alignment.placed or a.status != r.alignment.status:  # why a robot is (not) placed

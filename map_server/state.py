@@ -188,7 +188,11 @@ _SCALARS = (
     "attempt_placed_key", "attempt_s", "attempt_seq",
     "pending_count", "pending_s", "young_s",
 )  # fmt: skip
-_ADDED = {"attempt_seq": -1, "pending_s": 0.0, "young_s": None}  # fields newer than some snapshots: their value when missing
+_ADDED = {
+    "attempt_seq": -1,
+    "pending_s": 0.0,
+    "young_s": None,
+}  # fields newer than some snapshots: their value when missing
 
 
 def _floats(a: np.ndarray) -> list[float]:
@@ -199,7 +203,8 @@ def alignment_to_dict(a: Alignment) -> dict:
     return dict(
         status=a.status, transform=_floats(a.transform), sigma=_floats(a.sigma), score_m=float(a.score_m),
         inlier_share=float(a.inlier_share), rival_ratio=float(a.rival_ratio), reason=a.reason,
-        contradicted_m=None if a.contradicted_m is None else float(a.contradicted_m), seen_m2=float(a.seen_m2),
+        contradicted_m=None if a.contradicted_m is None else float(a.contradicted_m),
+        seen_m2=float(a.seen_m2),
     )  # fmt: skip
 
 

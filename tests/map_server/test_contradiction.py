@@ -233,7 +233,10 @@ def test_young_maps_are_placed_when_nothing_contradicts_them(young):
             assert not a.placed and a.reason.startswith("waiting for mature maps"), a.reason
         elif b == 1:
             assert not a.placed and a.reason.startswith("waiting for mature maps"), a.reason
-            assert "m of wall contradicted over" in a.reason and transform_error(a.transform, maps[1][1])[0] > 5.0
+            assert (
+                "m of wall contradicted over" in a.reason
+                and transform_error(a.transform, maps[1][1])[0] > 5.0
+            )
         else:
             truth = compose(inverse(maps[0][1]), maps[2][1])
             assert a.placed and transform_error(a.transform, truth)[0] < 0.05, a.reason
@@ -260,9 +263,44 @@ def test_a_rival_too_close_to_call_is_checked_and_a_contradicted_one_is_no_rival
     left, aside = alignment._rivals_aside(best, [best, *mirror, other], veto, points, CFG, 20)
     assert left == [best, other] and len(aside) == 3 and len(checked) == 1  # the mirror once
     checked.clear()
-    left, aside = alignment._rivals_aside(best, [best, other], lambda p, m: checked.append(p), points, CFG, 20)
+    left, aside = alignment._rivals_aside(
+        best, [best, other], lambda p, m: checked.append(p), points, CFG, 20
+    )
     assert left == [best, other] and aside == [] and checked == []  # 100 / 60: far enough behind
     close = Scored(np.array([-20.0, 5.0, 0.0]), 98.0, 0.0, 98.0, None)
     left, aside = alignment._rivals_aside(best, [best, close], lambda p, m: None, points, CFG, 20)
     assert left == [best, close] and aside == []  # checked, not contradicted: it stays a rival
     assert alignment._rivals_aside(best, [best, *mirror], veto, points, CFG, 0)[1] == []  # no budget
+
+
+def test_a_young_map_that_contradicts_itself_waits_for_maturity():
+    """A map whose own walls stand in its own free space (a real log's piece: doors, people, its
+    bent path) is not searched while young (``young_max_self_m``): it would not be found quiet,
+    and the searches cost. Robot 2's exact office map, placed at once when clean (the test
+    above), with 3 m of wall across a room it saw free: it waits."""
+    from map_server.config import FleetConfig
+    from map_server.fleet import Fleet
+    from tests.map_server.robots import robot_map_from_segments
+
+    cfg = FleetConfig()
+    (seg0, _), (seg2, _) = scan_map("office", 0, 70.0), scan_map("office", 2, 70.0)
+    free2 = scan_free("office", 2, 70.0)
+    x, y = cd.shrink(free2, 1.0).representative_point().coords[0]
+    door = np.array([[[x - 1.5, y], [x + 1.5, y]]])
+    noisy = np.concatenate([seg2, door])
+    assert cd.own_noise(noisy, cd.shrink(free2, CC.margin_m), CC.step_m)[1].sum() > cfg.young_max_self_m
+    areas = {"r0": scan_free("office", 0, 70.0), "r2": free2}
+    fleet = Fleet(cfg, "srv")
+    fleet.free_of = lambda robot, session: areas[robot]
+    searched = []
+    estimate = fleet.placer.estimate
+    fleet.placer.estimate = lambda r, *a, **k: searched.append(r.robot) or estimate(r, *a, **k)
+    for k, t in enumerate(np.arange(0.0, 21.0, 2.0)):
+        fleet.put_map(robot_map_from_segments(seg0, "r0", seq=k + 1), t)
+        fleet.put_map(
+            robot_map_from_segments(noisy if k else np.concatenate([seg2[::2], door]), "r2", seq=k + 1), t
+        )
+        fleet.fuse(t)
+    a = fleet.robots["r2"].alignment
+    assert not a.placed and "its map contradicts itself by" in a.reason, a.reason
+    assert "r2" not in searched

@@ -149,7 +149,9 @@ def test_a_young_map_is_attempted_at_most_every_young_retry_s_and_at_once_when_m
         clock[0] = t
         f.fuse(t)
     r = f.robots["robot1"]
-    mature_at = next(t for t in np.arange(20.0, 60.0, 1.0) if r.mature(t, cfg.mature_window_s, cfg.mature_growth))
+    mature_at = next(
+        t for t in np.arange(20.0, 60.0, 1.0) if r.mature(t, cfg.mature_window_s, cfg.mature_growth)
+    )
     young = [t for t in searched if t < mature_at]
     assert len(young) >= 3 and np.diff(young).min() >= cfg.young_retry_s, searched
     assert mature_at in searched, (mature_at, searched)  # the map unchanged since 20 s, and searched
