@@ -272,10 +272,26 @@ class Placer:
                 and not r.alignment.placed
                 and not policy.mature([r, *(p for p in placed if p is not r)], now_s, self.cfg)
             )
+            matured = r.young_s is not None and not young  # (attempted young: at once when mature)
+            if not r.due(self.cfg, placed_m, key, now_s, urgent) and not matured:
+                continue
+            key = key()
+            joining = r.map.joined and not r.alignment.placed and placed
+            if joining:  # it found itself in the fused map
+                a = self.estimate(r, r.map.prior, r.map.prior_sigma, None, search=False, join=True)
+                log.info("%s: join at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
+                r.alignment = a
+                if a.placed:  # verified: placed at once, no maturity, no confirmation (its own evidence)
+                    r.attempted(placed_m, key, now_s)
+                    r.pending, r.pending_count = None, 0
+                    r.mark_placed(now_s - self.fleet.epoch_s)
+                    now_placed()
+                    continue
+                # not verified: matched as any robot (below)
             if young and (self.cfg.young_max_contradicted_m < 0.0 or (
                 r.young_s is not None and now_s - r.young_s < self.cfg.young_retry_s
             )):  # fmt: skip
-                if r.alignment.score_m == 0.0 and r.young_s is None:  # nothing to report yet: say why
+                if r.alignment.score_m == 0.0 and r.young_s is None and not joining:  # say why it waits
                     r.alignment = Alignment(
                         "unaligned", np.zeros(3), np.zeros(3), reason=policy.waiting(self.cfg)
                     )
@@ -287,23 +303,11 @@ class Placer:
                     if noisy is None
                     else f"its map contradicts itself by {noisy:.1f} m"
                 )
-                r.alignment = dataclasses.replace(r.alignment, reason=f"{policy.waiting(self.cfg)}; {why}")
+                if not joining:  # (a claim refused says why itself)
+                    r.alignment = dataclasses.replace(
+                        r.alignment, reason=f"{policy.waiting(self.cfg)}; {why}"
+                    )
                 continue  # it would not be quiet: searched once the maps are mature
-            matured = r.young_s is not None and not young  # (attempted young: at once when mature)
-            if not r.due(self.cfg, placed_m, key, now_s, urgent) and not matured:
-                continue
-            key = key()
-            if r.map.joined and not r.alignment.placed and placed:  # it found itself in the fused map
-                a = self.estimate(r, r.map.prior, r.map.prior_sigma, None, search=False, join=True)
-                log.info("%s: join at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
-                r.alignment = a
-                if a.placed:  # verified: placed at once, no maturity, no confirmation (its own evidence)
-                    r.attempted(placed_m, key, now_s)
-                    r.pending, r.pending_count = None, 0
-                    r.mark_placed(now_s - self.fleet.epoch_s)
-                    now_placed()
-                    continue
-                # not verified: matched as any robot (below)
             current = r.alignment if r.alignment.status == "aligned" else None
             sigma = r.map.prior_sigma if prior is not None else None
             a = self.estimate(r, prior, sigma, current, search=current is None or r.grew(self.cfg))
