@@ -249,21 +249,38 @@ def check_security(conf: zenoh.Config, cfg: BusConfig, where: str = "") -> None:
         raise BusConfigError(f"{where}TLS endpoint {tls_eps[0]} needs {', '.join(missing)}")
 
 
+class _Gate:
+    """What a declaration's callbacks pass through: once its handle is closed none is delivered,
+    and the close waits for one being delivered (zenoh may still run a callback it had begun, or
+    one for a sample already received, after ``undeclare``: a closed subscription's inbox grew by
+    one in a CI run). Re-entrant: a callback may close its own handle."""
+
+    __slots__ = ("closed", "lock")
+
+    def __init__(self) -> None:
+        self.lock = threading.RLock()
+        self.closed = False
+
+
 class Handle:
     """One declaration on a bus (subscription, queryable, liveliness token or watch).
 
     ``close()`` undeclares it; it is idempotent, and ``Bus.close`` closes every handle left.
     """
 
-    def __init__(self, bus: Bus, entity, what: str):
+    def __init__(self, bus: Bus, entity, what: str, gate: _Gate | None = None):
         self._bus = bus
         self._entity = entity
         self.what = what
+        self._gate = gate
 
     def close(self) -> None:
         entity, self._entity = self._entity, None
         if entity is None:
             return
+        if self._gate is not None:  # waits for a callback being delivered; none after it
+            with self._gate.lock:
+                self._gate.closed = True
         self._bus._forget(self)
         try:
             entity.undeclare()
@@ -326,8 +343,8 @@ class Bus:
         if self._closed:
             raise BusError("the bus is closed")
 
-    def _keep(self, entity, what: str) -> Handle:
-        handle = Handle(self, entity, what)
+    def _keep(self, entity, what: str, gate: _Gate | None = None) -> Handle:
+        handle = Handle(self, entity, what, gate)
         with self._lock:
             if self._closed:  # closed while declaring: do not leak the declaration
                 entity.undeclare()
@@ -396,8 +413,8 @@ class Bus:
                 on_delete(key)
 
         what = f"subscriber {key_expr}"
-        entity = self._declare(what, self._session.declare_subscriber, key_expr, on_zenoh_sample)
-        return self._keep(entity, what)
+        entity, gate = self._declare(what, self._session.declare_subscriber, key_expr, on_zenoh_sample)
+        return self._keep(entity, what, gate)
 
     # -- query / reply --------------------------------------------------------------------------
 
@@ -415,8 +432,8 @@ class Bus:
                     except zenoh.ZError as e:
                         log.error("%s: cannot reply on %r to %s: %s", what, key, query.key_expr, e)
 
-        entity = self._declare(what, self._session.declare_queryable, key_expr, on_query)
-        return self._keep(entity, what)
+        entity, gate = self._declare(what, self._session.declare_queryable, key_expr, on_query)
+        return self._keep(entity, what, gate)
 
     def get(self, key_expr: str, timeout_s: float = 2.0) -> list[tuple[str, bytes]]:
         """Query every queryable matching ``key_expr``; the ``(key, payload)`` replies received
@@ -458,12 +475,22 @@ class Bus:
 
         what = f"liveliness watch {key_expr}"
         declare = self._session.liveliness().declare_subscriber
-        entity = self._declare(what, declare, key_expr, on_zenoh_sample, history=True)
-        return self._keep(entity, what)
+        entity, gate = self._declare(what, declare, key_expr, on_zenoh_sample, history=True)
+        return self._keep(entity, what, gate)
 
-    def _declare(self, what: str, declare: Callable, key_expr: str, callback: Callable, **kwargs):
+    def _declare(
+        self, what: str, declare: Callable, key_expr: str, callback: Callable, **kwargs
+    ) -> tuple[object, _Gate]:
+        """The declaration of ``callback`` (guarded, and gated by its handle's close)."""
+        gate, guarded = _Gate(), self._guarded(what, callback)
+
+        def gated(*args) -> None:
+            with gate.lock:
+                if not gate.closed:
+                    guarded(*args)
+
         try:
-            return declare(key_expr, zenoh.handlers.Callback(self._guarded(what, callback)), **kwargs)
+            return declare(key_expr, zenoh.handlers.Callback(gated), **kwargs), gate
         except zenoh.ZError as e:
             raise BusError(f"{what}: {e}") from e
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 
 import pytest
 
@@ -179,6 +180,27 @@ def test_unsubscribed_handle_gets_nothing_more(clients):
     sub.subscribe("unsub/*", later)
     wait_routed(pub, later, "unsub/probe")
     assert len(inbox) == seen
+
+
+def test_close_waits_for_a_callback_being_delivered_and_none_comes_after(clients):
+    """zenoh may still run a callback after ``undeclare`` returns (a CI run saw a closed
+    subscription's inbox grow by one): closing waits for the callback under way, and samples
+    that arrive later are not delivered."""
+    pub, sub = clients
+    started, got = threading.Event(), []
+
+    def slow(key, payload):
+        started.set()
+        time.sleep(0.3)
+        got.append(payload)
+
+    handle = sub.subscribe("slow/*", slow)
+    assert wait_for(lambda: pub.put("slow/probe", b"p") or started.is_set())
+    handle.close()  # the first callback is asleep: the close waits for it
+    n = len(got)
+    pub.put("slow/probe", b"after")
+    time.sleep(0.8)
+    assert n >= 1 and len(got) == n and b"after" not in got
 
 
 def test_callback_exception_does_not_kill_the_subscription(clients, caplog):
