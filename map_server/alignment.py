@@ -217,7 +217,8 @@ def _rivals_aside(
             break
         gone = [c for c in far if cand.mean_displacement(c.pose, r.pose, points) <= cfg.distinct_m]
         aside += [(c, why) for c in gone]
-        cands = [c for c in cands if all(c is not g for g in gone)]
+        ids = {id(c) for c in gone}
+        cands = [c for c in cands if id(c) not in ids]
     return cands, aside
 
 

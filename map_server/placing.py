@@ -312,16 +312,8 @@ class Placer:
             sigma = r.map.prior_sigma if prior is not None else None
             a = self.estimate(r, prior, sigma, current, search=current is None or r.grew(self.cfg))
             r.young_s = now_s if young else None
-            if young and a.status == "aligned" and not policy.quiet(a, self.cfg):
-                # a young map's match is not evidence yet, unless nothing contradicts it
-                found = f"the place found ({a.reason.removeprefix('matched: ')})"
-                if a.contradicted_m is None:
-                    found += " not checked against the free space seen"
-                else:
-                    c, seen = a.contradicted_m, a.seen_m2
-                    found += f": {c:.1f} m of wall contradicted over {seen:.0f} m2 seen by both"
-                why = f"{policy.waiting(self.cfg)}; {found}"
-                a = dataclasses.replace(a, status="unaligned", reason=why)
+            if young:  # a young map's match is not evidence yet, unless nothing contradicts it
+                a = policy.young(a, self.cfg)
             if not r.alignment.placed or a.status != r.alignment.status:  # why a robot is (not) placed
                 log.info("%s: attempt at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
             if a.status == "aligned" and not r.alignment.placed:

@@ -8,6 +8,7 @@ first); this module decides what an attempt's verdict means."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING
 
 from map_server.alignment import Alignment
@@ -41,6 +42,19 @@ def quiet(a: Alignment, cfg: FleetConfig) -> bool:
         and a.contradicted_m <= cfg.young_max_contradicted_m
         and a.seen_m2 >= cfg.young_min_seen_m2
     )
+
+
+def young(a: Alignment, cfg: FleetConfig) -> Alignment:
+    """What a verdict found on young maps means: itself when it is not a place or is ``quiet``,
+    else "unaligned" saying why it waits (the place found, and what contradicts it)."""
+    if a.status != "aligned" or quiet(a, cfg):
+        return a
+    found = f"the place found ({a.reason.removeprefix('matched: ')})"
+    if a.contradicted_m is None:
+        found += " not checked against the free space seen"
+    else:
+        found += f": {a.contradicted_m:.1f} m of wall contradicted over {a.seen_m2:.0f} m2 seen by both"
+    return dataclasses.replace(a, status="unaligned", reason=f"{waiting(cfg)}; {found}")
 
 
 def moved(r: RobotState, a: Alignment, b: Alignment, cfg: FleetConfig) -> bool:

@@ -357,17 +357,21 @@ class Bus:
             if handle in self._handles:
                 self._handles.remove(handle)
 
-    def _guarded(self, what: str, fn: Callable) -> Callable:
-        """``fn`` wrapped so that an exception is logged instead of reaching zenoh."""
+    def _guarded(self, what: str, fn: Callable, gate: _Gate) -> Callable:
+        """``fn`` wrapped so that an exception is logged instead of reaching zenoh, and nothing is
+        delivered once ``gate`` is closed."""
 
         def call(*args):
-            try:
-                fn(*args)
-            except Exception:
-                if self._closed:  # e.g. a callback that puts while the bus shuts down
-                    log.debug("callback of %s failed after close", what, exc_info=True)
-                else:
-                    log.exception("callback of %s failed; the declaration goes on", what)
+            with gate.lock:
+                if gate.closed:
+                    return
+                try:
+                    fn(*args)
+                except Exception:
+                    if self._closed:  # e.g. a callback that puts while the bus shuts down
+                        log.debug("callback of %s failed after close", what, exc_info=True)
+                    else:
+                        log.exception("callback of %s failed; the declaration goes on", what)
 
         return call
 
@@ -482,15 +486,11 @@ class Bus:
         self, what: str, declare: Callable, key_expr: str, callback: Callable, **kwargs
     ) -> tuple[object, _Gate]:
         """The declaration of ``callback`` (guarded, and gated by its handle's close)."""
-        gate, guarded = _Gate(), self._guarded(what, callback)
-
-        def gated(*args) -> None:
-            with gate.lock:
-                if not gate.closed:
-                    guarded(*args)
-
+        gate = _Gate()
         try:
-            return declare(key_expr, zenoh.handlers.Callback(gated), **kwargs), gate
+            return declare(
+                key_expr, zenoh.handlers.Callback(self._guarded(what, callback, gate)), **kwargs
+            ), gate
         except zenoh.ZError as e:
             raise BusError(f"{what}: {e}") from e
 
