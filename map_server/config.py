@@ -172,6 +172,12 @@ class FleetConfig:
     # one machine, the agents: Intel and ACES in 3 pieces merged a piece wrongly when its maps grew
     # slower and matured early); the simulated maps contradict themselves by 0-1 m
     young_max_self_m: float = 1.0
+    # ... and a quiet verdict places the robot after this many attempts in a row at the place (not
+    # ``confirmations``): the free-space check is the second, independent test a mature verdict's
+    # repetition stands for (a revision of a placed robot is confirmed as any). bench_merge, office
+    # and warehouse, 10 seeds: with 2, delay from evidence to merge median 12 s, worst 32 s, one
+    # robot never placed; with 1, median 0.5 s, worst 9 s, every robot placed, 0 wrong merges
+    young_confirmations: int = 1
     # retired pieces (module docstring) kept per robot: a robot that keeps restarting re-maps the
     # same places, so the oldest piece is mostly covered by the newer ones; bounds memory and state
     max_retired: int = 3

@@ -227,7 +227,7 @@ class Placer:
         Of the unplaced robots that matched, only the most decisive one (highest rival ratio)
         is taken this round; the others are tried again against the grown placed map — a robot
         matched against more of the fleet has fewer mirror images to fall for."""
-        fresh: list[tuple[RobotState, Alignment, float, str]] = []
+        fresh: list[tuple[RobotState, Alignment, float, str, int]] = []
         pieces, robots = self.fleet.pieces(), self.fleet.robots.values()
         if len(self._entries) > 2 * (len(robots) + len(pieces)) + 16:  # forget replaced pieces
             self._entries = {(r.robot, None): self._entries[(r.robot, None)] for r in robots
@@ -316,8 +316,9 @@ class Placer:
                 a = policy.young(a, self.cfg)
             if not r.alignment.placed or a.status != r.alignment.status:  # why a robot is (not) placed
                 log.info("%s: attempt at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
-            if a.status == "aligned" and not r.alignment.placed:
-                fresh.append((r, a, placed_m, key))
+            if a.status == "aligned" and not r.alignment.placed:  # (a young one is quiet)
+                needed = self.cfg.young_confirmations if young else self.cfg.confirmations
+                fresh.append((r, a, placed_m, key, needed))
                 continue
             r.attempted(placed_m, key, now_s)
             if a.status == "aligned" and current is not None and policy.moved(r, current, a, self.cfg):
@@ -333,8 +334,8 @@ class Placer:
             return False
         for f in fresh:
             f[0].attempted(f[2], f[3], now_s)
-        r, a = max(fresh, key=lambda f: f[1].rival_ratio)[:2]
-        r.alignment = policy.confirm(r, a, None, self.cfg, now_s)
+        r, a, _, _, needed = max(fresh, key=lambda f: f[1].rival_ratio)
+        r.alignment = policy.confirm(r, a, None, self.cfg, now_s, needed)
         if r.alignment.placed:
             r.mark_placed(now_s - self.fleet.epoch_s)
             return True

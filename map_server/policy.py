@@ -65,23 +65,29 @@ def moved(r: RobotState, a: Alignment, b: Alignment, cfg: FleetConfig) -> bool:
 
 
 def confirm(
-    r: RobotState, a: Alignment, current: Alignment | None, cfg: FleetConfig, now_s: float
+    r: RobotState,
+    a: Alignment,
+    current: Alignment | None,
+    cfg: FleetConfig,
+    now_s: float,
+    needed: int | None = None,
 ) -> Alignment:
-    """A new alignment (or a revision) counts once ``confirmations`` attempts in a row put the
-    robot at the same place over at least ``confirm_s`` (a young map's mirror image holds for a
-    few seconds of growth, then the matcher refuses it; the truth stays); until then the robot
-    stays unaligned (or where it was, ``current``). Keeps the count on ``r`` (``pending``,
-    ``pending_count``, ``pending_s``)."""
+    """A new alignment (or a revision) counts once ``needed`` (default ``confirmations``)
+    attempts in a row put the robot at the same place over at least ``confirm_s`` (a young map's
+    mirror image holds for a few seconds of growth, then the matcher refuses it; the truth stays);
+    until then the robot stays unaligned (or where it was, ``current``). Keeps the count on ``r``
+    (``pending``, ``pending_count``, ``pending_s``)."""
+    needed = cfg.confirmations if needed is None else needed
     same = r.pending is not None and not moved(r, r.pending, a, cfg)
     r.pending_count = r.pending_count + 1 if same else 1
     if not same:
         r.pending_s = now_s
     r.pending = a
     held = now_s - r.pending_s
-    if r.pending_count >= cfg.confirmations and held >= cfg.confirm_s:
+    if r.pending_count >= needed and held >= cfg.confirm_s:
         r.pending, r.pending_count = None, 0
         return a
-    count = f"{r.pending_count}/{cfg.confirmations}, {held:.0f}/{cfg.confirm_s:g} s"
+    count = f"{r.pending_count}/{needed}, {held:.0f}/{cfg.confirm_s:g} s"
     why = f"awaiting confirmation ({count}) of {a.reason}"
     if current is not None:
         c = current

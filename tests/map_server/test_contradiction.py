@@ -242,6 +242,39 @@ def test_young_maps_are_placed_when_nothing_contradicts_them(young):
             assert a.placed and transform_error(a.transform, truth)[0] < 0.05, a.reason
 
 
+@pytest.mark.parametrize("needed", [1, 2])
+def test_a_quiet_verdict_places_the_robot_after_young_confirmations_attempts(needed):
+    """A quiet verdict is its own second test (the free space seen): with ``young_confirmations``
+    = 1 (the default) robot 2 of the exact office maps is placed at the attempt that finds it,
+    with 2 it awaits the next attempt ``young_retry_s`` later — and the place is the same."""
+    from map_server.config import FleetConfig
+    from map_server.fleet import Fleet
+    from tests.map_server.robots import robot_map_from_segments
+
+    cfg = FleetConfig(young_confirmations=needed)
+    assert FleetConfig().young_confirmations == 1 and cfg.confirmations == 2  # (mature verdicts: 2)
+    maps = {i: scan_map("office", i, 70.0) for i in (0, 2)}
+    areas = {i: scan_free("office", i, 70.0) for i in (0, 2)}
+    fleet = Fleet(cfg, "srv")
+    fleet.free_of = lambda robot, session: areas[int(robot[1])]
+    seen, placed_at = [], None
+    for k, t in enumerate(np.arange(0.0, 21.0, 1.0)):
+        for i in (0, 2):
+            fleet.put_map(robot_map_from_segments(maps[i][0], f"r{i}", seq=k + 1), t)
+        fleet.fuse(t)
+        a = fleet.robots["r2"].alignment
+        if a.placed and placed_at is None:
+            placed_at = t
+        elif not a.placed and a.reason.startswith("awaiting confirmation (1/2"):
+            seen.append(t)
+    truth = compose(inverse(maps[0][1]), maps[2][1])
+    assert placed_at is not None and transform_error(a.transform, truth)[0] < 0.05, a.reason
+    if needed == 1:
+        assert seen == [] and placed_at <= 1.0  # the first attempt (the first fusion is the reference's)
+    else:
+        assert seen and placed_at - seen[0] >= cfg.young_retry_s  # (its second attempt)
+
+
 def test_a_rival_too_close_to_call_is_checked_and_a_contradicted_one_is_no_rival():
     """The best place ties with a distinct rival (a symmetric building's mirror image): the rival
     is checked; contradicted, it (and the candidates at its place) is set aside and the next
