@@ -108,6 +108,7 @@ class Fleet:
         # freespace.FreeSpaces.area; without it no placement is checked for contradiction
         self.free_of: Callable[[str, str], object] | None = None
         self.placer = Placer(self)  # the alignment rounds (placing.py)
+        self._stiff: dict[str, tuple] = {}  # robot -> what Fleet._stiffness measured
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -249,6 +250,28 @@ class Fleet:
             (r.robot, id(r.graph), r.alignment.transform.tobytes(), r.alignment.status) for r in placed
         )
 
+    def _stiffness(self, r: RobotState) -> float:
+        """How many times its own edges' information the graph takes a placed robot's
+        (posegraph.py): ``consistent_scale`` while its walls stand in its own free space by at
+        most ``consistent_self_m``, else 1 (also while its free space is not known). Measured
+        when the graph solves, again once its map grew by ``retry_growth_m`` since; a map once
+        found contradicting itself stays so for its session (a real log's piece: metres within
+        seconds — its free space, thousands of vertices, is not shrunk again for this)."""
+        g, session = self.cfg.graph, r.map.session
+        hit = self._stiff.get(r.robot)  # (session, length measured at, value, for good)
+        if (
+            hit is not None
+            and hit[0] == session
+            and (hit[3] or abs(r.layer.length_m - hit[1]) < self.cfg.retry_growth_m)
+        ):
+            return hit[2]
+        noisy = self.placer.own_noise_m(r) if self.free_of is not None else None
+        value = g.consistent_scale if noisy is not None and noisy <= g.consistent_self_m else 1.0
+        if len(self._stiff) > 2 * len(self.robots) + 8:  # (robots forgotten)
+            self._stiff = {k: v for k, v in self._stiff.items() if k in self.robots}
+        self._stiff[r.robot] = (session, r.layer.length_m, value, noisy is not None and value == 1.0)
+        return value
+
     def _carry(self) -> None:
         """A bent robot whose map changed since the graph's last solve: its new layer moved by the
         last solution (:meth:`FleetGraph.poses`: new keyframes carried by their neighbours'
@@ -279,7 +302,7 @@ class Fleet:
         the rest stays due (``graph_stale``)."""
         cfg = self.cfg.graph
         placed = self._bend_placed()
-        items = [_graph_item(r) for r in placed]
+        items = [_graph_item(r, self._stiffness(r)) for r in placed]
         for robot in self.graph.sync(items):  # what the graph found where the robot was would hold it
             log.info("%s: unplaced or moved far: the fleet graph forgets where it had it", robot)
         ids = {id(r) for r in placed if not r.graph.rigid}
@@ -642,6 +665,7 @@ class Fleet:
         return f
 
 
-def _graph_item(r: RobotState) -> Placed:
+def _graph_item(r: RobotState, stiff: float = 1.0) -> Placed:
     """What the fleet's graph takes of a placed robot."""
-    return Placed(r.robot, r.graph, r.layer, r.alignment.transform, r.alignment.status, r.map.prior_sigma)
+    a = r.alignment
+    return Placed(r.robot, r.graph, r.layer, a.transform, a.status, r.map.prior_sigma, stiff)
