@@ -3,8 +3,8 @@
 1. hypotheses: every pair of non-parallel, nearby segments of the robot map (a corner or a
    near-corner) against every such pair of the placed map whose relative angle agrees fixes a
    pose (shared/matching.py — report §6's geometry, on whole maps instead of one scan);
-2. votes: the hypotheses are binned in (x, y, θ) on two grids half a cell apart; the densest
-   bins, one per neighbourhood, are the candidates (a true overlap makes many corners agree);
+2. votes: each hypothesis counts the hypotheses within half a cell of it in (x, y, θ); the
+   densest, one per neighbourhood, are the candidates (a true overlap makes many corners agree);
 3. each candidate is pre-scored by the robot-map length it lays on the placed map with generous
    tolerances; the best are refined (point-to-line least squares) and scored strictly: length
    on placed walls minus length that contradicts them (registration.py).
@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from map_server.registration import MapIndex, Refined, Samples, refine
 from shared.geometry import segment_directions, transform_points, wrap_angle
@@ -44,26 +45,33 @@ def facing_of(seg: np.ndarray) -> np.ndarray:
 
 
 def vote_peaks(hyp: np.ndarray, cell_m: float, cell_rad: float, max_peaks: int) -> tuple:
-    """Candidate poses ``(C,3)`` and their votes ``(C,)``: the densest (x, y, θ) bins of the
-    hypotheses ``(H,3)`` on two grids half a cell apart, one per neighbourhood, best first."""
-    poses, votes = [], []
-    for shift in (0.0, 0.5):
-        k = np.floor(np.column_stack([hyp[:, :2] / cell_m, (hyp[:, 2] + np.pi) / cell_rad]) + shift)
-        k = (k - k.min(axis=0)).astype(np.int64)
-        span = k.max(axis=0) + 1
-        key = (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
-        _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
-        inv = inv.reshape(-1)
-
-        def mean(v: np.ndarray, inv=inv, cnt=cnt) -> np.ndarray:
-            return np.bincount(inv, weights=v) / cnt
-
-        theta = np.arctan2(mean(np.sin(hyp[:, 2])), mean(np.cos(hyp[:, 2])))
-        poses.append(np.column_stack([mean(hyp[:, 0]), mean(hyp[:, 1]), theta]))
-        votes.append(cnt)
-    poses, votes = np.vstack(poses), np.concatenate(votes).astype(float)
-    keep = cluster_poses(poses, votes, cell_m, cell_rad, max_peaks)
-    return poses[keep], votes[keep]
+    """Candidate poses ``(C,3)`` and their votes ``(C,)``, best first: each hypothesis ``(H,3)``
+    counts the hypotheses within a cell of it (a ball: ``cell_rad`` of θ counts as ``cell_m``);
+    the densest, one per neighbourhood (``cluster_poses``), are the candidates, each at the
+    mean of its neighbours. Frame-free: bins fixed in the placed map's frame split a true
+    overlap's few votes depending on where the frame's origin lies — MIT-CSAIL's middle piece,
+    4 hypotheses at its true place, got 3 votes (rank 15 of 1,124 peaks: candidate) with one
+    piece as the reference and 2 + 1 (rank 150: not) with another, the same maps; counted
+    around each hypothesis it has 4 either way (rank 66 / 90)."""
+    if len(hyp) == 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    scale = cell_m / cell_rad  # θ in metres
+    pts = np.column_stack([hyp[:, 0], hyp[:, 1], wrap_angle(hyp[:, 2]) * scale])
+    half = cell_m
+    # the tree holds the hypotheses near θ = ±π a turn away as well (θ wraps)
+    edge = np.abs(pts[:, 2]) > np.pi * scale - half
+    extra = pts[edge].copy()
+    extra[:, 2] -= np.sign(extra[:, 2]) * 2.0 * np.pi * scale
+    tree = cKDTree(np.vstack([pts, extra]))
+    votes = tree.query_ball_point(pts, half, p=2.0, return_length=True).astype(float)
+    keep = cluster_poses(hyp, votes, cell_m, cell_rad, max_peaks)
+    poses = np.empty((len(keep), 3))
+    src = np.concatenate([np.arange(len(hyp)), np.flatnonzero(edge)])
+    for j, near in enumerate(tree.query_ball_point(pts[keep], half, p=2.0)):
+        h = hyp[src[np.asarray(near, dtype=int)]]
+        theta = np.arctan2(np.sin(h[:, 2]).mean(), np.cos(h[:, 2]).mean())
+        poses[j] = [h[:, 0].mean(), h[:, 1].mean(), theta]
+    return poses, votes[keep]
 
 
 def mean_displacement(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:

@@ -24,7 +24,10 @@ class AlignmentConfig:
     matching: MatchingConfig = field(default_factory=_server_matching)
     vote_cell_m: float = 0.5  # vote bins: map drift spreads a true overlap's votes over ~0.3 m, 2°
     vote_cell_rad: float = np.radians(3.0)
-    max_peaks: int = 40  # vote peaks pre-scored
+    # vote peaks pre-scored: MIT-CSAIL's middle piece in 3, its true place 4 of 1,688 hypotheses,
+    # is the 66th-90th densest (the others' corners agree among themselves); 0.05 s a search at 40,
+    # 0.08 s at 100
+    max_peaks: int = 100
     max_refined: int = 12  # best pre-scored peaks refined and scored strictly
     sample_step_m: float = 0.10  # maps are sampled this densely for the strict scores ...
     coarse_step_m: float = 0.25  # ... and this densely for pre-scores and refinement (speed)

@@ -234,3 +234,29 @@ def test_a_wall_seen_from_the_other_side_is_opposed_unless_both_faces_are_placed
     at = np.zeros(3)
     assert one_face.opposed(at, robot, CFG.opposed_perp_m) == pytest.approx(10.0, abs=0.2)
     assert both_faces.opposed(at, robot, CFG.opposed_perp_m) == 0.0
+
+
+def test_vote_peaks_do_not_depend_on_where_the_placed_frame_lies():
+    """The candidates' votes are counted around each hypothesis, not in bins fixed in the placed
+    map's frame: the placed maps moved by a rigid motion (another robot as the reference) give the
+    same peaks, moved by it. With bins a true overlap's four hypotheses fell 3 in one bin with one
+    reference and 2 + 1 with another (MIT-CSAIL's middle piece: a candidate, then not)."""
+    rng = np.random.default_rng(3)
+    true = np.array([4.0, -2.0, 0.7])
+    hyp = np.vstack(
+        [
+            true + rng.normal(0.0, [0.08, 0.08, np.radians(0.5)], (4, 3)),  # a true overlap: 4 votes
+            rng.uniform(
+                [-30.0, -30.0, -np.pi], [30.0, 30.0, np.pi], (400, 3)
+            ),  # corners that agree by chance
+        ]
+    )
+    cfg = AlignmentConfig()
+    peaks, votes = candidates.vote_peaks(hyp, cfg.vote_cell_m, cfg.vote_cell_rad, 20)
+    assert np.hypot(*(peaks[0, :2] - true[:2])) < 0.3 and votes[0] == 4
+    for move in (np.array([0.26, -0.13, 0.0]), np.array([57.3, 21.9, 2.5])):
+        moved, moved_votes = candidates.vote_peaks(compose(move, hyp), cfg.vote_cell_m, cfg.vote_cell_rad, 20)
+        np.testing.assert_array_equal(moved_votes, votes)
+        d = compose(inverse(move), moved) - peaks
+        d[:, 2] = (d[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        assert np.abs(d).max() < 1e-9
