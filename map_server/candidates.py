@@ -3,8 +3,8 @@
 1. hypotheses: every pair of non-parallel, nearby segments of the robot map (a corner or a
    near-corner) against every such pair of the placed map whose relative angle agrees fixes a
    pose (shared/matching.py — report §6's geometry, on whole maps instead of one scan);
-2. votes: each hypothesis counts the hypotheses within half a cell of it in (x, y, θ); the
-   densest, one per neighbourhood, are the candidates (a true overlap makes many corners agree);
+2. votes: each hypothesis counts the hypotheses within a cell of it in (x, y, θ); the densest,
+   one per neighbourhood, are the candidates (a true overlap makes many corners agree);
 3. each candidate is pre-scored by the robot-map length it lays on the placed map with generous
    tolerances; the best are refined (point-to-line least squares) and scored strictly: length
    on placed walls minus length that contradicts them (registration.py).

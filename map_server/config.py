@@ -22,7 +22,9 @@ def _server_matching() -> MatchingConfig:
 @dataclass(frozen=True)
 class AlignmentConfig:
     matching: MatchingConfig = field(default_factory=_server_matching)
-    vote_cell_m: float = 0.5  # vote bins: map drift spreads a true overlap's votes over ~0.3 m, 2°
+    # a hypothesis's votes: those within this cell of it (map drift spreads a true overlap's votes
+    # over ~0.3 m, 2°; candidates.vote_peaks)
+    vote_cell_m: float = 0.5
     vote_cell_rad: float = np.radians(3.0)
     # vote peaks pre-scored: MIT-CSAIL's middle piece in 3, its true place 4 of 1,688 hypotheses,
     # is the 66th-90th densest (the others' corners agree among themselves); 0.05 s a search at 40,
