@@ -191,6 +191,12 @@ class FleetConfig:
     # and warehouse, 10 seeds: with 2, delay from evidence to merge median 12 s, worst 32 s, one
     # robot never placed; with 1, median 0.5 s, worst 9 s, every robot placed, 0 wrong merges
     young_confirmations: int = 1
+    # ... when both sides saw at least this much free space there (else ``confirmations``):
+    # bench_join (a young robot matched against a mature fused map) placed warehouse 0->1 on one
+    # quiet verdict at a half-turned place (36.8 m matched, ratio 1.24, 0 m contradicted over
+    # 55 m2 seen), undone 23 s later; with 100 m2 bench_merge's delays are median 7 s, worst 21 s
+    # (0.5 / 9 s with 0), every robot placed, 0 wrong
+    young_once_seen_m2: float = 100.0
     # retired pieces (module docstring) kept per robot: a robot that keeps restarting re-maps the
     # same places, so the oldest piece is mostly covered by the newer ones; bounds memory and state
     max_retired: int = 3

@@ -317,7 +317,8 @@ class Placer:
             if not r.alignment.placed or a.status != r.alignment.status:  # why a robot is (not) placed
                 log.info("%s: attempt at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
             if a.status == "aligned" and not r.alignment.placed:  # (a young one is quiet)
-                needed = self.cfg.young_confirmations if young else self.cfg.confirmations
+                once = young and a.seen_m2 >= self.cfg.young_once_seen_m2
+                needed = self.cfg.young_confirmations if once else self.cfg.confirmations
                 fresh.append((r, a, placed_m, key, needed))
                 continue
             r.attempted(placed_m, key, now_s)

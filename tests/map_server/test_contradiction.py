@@ -242,17 +242,18 @@ def test_young_maps_are_placed_when_nothing_contradicts_them(young):
             assert a.placed and transform_error(a.transform, truth)[0] < 0.05, a.reason
 
 
-@pytest.mark.parametrize("needed", [1, 2])
-def test_a_quiet_verdict_places_the_robot_after_young_confirmations_attempts(needed):
-    """A quiet verdict is its own second test (the free space seen): with ``young_confirmations``
-    = 1 (the default) robot 2 of the exact office maps is placed at the attempt that finds it,
-    with 2 it awaits the next attempt ``young_retry_s`` later — and the place is the same."""
+@pytest.mark.parametrize("once_m2", [0.0, None])
+def test_a_quiet_verdict_over_enough_free_space_places_the_robot_at_once(once_m2):
+    """A quiet verdict is its own second test (the free space seen) where both sides saw enough
+    of it (``young_once_seen_m2``): then robot 2 of the exact office maps is placed at the
+    attempt that finds it; over less (the default 100 m2: here 20-100 m2 seen) it awaits the
+    next attempt ``young_retry_s`` later, as a mature verdict would — the same place."""
     from map_server.config import FleetConfig
     from map_server.fleet import Fleet
     from tests.map_server.robots import robot_map_from_segments
 
-    cfg = FleetConfig(young_confirmations=needed)
-    assert FleetConfig().young_confirmations == 1 and cfg.confirmations == 2  # (mature verdicts: 2)
+    cfg = FleetConfig() if once_m2 is None else FleetConfig(young_once_seen_m2=once_m2)
+    assert cfg.young_confirmations == 1 and cfg.confirmations == 2
     maps = {i: scan_map("office", i, 70.0) for i in (0, 2)}
     areas = {i: scan_free("office", i, 70.0) for i in (0, 2)}
     fleet = Fleet(cfg, "srv")
@@ -266,13 +267,14 @@ def test_a_quiet_verdict_places_the_robot_after_young_confirmations_attempts(nee
         if a.placed and placed_at is None:
             placed_at = t
         elif not a.placed and a.reason.startswith("awaiting confirmation (1/2"):
-            seen.append(t)
+            seen.append((t, fleet.robots["r2"].pending.seen_m2))
     truth = compose(inverse(maps[0][1]), maps[2][1])
     assert placed_at is not None and transform_error(a.transform, truth)[0] < 0.05, a.reason
-    if needed == 1:
+    if once_m2 == 0.0:
         assert seen == [] and placed_at <= 1.0  # the first attempt (the first fusion is the reference's)
     else:
-        assert seen and placed_at - seen[0] >= cfg.young_retry_s  # (its second attempt)
+        assert seen and cfg.young_min_seen_m2 <= seen[0][1] < cfg.young_once_seen_m2
+        assert placed_at - seen[0][0] >= cfg.young_retry_s  # (its second attempt)
 
 
 def test_a_rival_too_close_to_call_is_checked_and_a_contradicted_one_is_no_rival():
