@@ -258,19 +258,16 @@ class Fleet:
         found contradicting itself stays so for its session (a real log's piece: metres within
         seconds — its free space, thousands of vertices, is not shrunk again for this)."""
         g, session = self.cfg.graph, r.map.session
-        hit = self._stiff.get(r.robot)  # (session, length measured at, value, for good)
-        if (
-            hit is not None
-            and hit[0] == session
-            and (hit[3] or abs(r.layer.length_m - hit[1]) < self.cfg.retry_growth_m)
-        ):
-            return hit[2]
-        noisy = self.placer.own_noise_m(r) if self.free_of is not None else None
-        value = g.consistent_scale if noisy is not None and noisy <= g.consistent_self_m else 1.0
-        if len(self._stiff) > 2 * len(self.robots) + 8:  # (robots forgotten)
-            self._stiff = {k: v for k, v in self._stiff.items() if k in self.robots}
-        self._stiff[r.robot] = (session, r.layer.length_m, value, noisy is not None and value == 1.0)
-        return value
+        hit = self._stiff.get(r.robot)  # (session, map length measured at, own noise or None)
+        stale = hit is None or hit[0] != session
+        if not stale and not (hit[2] is not None and hit[2] > g.consistent_self_m):  # (else: for good)
+            stale = abs(r.layer.length_m - hit[1]) >= self.cfg.retry_growth_m
+        if stale:
+            if len(self._stiff) > 2 * len(self.robots) + 8:  # (robots forgotten)
+                self._stiff = {k: v for k, v in self._stiff.items() if k in self.robots}
+            hit = self._stiff[r.robot] = (session, r.layer.length_m, self.placer.own_noise_m(r))
+        noisy = hit[2]
+        return g.consistent_scale if noisy is not None and noisy <= g.consistent_self_m else 1.0
 
     def _carry(self) -> None:
         """A bent robot whose map changed since the graph's last solve: its new layer moved by the

@@ -184,9 +184,13 @@ class Placer:
         when its free space is not known (or the check is off)."""
         if self.fleet.free_of is None or not self.cfg.contradiction.enabled:
             return None
-        own = self._shrink(self.fleet.free_of(r.robot, r.map.session))
+        area = self.fleet.free_of(r.robot, r.map.session)
+        own = self._shrink(area)
         if own is None:
             return None
+        hit = self._noise_cache.get((id(area), id(r.layer)))  # (a placed robot's, from a veto)
+        if hit is not None and hit[0] is area and hit[1] is r.layer:
+            return float(hit[2][1].sum())
         return float(contradiction.own_noise(r.layer.seg, own, self.cfg.contradiction.step_m)[1].sum())
 
     def _shrink(self, area):
@@ -227,7 +231,7 @@ class Placer:
         Of the unplaced robots that matched, only the most decisive one (highest rival ratio)
         is taken this round; the others are tried again against the grown placed map — a robot
         matched against more of the fleet has fewer mirror images to fall for."""
-        fresh: list[tuple[RobotState, Alignment, float, str, int]] = []
+        fresh: list[tuple[RobotState, Alignment, float, str, bool]] = []
         pieces, robots = self.fleet.pieces(), self.fleet.robots.values()
         if len(self._entries) > 2 * (len(robots) + len(pieces)) + 16:  # forget replaced pieces
             self._entries = {(r.robot, None): self._entries[(r.robot, None)] for r in robots
@@ -317,9 +321,7 @@ class Placer:
             if not r.alignment.placed or a.status != r.alignment.status:  # why a robot is (not) placed
                 log.info("%s: attempt at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
             if a.status == "aligned" and not r.alignment.placed:  # (a young one is quiet)
-                once = young and a.seen_m2 >= self.cfg.young_once_seen_m2
-                needed = self.cfg.young_confirmations if once else self.cfg.confirmations
-                fresh.append((r, a, placed_m, key, needed))
+                fresh.append((r, a, placed_m, key, young))
                 continue
             r.attempted(placed_m, key, now_s)
             if a.status == "aligned" and current is not None and policy.moved(r, current, a, self.cfg):
@@ -335,8 +337,8 @@ class Placer:
             return False
         for f in fresh:
             f[0].attempted(f[2], f[3], now_s)
-        r, a, _, _, needed = max(fresh, key=lambda f: f[1].rival_ratio)
-        r.alignment = policy.confirm(r, a, None, self.cfg, now_s, needed)
+        r, a, _, _, young = max(fresh, key=lambda f: f[1].rival_ratio)
+        r.alignment = policy.confirm(r, a, None, self.cfg, now_s, young)
         if r.alignment.placed:
             r.mark_placed(now_s - self.fleet.epoch_s)
             return True

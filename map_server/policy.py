@@ -70,14 +70,17 @@ def confirm(
     current: Alignment | None,
     cfg: FleetConfig,
     now_s: float,
-    needed: int | None = None,
+    young: bool = False,
 ) -> Alignment:
-    """A new alignment (or a revision) counts once ``needed`` (default ``confirmations``)
-    attempts in a row put the robot at the same place over at least ``confirm_s`` (a young map's
-    mirror image holds for a few seconds of growth, then the matcher refuses it; the truth stays);
-    until then the robot stays unaligned (or where it was, ``current``). Keeps the count on ``r``
+    """A new alignment (or a revision) counts once ``confirmations`` attempts in a row put the
+    robot at the same place over at least ``confirm_s`` (a young map's mirror image holds for a
+    few seconds of growth, then the matcher refuses it; the truth stays); until then the robot
+    stays unaligned (or where it was, ``current``). A ``young`` verdict (one that is ``quiet``)
+    over at least ``young_once_seen_m2`` of free space seen by both needs ``young_confirmations``:
+    the free-space check is the second test the repetition stands for. Keeps the count on ``r``
     (``pending``, ``pending_count``, ``pending_s``)."""
-    needed = cfg.confirmations if needed is None else needed
+    once = young and a.seen_m2 >= cfg.young_once_seen_m2
+    needed = cfg.young_confirmations if once else cfg.confirmations
     same = r.pending is not None and not moved(r, r.pending, a, cfg)
     r.pending_count = r.pending_count + 1 if same else 1
     if not same:
