@@ -29,9 +29,12 @@ with (``shared/messages.py``, RobotMap). The server joins them:
   first — the candidates, the verification by overlap, the refusal of ambiguous places are
   that module's; a constraint only says how a neighbourhood of an already verified placement
   fits, and is kept only when it moved the keyframe little, and enough of the submap lies on the
-  others' walls. It ties the keyframe to the other robot's keyframe whose elements it matched
-  most (the pose in that keyframe's frame), with the fit's information (floored: the submaps'
-  own errors) — narrow across a corridor, nothing along it.
+  others' walls. It ties the keyframe its own matched elements move with most (an agent anchors
+  a wall to the keyframe that first saw it: a long wall moves with one keyframe, and the
+  keyframes that pass it later have none of their own; ``tie_own_anchor``), carried there by the
+  fit's correction, to the other robot's keyframe whose elements it matched most (the pose in
+  that keyframe's frame), with the fit's information (floored: the submaps' own errors) —
+  narrow across a corridor, nothing along it. Constraints are kept by the keyframe tried.
 - **solve**: sparse Gauss-Newton (``shared/posegraph.py``), a Cauchy kernel on the constraints,
   warm-started from the last solution; constraints that still disagree (normalized residual
   above ``max_chi``) are dropped and the graph solved again.
@@ -325,8 +328,8 @@ class FleetGraph:
             for kid in p.graph.ids[ks].tolist():
                 cons.pop(kid, None)
             self._matched[p.robot].put(p.graph.ids[ks], np.concatenate([x[ks], p.graph.pose[ks]], axis=1))
-            for c in found:
-                cons[c.b_id] = c
+            for kid, c in found:
+                cons[kid] = c
             tried += len(ks)
             if stop is not None and stop():
                 break
@@ -343,9 +346,10 @@ class FleetGraph:
 
     def _match_robot(
         self, p: Placed, ks: np.ndarray, first: np.ndarray, others: list[Placed], where: dict
-    ) -> list[Constraint]:
-        """Constraints for keyframes ``ks`` of robot ``p`` against the ``others``: searched wide
-        where ``first``, narrow otherwise (``where``: see :meth:`_where`)."""
+    ) -> list[tuple[int, Constraint]]:
+        """Constraints for keyframes ``ks`` of robot ``p`` against the ``others``, each with the
+        keyframe tried: searched wide where ``first``, narrow otherwise (``where``: see
+        :meth:`_where`)."""
         cfg = self.cfg
         x, mine = self._where(p, where)
         if not len(mine):
@@ -402,15 +406,23 @@ class FleetGraph:
             a = int(np.bincount(own_k[owners][from_j]).argmax())
             o = others[j]
             xa = self._where(o, where)[0][a]
-            cov = np.linalg.inv(fit.info + 1e-9 * np.eye(3)) + np.diag(
-                [cfg.floor_sigma_m**2, cfg.floor_sigma_m**2, cfg.floor_sigma_rad**2]
-            )
+            cov = np.linalg.inv(fit.info + 1e-9 * np.eye(3))
+            b, pose_b = k, fit.pose
+            if cfg.tie_own_anchor:  # the keyframe the matched rows of this robot move with
+                b = int(np.bincount(g.row_kf[near][sub.owner[ok]]).argmax())
+                if b != k:
+                    pose_b = compose(compose(fit.pose, inverse(x[k])), x[b])
+                    arm = pose_b[:2] - fit.pose[:2]  # (the fit's turn moves the anchor across it)
+                    jac = np.array([[1.0, 0.0, -arm[1]], [0.0, 1.0, arm[0]], [0.0, 0.0, 1.0]])
+                    cov = jac @ cov @ jac.T
+            cov = cov + np.diag([cfg.floor_sigma_m**2, cfg.floor_sigma_m**2, cfg.floor_sigma_rad**2])
             rot = np.eye(3)
             c, s = np.cos(xa[2]), np.sin(xa[2])
             rot[:2, :2] = [[c, -s], [s, c]]
             info = rot.T @ np.linalg.inv(cov) @ rot
             info = 0.5 * (info + info.T)
-            out.append(Constraint(int(g.ids[k]), o.robot, int(o.graph.ids[a]), relative(xa, fit.pose), info))
+            tie = Constraint(int(g.ids[b]), o.robot, int(o.graph.ids[a]), relative(xa, pose_b), info)
+            out.append((int(g.ids[k]), tie))
         return out
 
     def _count(self, why: str) -> None:
