@@ -153,9 +153,8 @@ def test_a_map_that_does_not_contradict_itself_is_held_to_its_own_shape(bent):
         r[:, 2] = wrap_angle(r[:, 2])
         return float(solver.mahalanobis2(r, rg.info).sum())
 
-    assert (
-        own_chi2(fleet) < 0.5 < 1.0 < own_chi2(bent[0])
-    )  # measured 0.13 against 1.84 (no free space known: 1 each)
+    # measured 0.13 against 1.84 (no free space known: 1 each)
+    assert own_chi2(fleet) < 0.5 < 1.0 < own_chi2(bent[0])
     assert np.max(keyframe_errors(fleet, runs, "r0")) < 0.12  # measured 0.093 m
     assert np.percentile(keyframe_errors(fleet, runs, "r1"), 90) < 0.1  # measured 0.084 m
 
@@ -166,10 +165,9 @@ def test_a_constraint_ties_the_keyframe_its_matched_rows_move_with():
     (the simulated warehouse: 34-45 rows over 184 keyframes). A keyframe's submap is the rows
     anchored near it; the constraint its fit gives ties the keyframe those of its rows that
     matched move with (as the other side names the other robot's), its pose carried there by
-    the fit's correction — tied to the keyframe tried instead it held where that keyframe's own
-    chain put it, and the graph bent the anchor by the error of that chain in between (bench_merge:
-    the fused transforms' mean error 0.048 -> 0.042 m). Here every row of robot 1 is anchored
-    two keyframes before the scan that drew it."""
+    the fit's correction. Tied to the keyframe tried, the fit moved a keyframe the rows do not
+    move with, and the rows followed only through the robot's own chain in between. Here every
+    row of robot 1 is anchored two keyframes before the scan that drew it."""
     ks, stamps, est, truth, seg, anchor = bent_run(1, BEND)
     moved = ks[np.maximum(np.searchsorted(ks, anchor) - 2, 0)]
     runs = {"r0": bent_run(0, 0.0), "r1": (ks, stamps, est, truth, seg, moved)}
