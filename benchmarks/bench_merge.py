@@ -434,7 +434,7 @@ def main() -> int:
     over = sum(m > ERROR_BOUND_M or deg > ERROR_BOUND_DEG for m, deg in errors)
     summary = dict(
         runs=len(results), wrong_merges=wrong, unplaced=unplaced, unplaced_at_end=unplaced_end,
-        errors_over_bound=over, errors=len(errors),
+        errors_over_bound=over, errors_scored=len(errors),
         error_mean_m=float(np.mean([e[0] for e in errors])) if errors else None,
         delay_median_s=float(np.median(delays)) if delays else None,
         delay_max_s=float(np.max(delays)) if delays else None,

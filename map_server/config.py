@@ -141,10 +141,11 @@ class GraphConfig:
     tol: float = 1e-3
     # a robot whose walls stand in its own free space by at most this much (m; contradiction.py:
     # own_noise) has its own edges' information taken this many times (posegraph.py): bench_merge,
-    # office and warehouse, 10 seeds (young_confirmations 1) — times 1: 15 of 40 final errors over
-    # 0.05 m, worst 0.41 m, one robot unplaced at the end (undone); times 10: 9, worst 0.19 m;
-    # times 30: 12, worst 0.11 m; times 100: 12, worst 0.099 m (mean 0.037-0.038 m each). The
-    # simulated maps contradict themselves by 0-1 m, a real log's piece by metres
+    # office and warehouse, 10 seeds, constraints tied to the matched rows' keyframes — times 1:
+    # 14 of 38 final errors over 0.05 m, worst 0.315 m, one robot never placed and one undone;
+    # times 10: 12 of 40, worst 0.141 m; times 30: 9, worst 0.097 m, but one merge 37 s after its
+    # evidence (the bound: 30 s). The simulated maps contradict themselves by 0-1 m, a real log's
+    # piece by metres
     consistent_self_m: float = 1.0
     consistent_scale: float = 10.0
     reference_sigma_m: float = 1e-4  # the reference robot's placement edge (the gauge)

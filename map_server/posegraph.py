@@ -411,7 +411,7 @@ class FleetGraph:
             if cfg.tie_own_anchor:  # the keyframe the matched rows of this robot move with
                 b = int(np.bincount(g.row_kf[near][sub.owner[ok]]).argmax())
                 if b != k:
-                    pose_b = compose(compose(fit.pose, inverse(x[k])), x[b])
+                    pose_b = compose(fit.pose, relative(x[k], x[b]))
                     arm = pose_b[:2] - fit.pose[:2]  # (the fit's turn moves the anchor across it)
                     jac = np.array([[1.0, 0.0, -arm[1]], [0.0, 1.0, arm[0]], [0.0, 0.0, 1.0]])
                     cov = jac @ cov @ jac.T

@@ -135,7 +135,7 @@ def test_a_map_that_does_not_contradict_itself_is_held_to_its_own_shape(bent):
     off by up to 0.093 m, loose 0.061 m (before: 0.072 against 0.107 m) — the chain's information
     lets a stiff path turn a little at every edge rather than bend where the constraints pull. The
     scale is kept for what bench_merge measures (office and warehouse, 10 seeds, tied: final errors
-    over 0.05 m 12 of 40 at 10 times, 14 and one robot unplaced at 1 time)."""
+    over 0.05 m 12 of 40 at 10 times; at 1 time 14 of 38, one robot never placed and one undone)."""
     import shapely
 
     from shared import posegraph as solver
