@@ -218,7 +218,7 @@ class Fleet:
         if self._left:
             self._left = False
             self._settling = (0, [], {})  # a settle begins (again, if one was under way)
-            self.graph.refresh()  # and every keyframe is matched again against the final maps
+            self.graph.reset()  # and matched and solved anew on the final maps
         if self._settling is not None:
             self._settle(now_s)
         if self.frame == "prior":

@@ -37,7 +37,11 @@ with (``shared/messages.py``, RobotMap). The server joins them:
   narrow across a corridor, nothing along it. Constraints are kept by the keyframe tried.
 - **solve**: sparse Gauss-Newton (``shared/posegraph.py``), a Cauchy kernel on the constraints,
   warm-started from the last solution; constraints that still disagree (normalized residual
-  above ``max_chi``) are dropped and the graph solved again.
+  above ``max_chi``) are dropped and the graph solved again. When a robot leaves (the maps are
+  final) the graph forgets its solution and constraints (:meth:`FleetGraph.reset`) and is
+  matched and solved anew: constraints found on young maps, re-matched narrowly where the graph
+  had put their keyframes, held the simulated warehouse's robots 0.12-0.14 m off where their
+  final maps, placed on the reference's, are within 0.012 m.
 
 Each element then moves with its keyframe: ``global = X[k] ∘ P[k]⁻¹ ∘ local`` (``X`` the solved
 pose, ``P`` the robot's own).
@@ -213,10 +217,12 @@ class FleetGraph:
             if gone and other in self._matched:
                 self._matched[other].keep(~np.isin(self._matched[other].ids, gone))
 
-    def refresh(self) -> None:
-        """Every keyframe due again (the robots' maps are final: a robot left), each keeping its
-        constraint until it is matched again."""
-        self._matched = {}
+    def reset(self) -> None:
+        """Forget every robot's solution and constraints: every keyframe is due again, searched
+        wide from the robots' placements, and the graph solved from there (the robots' maps are
+        final: a robot left)."""
+        for held in (self.solution, self.constraints, self._matched, self._placed_at):
+            held.clear()
 
     def shift(self, robot: str, g: np.ndarray) -> None:
         """The robot's solution moved by the rigid motion ``g`` (the prior gauge moved every frame)."""
