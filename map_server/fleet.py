@@ -103,6 +103,7 @@ class Fleet:
         self._statuses: dict[str, tuple] = {}  # robot -> (what its status is made of, status, key)
         self.graph = FleetGraph(cfg.graph)  # the placed robots' keyframes solved together
         self._graph_key: tuple | None = None  # what the graph's last solve held
+        self._rebuilding = False  # the graph is matched anew (a robot left): the last bend stays out
         self._graph_moved = False  # the last bend matched or solved (keyframes may be due again)
         # a robot session's free space in its map frame (shapely, or None): the server gives
         # freespace.FreeSpaces.area; without it no placement is checked for contradiction
@@ -219,6 +220,7 @@ class Fleet:
             self._left = False
             self._settling = (0, [], {})  # a settle begins (again, if one was under way)
             self.graph.reset()  # and matched and solved anew on the final maps
+            self._rebuilding = True
         if self._settling is not None:
             self._settle(now_s)
         if self.frame == "prior":
@@ -274,7 +276,10 @@ class Fleet:
         last solution (:meth:`FleetGraph.poses`: new keyframes carried by their neighbours'
         correction) rather than its old layer kept, until the graph is solved again. One placed
         elsewhere since (undone and placed again, revised far: what the graph forgets) is
-        merged rigidly where it is now, not bent where it was."""
+        merged rigidly where it is now, not bent where it was. Not while the graph is matched anew
+        (a robot left: its solution is gone, the last bend stays out until the new one is whole)."""
+        if self._rebuilding:
+            return
         for r in self.placed():
             if r.bent is None or r.graph is None or r.graph.rigid:
                 continue
@@ -318,6 +323,12 @@ class Fleet:
             return
         self._graph_key = key
         x = self.graph.solve(items, stop)
+        if self._rebuilding:  # the maps stay bent as the last whole solution had them until every
+            # keyframe has been matched anew: a solution over the first few constraints would bend
+            # them less for a few fusions (a real log's pieces: ~500 keyframes, 40 a fusion)
+            if self.graph.pending:
+                return
+            self._rebuilding = False
         if not self.graph.stats.get("constraints_kept"):
             for r in placed:
                 r.bent = r.bent_x = r.bent_of = None
