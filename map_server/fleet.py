@@ -315,6 +315,7 @@ class Fleet:
             for r in placed:
                 r.bent = r.bent_x = r.bent_of = None
             self._graph_key, self._graph_moved = self._bend_key(placed), False  # (nothing to solve)
+            self._rebuilding = False  # (nor anything bent to hold)
             return
         tried = self.graph.match(items, stop)
         key = self._bend_key(placed)
