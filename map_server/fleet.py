@@ -276,10 +276,8 @@ class Fleet:
         last solution (:meth:`FleetGraph.poses`: new keyframes carried by their neighbours'
         correction) rather than its old layer kept, until the graph is solved again. One placed
         elsewhere since (undone and placed again, revised far: what the graph forgets) is
-        merged rigidly where it is now, not bent where it was. Not while the graph is matched anew
-        (a robot left: its solution is gone, the last bend stays out until the new one is whole)."""
-        if self._rebuilding:
-            return
+        merged rigidly where it is now, not bent where it was. While the graph is matched anew (a
+        robot left) a new map is carried by the solution before (FleetGraph.held)."""
         for r in self.placed():
             if r.bent is None or r.graph is None or r.graph.rigid:
                 continue
@@ -289,7 +287,7 @@ class Fleet:
                 continue
             if r.bent_of is r.layer:
                 continue
-            x = self.graph.poses(p)
+            x = self.graph.poses(p, held=self._rebuilding)
             r.bent = dataclasses.replace(r.layer, seg=self.graph.rows(p, x))
             r.bent_x, r.bent_of = x, r.layer
 
@@ -315,7 +313,7 @@ class Fleet:
             for r in placed:
                 r.bent = r.bent_x = r.bent_of = None
             self._graph_key, self._graph_moved = self._bend_key(placed), False  # (nothing to solve)
-            self._rebuilding = False  # (nor anything bent to hold)
+            self._rebuilding, self.graph.held = False, {}  # (nor anything bent to hold)
             return
         tried = self.graph.match(items, stop)
         key = self._bend_key(placed)
@@ -328,8 +326,10 @@ class Fleet:
             # keyframe has been matched anew: a solution over the first few constraints would bend
             # them less for a few fusions (a real log's pieces: ~500 keyframes, 40 a fusion)
             if self.graph.pending:
+                self._carry()  # (a map that came meanwhile is merged, bent as before)
                 return
             self._rebuilding = False
+            self.graph.held = {}
         if not self.graph.stats.get("constraints_kept"):
             for r in placed:
                 r.bent = r.bent_x = r.bent_of = None

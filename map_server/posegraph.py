@@ -176,6 +176,7 @@ class FleetGraph:
     unsolved: bool = False  # the last solve was cut short (``stop``): solve again
     _matched: dict = field(default_factory=dict)  # robot -> Matched: its keyframes tried
     _placed_at: dict = field(default_factory=dict)  # robot -> its rigid placement at the last solve
+    held: dict = field(default_factory=dict)  # robot -> (graph, X): the solution before a reset
 
     def sync(self, placed: list[Placed]) -> list[str]:
         """Forget what the graph holds of a robot that is no longer placed, or whose placement
@@ -190,6 +191,7 @@ class FleetGraph:
             return p is not None and not self.jumped(p)
 
         held = set(self.solution) | set(self.constraints) | set(self._matched) | set(self._placed_at)
+        held |= set(self.held)
         out = sorted(robot for robot in held if not kept(robot))
         for robot in out:
             self.forget(robot)
@@ -208,7 +210,7 @@ class FleetGraph:
     def forget(self, robot: str) -> None:
         """Drop the robot's solution, its constraints and the others' constraints on it (their
         keyframes are matched again)."""
-        for held in (self.solution, self.constraints, self._matched, self._placed_at):
+        for held in (self.solution, self.constraints, self._matched, self._placed_at, self.held):
             held.pop(robot, None)
         for other, cons in self.constraints.items():
             gone = [k for k, c in cons.items() if c.other == robot]
@@ -221,24 +223,28 @@ class FleetGraph:
         """Forget every robot's solution and constraints: every keyframe is due again, searched
         wide from the robots' placements, and the graph solved from there (the robots' maps are
         final: a robot left)."""
-        for held in (self.solution, self.constraints, self._matched, self._placed_at):
+        self.held = self.solution  # (what carries the robots' new maps until the new one is whole)
+        self.solution = {}
+        for held in (self.constraints, self._matched, self._placed_at):
             held.clear()
 
     def shift(self, robot: str, g: np.ndarray) -> None:
         """The robot's solution moved by the rigid motion ``g`` (the prior gauge moved every frame)."""
-        if robot in self.solution:
-            graph, x = self.solution[robot]
-            self.solution[robot] = (graph, compose(g, x))
+        for sol in (self.solution, self.held):
+            if robot in sol:
+                graph, x = sol[robot]
+                sol[robot] = (graph, compose(g, x))
         if robot in self._placed_at:
             self._placed_at[robot] = compose(g, self._placed_at[robot])
         if robot in self._matched:
             seen = self._matched[robot]
             seen.at = np.concatenate([compose(g, seen.at[:, :3]), seen.at[:, 3:]], axis=1)
 
-    def poses(self, p: Placed) -> np.ndarray:
+    def poses(self, p: Placed, held: bool = False) -> np.ndarray:
         """The robot's keyframes in the global frame: solved, or (new ones) carried from the last
-        solution by the nearest solved keyframe's correction, or at its rigid placement."""
-        old = self.solution.get(p.robot)
+        solution by the nearest solved keyframe's correction, or at its rigid placement. ``held``:
+        from the solution before the last :meth:`reset` instead."""
+        old = (self.held if held else self.solution).get(p.robot)
         g = p.graph
         if old is None:
             return compose(p.transform, g.pose)

@@ -444,19 +444,24 @@ def test_while_the_graph_is_matched_anew_the_last_whole_bend_stays_out():
     """Matching every keyframe again takes fusions (``budget_keyframes`` a fusion); a solve over
     the first few constraints would bend the maps less meanwhile. The robots' maps and paths keep
     the shape the last whole solution gave them (moved only as every frame is: the prior gauge)
-    until the new one is whole."""
-    fleet, _ = fleet_of(True)
+    until the new one is whole; a map that comes meanwhile is merged at once, bent as they were."""
+    fleet, runs = fleet_of(True)
 
     def shape(name: str) -> np.ndarray:
         x = fleet.robots[name].bent_x
         return relative(x[:-1], x[1:])
 
     before = {name: shape(name) for name in ("r0", "r1")}
+    run = runs["r1"]
+    fleet.put_map(graph_message("r1", run, prior=run[3][0], seq=2), 300.0)  # its final map
     fleet.set_online("r1", False)
     fleet.fuse(300.0)
     assert fleet.graph.pending  # (a fusion's share of the keyframes matched)
     for name in ("r0", "r1"):
         np.testing.assert_allclose(shape(name), before[name], atol=1e-9)
+    r1 = fleet.robots["r1"]  # the final map is merged at once, bent as before
+    assert r1.map.seq == 2 and r1.bent_of is r1.layer
+    assert fleet.latest().robot("r1").map_seq == 2
     t = 300.0
     while fleet.pending_work and t < 400.0:
         t += 1.0
