@@ -223,7 +223,8 @@ class FleetGraph:
         """Forget every robot's solution and constraints: every keyframe is due again, searched
         wide from the robots' placements, and the graph solved from there (the robots' maps are
         final: a robot left)."""
-        self.held = self.solution  # (what carries the robots' new maps until the new one is whole)
+        self.held = self.held or self.solution  # (carries the robots' new maps until the new one is
+        # whole; a reset during one keeps the solution before the first)
         self.solution = {}
         for held in (self.constraints, self._matched, self._placed_at):
             held.clear()
