@@ -222,12 +222,13 @@ class FleetGraph:
     def reset(self) -> None:
         """Forget every robot's solution and constraints: every keyframe is due again, searched
         wide from the robots' placements, and the graph solved from there (the robots' maps are
-        final: a robot left)."""
+        final: a robot left). The solution before is ``held`` (the caller carries new maps by it
+        until the new one is whole) and where each robot was placed is kept (:meth:`jumped`)."""
         self.held = self.held or self.solution  # (carries the robots' new maps until the new one is
         # whole; a reset during one keeps the solution before the first)
         self.solution = {}
-        for held in (self.constraints, self._matched, self._placed_at):
-            held.clear()
+        for held in (self.constraints, self._matched):
+            held.clear()  # (where each robot was placed stays: one that jumps meanwhile is forgotten)
 
     def shift(self, robot: str, g: np.ndarray) -> None:
         """The robot's solution moved by the rigid motion ``g`` (the prior gauge moved every frame)."""

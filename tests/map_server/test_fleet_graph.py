@@ -469,3 +469,17 @@ def test_while_the_graph_is_matched_anew_the_last_whole_bend_stays_out():
     assert not fleet.graph.pending and not fleet._rebuilding
     np.testing.assert_array_equal(fleet.robots["r1"].bent_x, fleet.graph.solution["r1"][1])
     assert np.abs(shape("r1") - before["r1"]).max() > 1e-3
+
+
+def test_a_robot_placed_elsewhere_while_the_graph_is_matched_anew_is_merged_where_it_is_now():
+    """The solution held during a rebuild carries no robot whose placement jumped since — also
+    before the rebuild's first solve (the server's fusion: the graph after publishing)."""
+    fleet, _ = fleet_of(True)
+    fleet.set_online("r1", False)
+    fleet.fuse(300.0, bend=False)
+    r1 = fleet.robots["r1"]
+    assert fleet._rebuilding and r1.bent is not None
+    far = compose(r1.alignment.transform, np.array([10.0, 0.0, np.pi / 2]))
+    r1.alignment = dataclasses.replace(r1.alignment, transform=far)
+    fleet._carry()
+    assert r1.bent is None
