@@ -103,7 +103,6 @@ class Fleet:
         self._statuses: dict[str, tuple] = {}  # robot -> (what its status is made of, status, key)
         self.graph = FleetGraph(cfg.graph)  # the placed robots' keyframes solved together
         self._graph_key: tuple | None = None  # what the graph's last solve held
-        self._rebuilding = False  # the graph is matched anew (a robot left): the last bend stays out
         self._graph_moved = False  # the last bend matched or solved (keyframes may be due again)
         # a robot session's free space in its map frame (shapely, or None): the server gives
         # freespace.FreeSpaces.area; without it no placement is checked for contradiction
@@ -220,7 +219,6 @@ class Fleet:
             self._left = False
             self._settling = (0, [], {})  # a settle begins (again, if one was under way)
             self.graph.reset()  # and matched and solved anew on the final maps
-            self._rebuilding = True
         if self._settling is not None:
             self._settle(now_s)
         if self.frame == "prior":
@@ -277,7 +275,7 @@ class Fleet:
         correction) rather than its old layer kept, until the graph is solved again. One placed
         elsewhere since (undone and placed again, revised far: what the graph forgets) is
         merged rigidly where it is now, not bent where it was. While the graph is matched anew (a
-        robot left) a new map is carried by the solution before (FleetGraph.held)."""
+        robot left) a new map is carried by the solution before (FleetGraph.carried)."""
         for r in self.placed():
             if r.bent is None or r.graph is None or r.graph.rigid:
                 continue
@@ -287,7 +285,7 @@ class Fleet:
                 continue
             if r.bent_of is r.layer:
                 continue
-            x = self.graph.poses(p, held=self._rebuilding)
+            x = self.graph.carried(p)
             r.bent = dataclasses.replace(r.layer, seg=self.graph.rows(p, x))
             r.bent_x, r.bent_of = x, r.layer
 
@@ -313,7 +311,7 @@ class Fleet:
             for r in placed:
                 r.bent = r.bent_x = r.bent_of = None
             self._graph_key, self._graph_moved = self._bend_key(placed), False  # (nothing to solve)
-            self._rebuilding, self.graph.held = False, {}  # (nor anything bent to hold)
+            self.graph.rebuilt()  # (nor anything bent to hold)
             return
         tried = self.graph.match(items, stop)
         key = self._bend_key(placed)
@@ -322,14 +320,13 @@ class Fleet:
             return
         self._graph_key = key
         x = self.graph.solve(items, stop)
-        if self._rebuilding:  # the maps stay bent as the last whole solution had them until every
-            # keyframe has been matched anew: a solution over the first few constraints would bend
-            # them less for a few fusions (a real log's pieces: ~500 keyframes, 40 a fusion)
+        if self.graph.rebuilding:  # the maps stay bent as the last whole solution had them until
+            # every keyframe has been matched anew: a solution over the first few constraints would
+            # bend them less for a few fusions (a real log's pieces: ~500 keyframes, 40 a fusion)
             if self.graph.pending:
                 self._carry()  # (a map that came meanwhile is merged, bent as before)
                 return
-            self._rebuilding = False
-            self.graph.held = {}
+            self.graph.rebuilt()
         if not self.graph.stats.get("constraints_kept"):
             for r in placed:
                 r.bent = r.bent_x = r.bent_of = None

@@ -176,7 +176,8 @@ class FleetGraph:
     unsolved: bool = False  # the last solve was cut short (``stop``): solve again
     _matched: dict = field(default_factory=dict)  # robot -> Matched: its keyframes tried
     _placed_at: dict = field(default_factory=dict)  # robot -> its rigid placement at the last solve
-    held: dict = field(default_factory=dict)  # robot -> (graph, X): the solution before a reset
+    held: dict = field(default_factory=dict)  # robot -> (graph, X): the solution before a reset ...
+    rebuilding: bool = False  # ... kept out while every keyframe is matched anew (:meth:`rebuilt`)
 
     def sync(self, placed: list[Placed]) -> list[str]:
         """Forget what the graph holds of a robot that is no longer placed, or whose placement
@@ -190,8 +191,13 @@ class FleetGraph:
             p = now.get(robot)
             return p is not None and not self.jumped(p)
 
-        held = set(self.solution) | set(self.constraints) | set(self._matched) | set(self._placed_at)
-        held |= set(self.held)
+        held = (
+            set(self.solution)
+            | set(self.constraints)
+            | set(self._matched)
+            | set(self._placed_at)
+            | set(self.held)
+        )
         out = sorted(robot for robot in held if not kept(robot))
         for robot in out:
             self.forget(robot)
@@ -222,13 +228,20 @@ class FleetGraph:
     def reset(self) -> None:
         """Forget every robot's solution and constraints: every keyframe is due again, searched
         wide from the robots' placements, and the graph solved from there (the robots' maps are
-        final: a robot left). The solution before is ``held`` (the caller carries new maps by it
-        until the new one is whole) and where each robot was placed is kept (:meth:`jumped`)."""
-        self.held = self.held or self.solution  # (carries the robots' new maps until the new one is
-        # whole; a reset during one keeps the solution before the first)
+        final: a robot left). The solution before is ``held`` until :meth:`rebuilt` (new maps
+        are carried by it: :meth:`carried`; a reset during a rebuild keeps the one before the
+        first), and where each robot was placed is kept (one that jumps meanwhile is forgotten:
+        :meth:`jumped`)."""
+        self.held = self.held if self.rebuilding else self.solution
+        self.rebuilding = True
         self.solution = {}
-        for held in (self.constraints, self._matched):
-            held.clear()  # (where each robot was placed stays: one that jumps meanwhile is forgotten)
+        self.constraints.clear()
+        self._matched.clear()
+
+    def rebuilt(self) -> None:
+        """The rebuild since :meth:`reset` is whole (or there is nothing to rebuild): the
+        solution before is let go."""
+        self.rebuilding, self.held = False, {}
 
     def shift(self, robot: str, g: np.ndarray) -> None:
         """The robot's solution moved by the rigid motion ``g`` (the prior gauge moved every frame)."""
@@ -242,11 +255,16 @@ class FleetGraph:
             seen = self._matched[robot]
             seen.at = np.concatenate([compose(g, seen.at[:, :3]), seen.at[:, 3:]], axis=1)
 
-    def poses(self, p: Placed, held: bool = False) -> np.ndarray:
+    def carried(self, p: Placed) -> np.ndarray:
+        """Where the robot's keyframes are carried for its fused map: :meth:`poses`, from the
+        solution before the reset while a rebuild is under way."""
+        return self.poses(p, self.held if self.rebuilding else None)
+
+    def poses(self, p: Placed, solution: dict | None = None) -> np.ndarray:
         """The robot's keyframes in the global frame: solved, or (new ones) carried from the last
-        solution by the nearest solved keyframe's correction, or at its rigid placement. ``held``:
-        from the solution before the last :meth:`reset` instead."""
-        old = (self.held if held else self.solution).get(p.robot)
+        solution (or ``solution``) by the nearest solved keyframe's correction, or at its rigid
+        placement."""
+        old = (self.solution if solution is None else solution).get(p.robot)
         g = p.graph
         if old is None:
             return compose(p.transform, g.pose)

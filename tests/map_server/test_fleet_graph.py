@@ -87,12 +87,18 @@ def fleet_of(
             m = dataclasses.replace(m, **dict.fromkeys(("kf_id", "kf_stamp", "kf_pose", "edge_ids", "edge_z",
                                                          "edge_info", "anchor", "graph_seq")))  # fmt: skip
         fleet.put_map(m, 0.0)
-    t = 0.0
-    fleet.fuse(t)
-    while fleet.pending_work and t < 200.0:
+    fleet.fuse(0.0)
+    fuse_on(fleet, 0.0, 200.0)
+    return fleet, runs
+
+
+def fuse_on(fleet: Fleet, t: float, until: float) -> float:
+    """Fusions a second apart after ``t`` while the fleet has work pending, up to ``until``; the
+    last one's time."""
+    while fleet.pending_work and t < until:
         t += 1.0
         fleet.fuse(t)
-    return fleet, runs
+    return t
 
 
 def keyframe_errors(fleet: Fleet, runs: dict, robot: str) -> np.ndarray:
@@ -294,11 +300,8 @@ def test_the_graph_can_run_after_the_fused_map_and_its_result_goes_out_next():
     fleet = Fleet(FleetConfig(), "srv")
     fleet.put_map(graph_message("r0", runs["r0"], prior=runs["r0"][3][0]), 0.0)
     fleet.put_map(graph_message("r1", early, prior=truth[0]), 0.0)
-    t = 0.0
-    fleet.fuse(t)
-    while fleet.pending_work and t < 200.0:
-        t += 1.0
-        fleet.fuse(t)
+    fleet.fuse(0.0)
+    t = fuse_on(fleet, 0.0, 200.0)
     graph_first = copy.deepcopy(fleet)
     whole = graph_message("r1", runs["r1"], prior=truth[0], seq=2)
     for f in (fleet, graph_first):
@@ -427,11 +430,8 @@ def test_when_a_robot_leaves_the_graph_is_matched_and_solved_anew_on_the_final_m
     fresh, _ = fleet_of(True)
     for f in (fleet, fresh):
         f.set_online("r1", False)
-        t = 300.0
-        f.fuse(t)
-        while f.pending_work and t < 400.0:
-            t += 1.0
-            f.fuse(t)
+        f.fuse(300.0)
+        fuse_on(f, 300.0, 400.0)
     for robot in ("r0", "r1"):
         np.testing.assert_array_equal(fleet.graph.solution[robot][1], fresh.graph.solution[robot][1])
     assert not any(np.array_equal(c.z, stale) for c in fleet.graph.constraints["r1"].values())
@@ -462,11 +462,8 @@ def test_while_the_graph_is_matched_anew_the_last_whole_bend_stays_out():
     r1 = fleet.robots["r1"]  # the final map is merged at once, bent as before
     assert r1.map.seq == 2 and r1.bent_of is r1.layer
     assert fleet.latest().robot("r1").map_seq == 2
-    t = 300.0
-    while fleet.pending_work and t < 400.0:
-        t += 1.0
-        fleet.fuse(t)
-    assert not fleet.graph.pending and not fleet._rebuilding
+    fuse_on(fleet, 300.0, 400.0)
+    assert not fleet.graph.pending and not fleet.graph.rebuilding
     np.testing.assert_array_equal(fleet.robots["r1"].bent_x, fleet.graph.solution["r1"][1])
     assert np.abs(shape("r1") - before["r1"]).max() > 1e-3
 
@@ -478,7 +475,7 @@ def test_a_robot_placed_elsewhere_while_the_graph_is_matched_anew_is_merged_wher
     fleet.set_online("r1", False)
     fleet.fuse(300.0, bend=False)
     r1 = fleet.robots["r1"]
-    assert fleet._rebuilding and r1.bent is not None
+    assert fleet.graph.rebuilding and r1.bent is not None
     far = compose(r1.alignment.transform, np.array([10.0, 0.0, np.pi / 2]))
     r1.alignment = dataclasses.replace(r1.alignment, transform=far)
     fleet._carry()
