@@ -608,7 +608,9 @@ class Fleet:
 
     def _restore_graph(self, graph: dict[str, tuple[str, int, np.ndarray]] | None) -> None:
         """The bent robots as the graph left them (see :meth:`graph_state`); a robot whose map
-        is not the one its solution was of stays rigid until the graph is solved again."""
+        is not the one its solution was of stays rigid until the graph is solved again. The
+        constraints are not kept: every keyframe is matched again (from the restored solution),
+        and the restored bend is held meanwhile, as after a departure (FleetGraph.held)."""
         for robot, (session, seq, x) in (graph or {}).items():
             r = self.robots.get(robot)
             if r is None or r.map is None or (r.map.session, r.map.seq) != (session, seq) or r.graph is None:
@@ -620,6 +622,8 @@ class Fleet:
             self.graph.solution[robot] = (r.graph, x)
             r.bent = dataclasses.replace(r.layer, seg=self.graph.rows(p, x))
             r.bent_x, r.bent_of = x, r.layer
+        if self.graph.solution:
+            self.graph.held, self.graph.rebuilding = dict(self.graph.solution), True
 
     def snapshot(self) -> tuple[dict, dict[str, RobotMap]]:
         """Everything needed to resume: a JSON-able dict and the latest map of every robot."""

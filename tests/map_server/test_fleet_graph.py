@@ -212,6 +212,24 @@ def test_the_solution_survives_a_restart(bent):
         np.testing.assert_array_equal(back.robots[name].bent_x, fleet.robots[name].bent_x)
 
 
+def test_after_a_restart_the_restored_bend_stays_out_until_the_graph_is_matched_again(bent):
+    """The constraints are not persisted: a restarted server matches every keyframe again
+    (``budget_keyframes`` a fusion), and a solve over the first few would bend the maps less
+    meanwhile. The restored bend is published until the graph is whole again."""
+    fleet, _ = bent
+    meta, maps = fleet.snapshot()
+    back = Fleet.restore(json.loads(json.dumps(meta)), maps, fleet.cfg, "srv", fleet.graph_state())
+    t = fleet.epoch_s + 400.0
+    back.fuse(t)
+    assert back.graph.pending and back.graph.rebuilding  # (a fusion's share of the keyframes matched)
+    for name in ("r0", "r1"):  # (moved only as every frame is: the prior gauge)
+        x, was = back.robots[name].bent_x, fleet.robots[name].bent_x
+        np.testing.assert_allclose(relative(x[:-1], x[1:]), relative(was[:-1], was[1:]), atol=1e-9)
+    fuse_on(back, t, t + 100.0)
+    assert not back.graph.pending and not back.graph.rebuilding
+    np.testing.assert_array_equal(back.robots["r1"].bent_x, back.graph.solution["r1"][1])
+
+
 def test_a_robot_unplaced_or_moved_far_is_forgotten_by_the_graph(bent):
     """What the graph found where a robot was (its solution, its constraints and the others' on
     it) would hold it there: a robot undone and placed elsewhere ended 34 m / 180 deg from where
