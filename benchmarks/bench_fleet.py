@@ -3,8 +3,8 @@ bytes per robot per second against a 5 cm occupancy grid of the same area.
 
     .venv/bin/python benchmarks/bench_fleet.py [--only fusion|latency|bytes] [--quick]
         [--robots 1 2 4 8 16 32 100] [--sizes 100 300 1000] [--reps 12] [--no-priors-max 16]
-        [--agents 1 4 8 16] [--seconds 40] [--min-gap 0.05] [--profile] [--cache DIR] [--refresh]
-        [--workdir DIR] [--out FILE]
+        [--agents 1 4 8 16] [--seconds 40] [--min-gap 0.05] [--leave K] [--profile] [--cache DIR]
+        [--refresh] [--workdir DIR] [--out FILE]
 
 Maps are real agent maps: simulated robots (worlds office, warehouse, campus; routes 0-3; seeds 0
 and 1; 60 s each) run FastSLAM through ``AgentCore``, and every map publication, pose update and
@@ -28,7 +28,9 @@ latency  Real processes on loopback: a router, the map server (``--state`` in ``
          to the fused map. Latency of map ``seq`` of robot r = arrival here of the first fused map
          with ``RobotStatus(r).map_seq >= seq`` - the agent's ``time.monotonic()`` just before its
          first put of that map (CLOCK_MONOTONIC is system-wide). ``--profile`` samples the server
-         with py-spy and splits its fusion loop into parts.
+         with py-spy and splits its fusion loop into parts. ``--leave K``: K agents stop halfway
+         through the window (a departure makes the server match and solve its fleet graph anew,
+         the last bend held meanwhile); the latency of the maps put after it is given apart.
 bytes    Encoded size (all chunks) of a map of 1,000 segments (and one of 1,000 distinct elements)
          against the raw 5 cm grid of the same area (1 byte per cell) and that grid compressed
          (zlib level 6, PNG), the grid either clean (the world's free space + the segments: the
@@ -550,13 +552,16 @@ class LatencyRun:
     window: tuple[float, float]
     server_log: str
     profile: Path | None = None  # py-spy raw samples of the server during the window
+    left_at: float | None = None  # when ``--leave`` agents were stopped (monotonic), halfway through
 
 
 def run_latency(
     recs: list[Recording], n: int, seconds: float, warmup_s: float, min_gap_s: float, workdir: Path,
-    profile: bool = False,
+    profile: bool = False, leave: int = 0,
 ) -> LatencyRun:  # fmt: skip
-    """Router, server, ``n`` load agents (separate processes), this process watching the fused map."""
+    """Router, server, ``n`` load agents (separate processes), this process watching the fused map;
+    ``leave`` of them stopped halfway through the window (each departure makes the server match and
+    solve its fleet graph anew: Fleet.fuse)."""
     from fleet_slam.procs import ProcGroup, free_port, python_module
     from fleet_slam.watch import FusedWatcher
     from shared.bus import Bus, BusConfig
@@ -596,9 +601,15 @@ def run_latency(
             time.sleep(warmup_s)
             spy_out = run_dir / "server.pyspy.txt" if profile else None
             spy = start_profiler(server.popen.pid, seconds, spy_out) if profile else None
+            left_at = None
             try:
                 t0 = time.monotonic()
-                time.sleep(seconds)
+                if leave:
+                    time.sleep(seconds / 2)
+                    left_at = time.monotonic()
+                    for a in agents[n - min(leave, n - 1) :]:
+                        a.stop()
+                time.sleep(t0 + seconds - time.monotonic())
                 t1 = time.monotonic()
             except BaseException:
                 stop_profiler(spy, wait=False)
@@ -606,14 +617,14 @@ def run_latency(
             stop_profiler(spy)
             time.sleep(2.0)  # maps put just before t1 may still arrive
             updates = list(watcher.updates)
-            check_alive(agents)
+            check_alive(agents[: n - min(leave, n - 1)] if leave else agents)
             for a in agents:
                 a.stop()
         server.stop()
         server_log = server.output()
     put_times = {a.name: _read_puts(run_dir / f"{a.name}.puts") for a in agents}
     has_profile = spy_out is not None and spy_out.exists()
-    return LatencyRun(n, put_times, updates, (t0, t1), server_log, spy_out if has_profile else None)
+    return LatencyRun(n, put_times, updates, (t0, t1), server_log, spy_out if has_profile else None, left_at)
 
 
 def _wait(proc, text: str) -> None:
@@ -702,7 +713,7 @@ def latency_stats(run: LatencyRun) -> dict:
     """Per map put in the window: first fused map (arrival) with that robot's ``map_seq >= seq``."""
     t0, t1 = run.window
     arrivals = np.array([u.wall_s for u in run.updates])
-    lat, missing = [], 0
+    lat, missing, after = [], 0, []
     for robot, (seqs, puts) in run.put_times.items():
         seen = np.array([(s.map_seq if (s := u.fused.robot(robot)) is not None else -1) for u in run.updates])
         best = np.maximum.accumulate(seen) if len(seen) else seen
@@ -714,7 +725,9 @@ def latency_stats(run: LatencyRun) -> dict:
                 missing += 1
             else:
                 lat.append(arrivals[i] - t_put)
+                after.append(run.left_at is not None and t_put >= run.left_at)
     lat_ms = np.array(lat) * 1e3
+    after_ms = lat_ms[np.array(after, bool)] if lat else lat_ms
     in_window = [u for u in run.updates if t0 <= u.wall_s < t1]
     extra = {k: [u.fused.extra[k] for u in in_window if k in u.fused.extra] for k in _extra_keys(in_window)}
     fusions = next((int(w) for w in _words_after(run.server_log, "stopped after")), None)
@@ -732,6 +745,11 @@ def latency_stats(run: LatencyRun) -> dict:
         "extra_p50": {k: _p(v, 50) for k, v in extra.items() if v},
         "server_profile": server_profile(run.profile, t1 - t0, len(in_window)) if run.profile else None,
         "latencies_ms": lat_ms.round(3).tolist(),
+        # --leave: the maps put after the departures (the graph matched and solved anew meanwhile)
+        "after_leave_p50_ms": _p(after_ms, 50) if run.left_at is not None else None,
+        "after_leave_p95_ms": _p(after_ms, 95) if run.left_at is not None else None,
+        "graph_rebuilds_begun": run.server_log.count("the fleet graph is matched and solved anew (the last"),
+        "graph_rebuilds_whole": run.server_log.count("the fleet graph is matched and solved anew: its"),
     }
 
 
@@ -751,6 +769,9 @@ def print_latency(rows: list, seconds: float) -> None:
             "p95 ms": r["p95_ms"], "max ms": r["max_ms"], "fused/s": r["fused_maps_per_s"],
             "server fusions": r["server_fusions"], "fused seg": r["fused_segments"],
             **{f"{k} p50": v for k, v in r["extra_p50"].items()},
+            **({"after leave p95 ms": r["after_leave_p95_ms"],
+                "graph rebuilds (begun/whole)": f"{r['graph_rebuilds_begun']}/{r['graph_rebuilds_whole']}"}
+               if r.get("after_leave_p95_ms") is not None else {}),
         }
         for r in rows
     ]  # fmt: skip
@@ -1047,6 +1068,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", type=float, default=5.0, help="latency: seconds after every robot is placed")
     ap.add_argument("--min-gap", type=float, default=0.05, help="the server's --min-gap (s between fusions)")
     ap.add_argument("--profile", action="store_true", help="latency: sample the server with py-spy")
+    ap.add_argument(
+        "--leave",
+        type=int,
+        default=0,
+        help="latency: this many agents stop halfway through the window (the graph rebuilt)",
+    )
     ap.add_argument("--robots", type=int, nargs="+", default=None, help="fusion: robot counts (1 2 4 8 16)")
     ap.add_argument(
         "--sizes", type=int, nargs="+", default=None, help="fusion: segments per robot (100 300 1000)"
@@ -1084,10 +1111,17 @@ def main(argv: list[str] | None = None) -> int:
     if "latency" in sections:
         rows = []
         for n in agents:
-            run = run_latency(recs, n, seconds, args.warmup, args.min_gap, args.workdir, args.profile)
+            run = run_latency(
+                recs, n, seconds, args.warmup, args.min_gap, args.workdir, args.profile, args.leave
+            )
             rows.append(latency_stats(run))
             print(f"  latency: {n} agents done", flush=True)
-        results["latency"] = {"seconds": seconds, "min_gap_s": args.min_gap, "rows": rows}
+        results["latency"] = {
+            "seconds": seconds,
+            "min_gap_s": args.min_gap,
+            "leave": args.leave,
+            "rows": rows,
+        }
         print_latency(rows, seconds)
     if "bytes" in sections:
         results["bytes"] = bench_bytes(recs, 1000, rate_routes=1 if q else 2)

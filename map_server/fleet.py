@@ -219,6 +219,9 @@ class Fleet:
             self._left = False
             self._settling = (0, [], {})  # a settle begins (again, if one was under way)
             self.graph.reset()  # and matched and solved anew on the final maps
+            log.info(
+                "a robot left: the fleet graph is matched and solved anew (the last bend held meanwhile)"
+            )
         if self._settling is not None:
             self._settle(now_s)
         if self.frame == "prior":
@@ -327,6 +330,7 @@ class Fleet:
                 self._carry()  # (a map that came meanwhile is merged, bent as before)
                 return
             self.graph.rebuilt()
+            log.info("the fleet graph is matched and solved anew: its bend replaces the one held")
         if not self.graph.stats.get("constraints_kept"):
             for r in placed:
                 r.bent = r.bent_x = r.bent_of = None
