@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -83,12 +84,20 @@ def start(name: str, argv: list[str], log_dir: str | Path, env: dict | None = No
     return Proc(name, popen, log_path)
 
 
+def _terminated(signum, frame) -> None:
+    raise SystemExit(128 + signum)
+
+
 class ProcGroup:
-    """Processes stopped together (reverse start order) when the ``with`` block ends, however."""
+    """Processes stopped together (reverse start order) when the ``with`` block ends, however —
+    a SIGTERM to this process included: while a group is open in the main thread, SIGTERM
+    (default: die at once, every child left running) raises SystemExit(143) there instead, so the
+    block ends and stops them. A handler someone else installed is left alone."""
 
     def __init__(self, log_dir: str | Path):
         self.log_dir = Path(log_dir)
         self.procs: list[Proc] = []
+        self._sigterm = None  # the handler before ours (ours installed: not None)
 
     def start(self, name: str, argv: list[str], env: dict | None = None) -> Proc:
         p = start(name, argv, self.log_dir, env)
@@ -100,7 +109,17 @@ class ProcGroup:
             p.stop()
 
     def __enter__(self) -> ProcGroup:
+        main = threading.current_thread() is threading.main_thread()
+        if main and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+            self._sigterm = signal.signal(signal.SIGTERM, _terminated)
         return self
 
     def __exit__(self, *exc) -> None:
-        self.stop_all()
+        if self._sigterm is not None:  # (a second SIGTERM does not cut the stopping short)
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        try:
+            self.stop_all()
+        finally:
+            if self._sigterm is not None:
+                signal.signal(signal.SIGTERM, self._sigterm)
+                self._sigterm = None
