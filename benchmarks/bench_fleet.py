@@ -601,13 +601,13 @@ def run_latency(
             time.sleep(warmup_s)
             spy_out = run_dir / "server.pyspy.txt" if profile else None
             spy = start_profiler(server.popen.pid, seconds, spy_out) if profile else None
-            left_at = None
+            left_at, stay = None, n - min(leave, n - 1)  # (one agent stays at least)
             try:
                 t0 = time.monotonic()
                 if leave:
                     time.sleep(seconds / 2)
                     left_at = time.monotonic()
-                    for a in agents[n - min(leave, n - 1) :]:
+                    for a in agents[stay:]:
                         a.stop()
                 time.sleep(t0 + seconds - time.monotonic())
                 t1 = time.monotonic()
@@ -617,7 +617,7 @@ def run_latency(
             stop_profiler(spy)
             time.sleep(2.0)  # maps put just before t1 may still arrive
             updates = list(watcher.updates)
-            check_alive(agents[: n - min(leave, n - 1)] if leave else agents)
+            check_alive(agents[:stay])
             for a in agents:
                 a.stop()
         server.stop()

@@ -176,7 +176,8 @@ class FleetGraph:
     unsolved: bool = False  # the last solve was cut short (``stop``): solve again
     _matched: dict = field(default_factory=dict)  # robot -> Matched: its keyframes tried
     _placed_at: dict = field(default_factory=dict)  # robot -> its rigid placement at the last solve
-    held: dict = field(default_factory=dict)  # robot -> (graph, X): the solution before a reset ...
+    held: dict = field(default_factory=dict)  # robot -> (graph, X): the solution before a reset (or
+    # the one restored after a restart: the constraints are not persisted) ...
     rebuilding: bool = False  # ... kept out while every keyframe is matched anew (:meth:`rebuilt`)
 
     def sync(self, placed: list[Placed]) -> list[str]:
