@@ -97,6 +97,11 @@ class GraphConfig:
     # own spread (untied with floor_sigma_m 0.0301: 11, 0.179 m, 0.045 m); with min_submap_m 2
     # as well: 13, worst 0.201 m
     tie_own_anchor: bool = True
+    # a keyframe whose submap meets the walls of more than one other robot, each enough for a
+    # constraint, gets one with each (a fit against that robot's walls alone) rather than with the
+    # robot most of the matched walls are of only: two pieces of Intel that revisit a place a
+    # third also mapped were tied only through the third there (their relations 0.12-0.2 m off)
+    each_robot: bool = True
     min_submap_m: float = 4.0  # a submap with less wall than this is not matched
     min_matched_m: float = 2.0  # a constraint rests on this much matched wall ...
     min_matched_share: float = 0.4  # ... and this share of the submap

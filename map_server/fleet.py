@@ -626,7 +626,7 @@ class Fleet:
             self.graph.solution[robot] = (r.graph, x)
             r.bent = dataclasses.replace(r.layer, seg=self.graph.rows(p, x))
             r.bent_x, r.bent_of = x, r.layer
-        if self.graph.solution:
+        if len(self.graph.solution) >= 2:  # (a bend to hold: FleetGraph.reset)
             self.graph.held, self.graph.rebuilding = dict(self.graph.solution), True
 
     def snapshot(self) -> tuple[dict, dict[str, RobotMap]]:

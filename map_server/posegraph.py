@@ -170,7 +170,7 @@ class Placed:
 class FleetGraph:
     cfg: GraphConfig = field(default_factory=GraphConfig)
     solution: dict = field(default_factory=dict)  # robot -> (graph, X (K,3)): the last solve
-    constraints: dict = field(default_factory=dict)  # robot -> {keyframe id: Constraint}
+    constraints: dict = field(default_factory=dict)  # robot -> {(keyframe id, other robot): Constraint}
     stats: dict = field(default_factory=dict)
     pending: bool = False  # keyframes wait to be matched (more than one fusion's budget, or cut short)
     unsolved: bool = False  # the last solve was cut short (``stop``): solve again
@@ -224,7 +224,7 @@ class FleetGraph:
             for k in gone:
                 cons.pop(k)
             if gone and other in self._matched:
-                self._matched[other].keep(~np.isin(self._matched[other].ids, gone))
+                self._matched[other].keep(~np.isin(self._matched[other].ids, [k[0] for k in gone]))
 
     def reset(self) -> None:
         """Forget every robot's solution and constraints: every keyframe is due again, searched
@@ -233,8 +233,12 @@ class FleetGraph:
         are carried by it: :meth:`carried`; a reset during a rebuild keeps the one before the
         first), and where each robot was placed is kept (one that jumps meanwhile is forgotten:
         :meth:`jumped`)."""
-        self.held = self.held if self.rebuilding else self.solution
-        self.rebuilding = True
+        held = self.held if self.rebuilding else self.solution
+        # (a bend to hold: two robots solved together at least. A departure while only the
+        # reference was placed held nothing, and the robots placed after it stayed rigid until
+        # every keyframe had been matched: Intel in 3 pieces ended 0.10 m, the pieces unbent)
+        self.rebuilding = len(held) >= 2
+        self.held = held if self.rebuilding else {}
         self.solution = {}
         self.constraints.clear()
         self._matched.clear()
@@ -306,7 +310,7 @@ class FleetGraph:
                 # left the robot's graph (retired, thinned) leave these too: bounded by its size
                 seen.keep(np.isin(seen.ids, g.ids))
                 ids = set(g.ids.tolist())
-                cons = self.constraints[p.robot] = {k: c for k, c in cons.items() if k in ids}
+                cons = self.constraints[p.robot] = {k: c for k, c in cons.items() if k[0] in ids}
             found, before = seen.lookup(g.ids[cand])
             parts.append((cand, found, before, self.poses(p)[cand], g.pose[cand]))
         live = [x for x in parts if x is not None]
@@ -330,7 +334,7 @@ class FleetGraph:
             moved = found & (sz >= 1.0)
             order = np.concatenate([np.flatnonzero(~found), np.flatnonzero(moved)[np.argsort(-sz[moved])]])
             cons = self.constraints.get(p.robot, {})
-            held = np.sort(np.fromiter(cons.keys(), np.int64, len(cons)))
+            held = np.unique(np.fromiter((k[0] for k in cons), np.int64, len(cons)))
             out.append((cand[order], ~_among(held, p.graph.ids[cand[order]])[0]))
         return out
 
@@ -358,11 +362,12 @@ class FleetGraph:
             x = self._where(p, where)[0]
             found = self._match_robot(p, ks, first, others, where)
             cons = self.constraints.setdefault(p.robot, {})
-            for kid in p.graph.ids[ks].tolist():
-                cons.pop(kid, None)
+            tried_ids = set(p.graph.ids[ks].tolist())
+            for key in [key for key in cons if key[0] in tried_ids]:
+                cons.pop(key)
             self._matched[p.robot].put(p.graph.ids[ks], np.concatenate([x[ks], p.graph.pose[ks]], axis=1))
             for kid, c in found:
-                cons[kid] = c
+                cons[kid, c.other] = c
             tried += len(ks)
             if stop is not None and stop():
                 break
@@ -406,6 +411,7 @@ class FleetGraph:
         g = p.graph
         out = []
         mid = cKDTree(0.5 * (mine[:, 0] + mine[:, 1]))
+        alone: dict[int, tuple[MapIndex, np.ndarray]] = {}  # another robot's rows alone, indexed
         for k, wide in zip(ks, first, strict=True):
             stages = cfg.first_stages if wide else cfg.stages
             shift_m, turn_rad = (
@@ -429,34 +435,62 @@ class FleetGraph:
             gate, angle = cfg.stages[-1]
             ok, idx, perp = index.match(fit.pose, sub, gate, angle)
             ok &= np.abs(perp) <= gate
-            matched = float(sub.length[ok].sum())
-            if matched < max(cfg.min_matched_m, cfg.min_matched_share * float(sub.length.sum())):
+            need = max(cfg.min_matched_m, cfg.min_matched_share * float(sub.length.sum()))
+            if float(sub.length[ok].sum()) < need:
                 self._count("unmatched")
                 continue
-            owners = index.samples.owner[idx[ok]]
-            j = np.bincount(own_r[owners]).argmax()
-            from_j = own_r[owners] == j
-            a = int(np.bincount(own_k[owners][from_j]).argmax())
-            o = others[j]
-            xa = self._where(o, where)[0][a]
-            cov = np.linalg.inv(fit.info + 1e-9 * np.eye(3))
-            b, pose_b = k, fit.pose
-            if cfg.tie_own_anchor:  # the keyframe the matched rows of this robot move with
-                b = int(np.bincount(g.row_kf[near][sub.owner[ok]]).argmax())
-                if b != k:
-                    pose_b = compose(fit.pose, relative(x[k], x[b]))
-                    arm = pose_b[:2] - fit.pose[:2]  # (the fit's turn moves the anchor across it)
-                    jac = np.array([[1.0, 0.0, -arm[1]], [0.0, 1.0, arm[0]], [0.0, 0.0, 1.0]])
-                    cov = jac @ cov @ jac.T
-            cov = cov + np.diag([cfg.floor_sigma_m**2, cfg.floor_sigma_m**2, cfg.floor_sigma_rad**2])
-            rot = np.eye(3)
-            c, s = np.cos(xa[2]), np.sin(xa[2])
-            rot[:2, :2] = [[c, -s], [s, c]]
-            info = rot.T @ np.linalg.inv(cov) @ rot
-            info = 0.5 * (info + info.T)
-            tie = Constraint(int(g.ids[b]), o.robot, int(o.graph.ids[a]), relative(xa, pose_b), info)
-            out.append((int(g.ids[k]), tie))
+            rows = index.samples.owner[idx]  # (the row each sample met)
+            j = np.bincount(own_r[rows[ok]]).argmax()  # the robot most of the matched walls are of
+            a = int(np.bincount(own_k[rows[ok & (own_r[rows] == j)]]).argmax())
+            kid = int(g.ids[k])
+            out.append((kid, self._tie(p, k, x, near, sub, fit, ok, others[j], a, where)))
+            if not cfg.each_robot:
+                continue
+            for jj in np.unique(own_r[rows[ok]]):  # a robot met here besides: its own fit, its own tie
+                if jj == j or float(sub.length[ok & (own_r[rows] == jj)].sum()) < need:
+                    continue
+                if jj not in alone:
+                    mine_j = np.flatnonzero(own_r == jj)
+                    alone[jj] = (MapIndex(seg[mine_j], cfg.sample_step_m), own_k[mine_j])
+                index_j, kf_j = alone[jj]
+                fit_j = refine(index_j, sub, fit.pose, cfg.stages, cfg.point_sigma_m, cfg.correlation_m)
+                d = fit_j.pose - x[k]
+                if np.hypot(d[0], d[1]) > shift_m or abs(wrap_angle(d[2])) > turn_rad:
+                    continue
+                ok_j, idx_j, perp_j = index_j.match(fit_j.pose, sub, gate, angle)
+                ok_j &= np.abs(perp_j) <= gate
+                if float(sub.length[ok_j].sum()) < need:
+                    continue
+                a_j = int(np.bincount(kf_j[index_j.samples.owner[idx_j[ok_j]]]).argmax())
+                out.append((kid, self._tie(p, k, x, near, sub, fit_j, ok_j, others[jj], a_j, where)))
         return out
+
+    def _tie(
+        self, p: Placed, k: int, x: np.ndarray, near: np.ndarray, sub: Samples, fit, ok: np.ndarray,
+        o: Placed, a: int, where: dict,
+    ) -> Constraint:  # fmt: skip
+        """The constraint a fit of keyframe ``k``'s submap (rows ``near``, samples ``sub``; ``ok``:
+        those matched) makes with keyframe position ``a`` of robot ``o``: its own side tied to the
+        keyframe its matched rows move with (``tie_own_anchor``), its information the fit's (carried
+        there) plus the floor, turned into ``a``'s frame."""
+        cfg, g = self.cfg, p.graph
+        xa = self._where(o, where)[0][a]
+        cov = np.linalg.inv(fit.info + 1e-9 * np.eye(3))
+        b, pose_b = k, fit.pose
+        if cfg.tie_own_anchor:  # the keyframe the matched rows of this robot move with
+            b = int(np.bincount(g.row_kf[near][sub.owner[ok]]).argmax())
+            if b != k:
+                pose_b = compose(fit.pose, relative(x[k], x[b]))
+                arm = pose_b[:2] - fit.pose[:2]  # (the fit's turn moves the anchor across it)
+                jac = np.array([[1.0, 0.0, -arm[1]], [0.0, 1.0, arm[0]], [0.0, 0.0, 1.0]])
+                cov = jac @ cov @ jac.T
+        cov = cov + np.diag([cfg.floor_sigma_m**2, cfg.floor_sigma_m**2, cfg.floor_sigma_rad**2])
+        rot = np.eye(3)
+        c, s = np.cos(xa[2]), np.sin(xa[2])
+        rot[:2, :2] = [[c, -s], [s, c]]
+        info = rot.T @ np.linalg.inv(cov) @ rot
+        info = 0.5 * (info + info.T)
+        return Constraint(int(g.ids[b]), o.robot, int(o.graph.ids[a]), relative(xa, pose_b), info)
 
     def _count(self, why: str) -> None:
         self.stats[f"refused_{why}"] = self.stats.get(f"refused_{why}", 0) + 1
