@@ -110,12 +110,16 @@ class FusedWatcher:
             return self.latest
 
     def wait_quiet(self, quiet_s: float, timeout_s: float) -> FusedMap | None:
-        """Wait until no update arrived for ``quiet_s`` (or ``timeout_s`` passed); the latest map."""
+        """Wait until no update arrived for ``quiet_s`` and the latest map does not say the
+        server's fleet graph is being matched anew (``extra["graph_rebuilding"]``: the maps keep
+        the last whole bend meanwhile, and nothing new is published until it is whole), or until
+        ``timeout_s`` passed; the latest map."""
         end = time.monotonic() + timeout_s
         with self._lock:
             while time.monotonic() < end:
                 last = self.updates[-1].wall_s if self.updates else 0.0
-                if time.monotonic() - last >= quiet_s:
+                rebuilding = self.latest is not None and self.latest.extra.get("graph_rebuilding", 0.0) > 0.0
+                if time.monotonic() - last >= quiet_s and not rebuilding:
                     break
                 self.changed.wait(min(quiet_s, max(0.0, end - time.monotonic())))
             return self.latest

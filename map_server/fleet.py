@@ -576,9 +576,11 @@ class Fleet:
         merged = self._synced()
         arrays = merged.result(row)
         key = tuple(a.tobytes() for a in arrays) + tuple(k for s, k in rows if s is not None)
+        key += (self.graph.rebuilding,)  # (a rebuild's start and end are published: a subscriber
+        # taking "no new map for a while" as settled would take the held bend as the last word)
         extra = {
             "robots_merged": float(len(self.placed())), "segments_in": float(len(merged)),
-            "retired_pieces": float(len(self.pieces())),
+            "retired_pieces": float(len(self.pieces())), "graph_rebuilding": float(self.graph.rebuilding),
         }  # fmt: skip
         return tuple(table), arrays, {"key": key, "extra": extra}
 

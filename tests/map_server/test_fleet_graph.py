@@ -480,8 +480,10 @@ def test_while_the_graph_is_matched_anew_the_last_whole_bend_stays_out():
     r1 = fleet.robots["r1"]  # the final map is merged at once, bent as before
     assert r1.map.seq == 2 and r1.bent_of is r1.layer
     assert fleet.latest().robot("r1").map_seq == 2
+    assert fleet.latest().extra["graph_rebuilding"] == 1.0  # (a subscriber sees it is under way)
     fuse_on(fleet, 300.0, 400.0)
     assert not fleet.graph.pending and not fleet.graph.rebuilding
+    assert fleet.latest().extra["graph_rebuilding"] == 0.0
     np.testing.assert_array_equal(fleet.robots["r1"].bent_x, fleet.graph.solution["r1"][1])
     assert np.abs(shape("r1") - before["r1"]).max() > 1e-3
 
