@@ -561,7 +561,7 @@ def run_latency(
 ) -> LatencyRun:  # fmt: skip
     """Router, server, ``n`` load agents (separate processes), this process watching the fused map;
     ``leave`` of them stopped halfway through the window (each departure makes the server match and
-    solve its fleet graph anew: Fleet.fuse)."""
+    solve its fleet graph anew: Fleet.fuse, the fused maps saying so)."""
     from fleet_slam.procs import ProcGroup, free_port, python_module
     from fleet_slam.watch import FusedWatcher
     from shared.bus import Bus, BusConfig
@@ -728,6 +728,7 @@ def latency_stats(run: LatencyRun) -> dict:
                 after.append(run.left_at is not None and t_put >= run.left_at)
     lat_ms = np.array(lat) * 1e3
     after_ms = lat_ms[np.array(after, bool)] if lat else lat_ms
+    rebuilding = np.array([u.fused.extra.get("graph_rebuilding", 0.0) > 0.0 for u in run.updates], float)
     in_window = [u for u in run.updates if t0 <= u.wall_s < t1]
     extra = {k: [u.fused.extra[k] for u in in_window if k in u.fused.extra] for k in _extra_keys(in_window)}
     fusions = next((int(w) for w in _words_after(run.server_log, "stopped after")), None)
@@ -748,8 +749,9 @@ def latency_stats(run: LatencyRun) -> dict:
         # --leave: the maps put after the departures (the graph matched and solved anew meanwhile)
         "after_leave_p50_ms": _p(after_ms, 50) if run.left_at is not None else None,
         "after_leave_p95_ms": _p(after_ms, 95) if run.left_at is not None else None,
-        "graph_rebuilds_begun": run.server_log.count("the fleet graph is matched and solved anew (the last"),
-        "graph_rebuilds_whole": run.server_log.count("the fleet graph is matched and solved anew: its"),
+        # rebuilds of the fleet graph the fused maps said began and ended (extra graph_rebuilding)
+        "graph_rebuilds_begun": int(np.sum(np.diff(rebuilding, prepend=0.0) > 0)),
+        "graph_rebuilds_whole": int(np.sum(np.diff(rebuilding, prepend=0.0) < 0)),
     }
 
 

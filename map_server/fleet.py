@@ -628,8 +628,7 @@ class Fleet:
             self.graph.solution[robot] = (r.graph, x)
             r.bent = dataclasses.replace(r.layer, seg=self.graph.rows(p, x))
             r.bent_x, r.bent_of = x, r.layer
-        if len(self.graph.solution) >= 2:  # (a bend to hold: FleetGraph.reset)
-            self.graph.held, self.graph.rebuilding = dict(self.graph.solution), True
+        self.graph.hold(self.graph.solution)
 
     def snapshot(self) -> tuple[dict, dict[str, RobotMap]]:
         """Everything needed to resume: a JSON-able dict and the latest map of every robot."""

@@ -237,15 +237,19 @@ class FleetGraph:
         are carried by it: :meth:`carried`; a reset during a rebuild keeps the one before the
         first), and where each robot was placed is kept (one that jumps meanwhile is forgotten:
         :meth:`jumped`)."""
-        held = self.held if self.rebuilding else self.solution
-        # (a bend to hold: two robots solved together at least. A departure while only the
-        # reference was placed held nothing, and the robots placed after it stayed rigid until
-        # every keyframe had been matched: Intel in 3 pieces ended 0.10 m, the pieces unbent)
-        self.rebuilding = len(held) >= 2
-        self.held = held if self.rebuilding else {}
+        self.hold(self.held if self.rebuilding else self.solution)
         self.solution = {}
         self.constraints.clear()
         self._matched.clear()
+
+    def hold(self, solution: dict) -> None:
+        """Keep ``solution``'s bend out of the fused map while every keyframe is matched anew
+        (:meth:`reset`; a restart, whose constraints are not persisted) — when it is a bend: two
+        robots solved together at least. (A departure while only the reference was placed held
+        nothing, and the robots placed after it stayed rigid until every keyframe had been
+        matched: Intel in 3 pieces ended 0.10 m, the pieces unbent.)"""
+        self.rebuilding = len(solution) >= 2
+        self.held = dict(solution) if self.rebuilding else {}
 
     def rebuilt(self) -> None:
         """The rebuild since :meth:`reset` is whole (or there is nothing to rebuild): the
@@ -443,15 +447,16 @@ class FleetGraph:
             if float(sub.length[ok].sum()) < need:
                 self._count("unmatched")
                 continue
-            rows = index.samples.owner[idx]  # (the row each sample met)
-            j = np.bincount(own_r[rows[ok]]).argmax()  # the robot most of the matched walls are of
-            a = int(np.bincount(own_k[rows[ok & (own_r[rows] == j)]]).argmax())
+            rows = index.samples.owner[idx]  # (the row each sample met, and whose it is)
+            met = own_r[rows]
+            j = np.bincount(met[ok]).argmax()  # the robot most of the matched walls are of
+            a = int(np.bincount(own_k[rows[ok & (met == j)]]).argmax())
             kid = int(g.ids[k])
             out.append((kid, self._tie(p, k, x, near, sub, fit, ok, others[j], a, where)))
             if not cfg.each_robot:
                 continue
-            for jj in np.unique(own_r[rows[ok]]):  # a robot met here besides: its own fit, its own tie
-                if jj == j or float(sub.length[ok & (own_r[rows] == jj)].sum()) < need:
+            for jj in np.unique(met[ok]):  # a robot met here besides: its own fit, its own tie
+                if jj == j or float(sub.length[ok & (met == jj)].sum()) < need:
                     continue
                 if jj not in alone:
                     mine_j = np.flatnonzero(own_r == jj)

@@ -101,6 +101,11 @@ def fuse_on(fleet: Fleet, t: float, until: float) -> float:
     return t
 
 
+def shape(x: np.ndarray) -> np.ndarray:
+    """A path's shape: each keyframe seen from the one before (what a rigid motion keeps)."""
+    return relative(x[:-1], x[1:])
+
+
 def keyframe_errors(fleet: Fleet, runs: dict, robot: str) -> np.ndarray:
     """Each keyframe's distance [m] from its true place, where the fleet puts it."""
     path = {p.robot: p for p in fleet.paths(fleet.version)}[robot]
@@ -223,8 +228,9 @@ def test_after_a_restart_the_restored_bend_stays_out_until_the_graph_is_matched_
     back.fuse(t)
     assert back.graph.pending and back.graph.rebuilding  # (a fusion's share of the keyframes matched)
     for name in ("r0", "r1"):  # (moved only as every frame is: the prior gauge)
-        x, was = back.robots[name].bent_x, fleet.robots[name].bent_x
-        np.testing.assert_allclose(relative(x[:-1], x[1:]), relative(was[:-1], was[1:]), atol=1e-9)
+        np.testing.assert_allclose(
+            shape(back.robots[name].bent_x), shape(fleet.robots[name].bent_x), atol=1e-9
+        )
     fuse_on(back, t, t + 100.0)
     assert not back.graph.pending and not back.graph.rebuilding
     np.testing.assert_array_equal(back.robots["r1"].bent_x, back.graph.solution["r1"][1])
@@ -464,19 +470,14 @@ def test_while_the_graph_is_matched_anew_the_last_whole_bend_stays_out():
     the shape the last whole solution gave them (moved only as every frame is: the prior gauge)
     until the new one is whole; a map that comes meanwhile is merged at once, bent as they were."""
     fleet, runs = fleet_of(True)
-
-    def shape(name: str) -> np.ndarray:
-        x = fleet.robots[name].bent_x
-        return relative(x[:-1], x[1:])
-
-    before = {name: shape(name) for name in ("r0", "r1")}
+    before = {name: shape(fleet.robots[name].bent_x) for name in ("r0", "r1")}
     run = runs["r1"]
     fleet.put_map(graph_message("r1", run, prior=run[3][0], seq=2), 300.0)  # its final map
     fleet.set_online("r1", False)
     fleet.fuse(300.0)
     assert fleet.graph.pending  # (a fusion's share of the keyframes matched)
     for name in ("r0", "r1"):
-        np.testing.assert_allclose(shape(name), before[name], atol=1e-9)
+        np.testing.assert_allclose(shape(fleet.robots[name].bent_x), before[name], atol=1e-9)
     r1 = fleet.robots["r1"]  # the final map is merged at once, bent as before
     assert r1.map.seq == 2 and r1.bent_of is r1.layer
     assert fleet.latest().robot("r1").map_seq == 2
@@ -485,7 +486,7 @@ def test_while_the_graph_is_matched_anew_the_last_whole_bend_stays_out():
     assert not fleet.graph.pending and not fleet.graph.rebuilding
     assert fleet.latest().extra["graph_rebuilding"] == 0.0
     np.testing.assert_array_equal(fleet.robots["r1"].bent_x, fleet.graph.solution["r1"][1])
-    assert np.abs(shape("r1") - before["r1"]).max() > 1e-3
+    assert np.abs(shape(fleet.robots["r1"].bent_x) - before["r1"]).max() > 1e-3
 
 
 def test_a_robot_placed_elsewhere_while_the_graph_is_matched_anew_is_merged_where_it_is_now():
