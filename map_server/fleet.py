@@ -218,7 +218,9 @@ class Fleet:
         if self._left:
             self._left = False
             self._settling = (0, [], {})  # a settle begins (again, if one was under way)
-            self.graph.reset()  # and matched and solved anew on the final maps
+            # matched and solved anew on the final maps (from the bend when robots were placed
+            # against it and it is far from their placements: FleetGraph._bent_far)
+            self.graph.reset(aligned=any(r.alignment.status == "aligned" for r in self.placed()))
             log.info(
                 "a robot left: the fleet graph is matched and solved anew (the last bend held meanwhile)"
             )
@@ -626,6 +628,7 @@ class Fleet:
                 continue
             p = _graph_item(r)
             self.graph.solution[robot] = (r.graph, x)
+            self.graph.placed_at(robot, r.alignment.transform)
             r.bent = dataclasses.replace(r.layer, seg=self.graph.rows(p, x))
             r.bent_x, r.bent_of = x, r.layer
         self.graph.hold(self.graph.solution)

@@ -37,7 +37,10 @@ with (``shared/messages.py``, RobotMap). The server joins them:
   narrow across a corridor, nothing along it. A submap that meets enough wall of another robot
   besides is tied to it too, by a fit against that robot's walls alone (``each_robot``): two
   robots that overlap each other more than the reference were tied mostly to each other.
-  Constraints are kept by the keyframe tried and the other robot.
+  Constraints are kept by the keyframe tried and the other robot. A keyframe is tried again when
+  the graph moved it; and when a robot arrives (placed, or placed again elsewhere), the others'
+  keyframes tried near its map are due again: tried before it was there, they met none of its
+  walls.
 - **solve**: sparse Gauss-Newton (``shared/posegraph.py``), a Cauchy kernel on the constraints,
   warm-started from the last solution; constraints that still disagree (normalized residual
   above ``max_chi``) are dropped and the graph solved again. When a robot leaves (the maps are
@@ -183,6 +186,7 @@ class FleetGraph:
     held: dict = field(default_factory=dict)  # robot -> (graph, X): the solution before a reset (or
     # the one restored after a restart: the constraints are not persisted) ...
     rebuilding: bool = False  # ... kept out while every keyframe is matched anew (:meth:`rebuilt`)
+    _from_bend: bool = False  # ... matched from the held bend rather than the placements (_bent_far)
 
     def sync(self, placed: list[Placed]) -> list[str]:
         """Forget what the graph holds of a robot that is no longer placed, or whose placement
@@ -251,17 +255,40 @@ class FleetGraph:
             if gone and other in self._matched:
                 self._matched[other].keep(~np.isin(self._matched[other].ids, [k[0] for k in gone]))
 
-    def reset(self) -> None:
+    def reset(self, aligned: bool = False) -> None:
         """Forget every robot's solution and constraints: every keyframe is due again, searched
-        wide from the robots' placements, and the graph solved from there (the robots' maps are
+        wide from the robots' placements (from the solution before, when it bent a robot far from
+        its placement and ``aligned`` — some robot was placed by matching, against the maps as
+        the graph bent them: :meth:`_bent_far`), and the graph solved from there (the robots' maps are
         final: a robot left). The solution before is ``held`` until :meth:`rebuilt` (new maps
         are carried by it: :meth:`carried`; a reset during a rebuild keeps the one before the
         first), and where each robot was placed is kept (one that jumps meanwhile is forgotten:
         :meth:`jumped`)."""
         self.hold(self.held if self.rebuilding else self.solution)
+        self._from_bend = aligned and self.rebuilding and self._bent_far(self.held)
         self.solution = {}
         self.constraints.clear()
         self._matched.clear()
+
+    def _bent_far(self, solution: dict) -> bool:
+        """Whether ``solution`` moved any robot's keyframes further than ``rebuild_from_bend_m``
+        from its rigid placement: a rebuild then matches them from the bend rather than from the
+        placements, when robots were placed by matching (:meth:`reset`) — placed, and refined,
+        against the maps as the graph bent them, they are placed where the bend put the others
+        (Intel in 3 pieces: the reference piece bent by up to 2.5 m, the others' placements off
+        their unbent shapes by as much); from the placements the wide searches fell short (0.41 m
+        over the log, two pairs of pieces 2 m apart, against 0.045 m from the bend). Robots
+        placed by their priors are placed as the truth has them: a rebuild from the placements
+        undoes what a bend went astray by (the graph's bent test robot: 0.038 m at the 90th
+        percentile from the placements, 0.13 m from its bend)."""
+        for robot, (g, x) in solution.items():
+            at = self._placed_at.get(robot)
+            if at is None or g is None:
+                continue
+            d = compose(at, g.pose)[:, :2] - x[:, :2]
+            if np.hypot(d[:, 0], d[:, 1]).max(initial=0.0) > self.cfg.rebuild_from_bend_m:
+                return True
+        return False
 
     def hold(self, solution: dict) -> None:
         """Keep ``solution``'s bend out of the fused map while every keyframe is matched anew
@@ -275,7 +302,12 @@ class FleetGraph:
     def rebuilt(self) -> None:
         """The rebuild since :meth:`reset` is whole (or there is nothing to rebuild): the
         solution before is let go."""
-        self.rebuilding, self.held = False, {}
+        self.rebuilding, self.held, self._from_bend = False, {}, False
+
+    def placed_at(self, robot: str, transform: np.ndarray) -> None:
+        """The placement the robot's solution was solved with (a solution restored after a
+        restart: :meth:`jumped` and :meth:`reset` judge from it)."""
+        self._placed_at[robot] = np.array(transform, float)
 
     def shift(self, robot: str, g: np.ndarray) -> None:
         """The robot's solution moved by the rigid motion ``g`` (the prior gauge moved every frame)."""
@@ -298,6 +330,8 @@ class FleetGraph:
         """The robot's keyframes in the global frame: solved, or (new ones) carried from the last
         solution (or ``solution``) by the nearest solved keyframe's correction, or at its rigid
         placement."""
+        if solution is None and self.rebuilding and self._from_bend and p.robot in self.held:
+            solution = self.held  # (matched, and solved from, where the bend had it until rebuilt)
         old = (self.solution if solution is None else solution).get(p.robot)
         g = p.graph
         if old is None:
