@@ -103,9 +103,10 @@ class GraphConfig:
     # third also mapped were tied only through the third there (their relations 0.12-0.2 m off)
     each_robot: bool = True
     # a rebuild (FleetGraph.reset: a robot left) matches the keyframes from the placements, unless
-    # the last solution moved some robot's keyframes further than this from its placement: then
-    # from that solution (robots placed against bent maps are placed where the bend put the others)
-    rebuild_from_bend_m: float = 0.5
+    # the last solution put more than this share of some robot's keyframes beyond a wide search's
+    # reach (first_shift_m) from its placement: then from that solution (robots placed against bent
+    # maps are placed where the bend put the others; FleetGraph._bent_far)
+    rebuild_from_bend_share: float = 0.25
     min_submap_m: float = 4.0  # a submap with less wall than this is not matched
     min_matched_m: float = 2.0  # a constraint rests on this much matched wall ...
     min_matched_share: float = 0.4  # ... and this share of the submap
