@@ -107,6 +107,9 @@ class GraphConfig:
     # reach (first_shift_m) from its placement: then from that solution (robots placed against bent
     # maps are placed where the bend put the others; FleetGraph._bent_far)
     rebuild_from_bend_share: float = 0.25
+    # a robot placed (or placed again) while two robots are solved makes the graph matched and solved
+    # anew, as a departure does (FleetGraph.sync)
+    rebuild_on_arrival: bool = True
     min_submap_m: float = 4.0  # a submap with less wall than this is not matched
     min_matched_m: float = 2.0  # a constraint rests on this much matched wall ...
     min_matched_share: float = 0.4  # ... and this share of the submap

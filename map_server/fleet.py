@@ -306,8 +306,11 @@ class Fleet:
         cfg = self.cfg.graph
         placed = self._bend_placed()
         items = [_graph_item(r, self._stiffness(r)) for r in placed]
+        rebuilding = self.graph.rebuilding
         for robot in self.graph.sync(items):  # what the graph found where the robot was would hold it
             log.info("%s: unplaced or moved far: the fleet graph forgets where it had it", robot)
+        if self.graph.rebuilding and not rebuilding:
+            log.info("a robot was placed: the fleet graph is matched and solved anew (the last bend held)")
         ids = {id(r) for r in placed if not r.graph.rigid}
         for r in self.robots.values():
             if id(r) not in ids:

@@ -193,7 +193,12 @@ class FleetGraph:
         jumped since the last solve by more than twice its placement edge's sigma (undone and
         placed elsewhere, or revised): its last solution and the constraints found where it was
         (its own, and the others' on it) would hold it there. Returns the robots forgotten. Called
-        before :meth:`match` and :meth:`solve` with the same robots (they hold nothing of others)."""
+        before :meth:`match` and :meth:`solve` with the same robots (they hold nothing of others).
+        A robot new to the graph (placed, or placed again elsewhere) with two robots solved already
+        makes it matched and solved anew, as a departure does (:meth:`reset`; ``rebuild_on_arrival``):
+        going on from the last solution, only the keyframes near it matched again, left Intel's
+        pieces 0.041 m over the log where a rebuild on the same maps gives 0.032-0.038 m. One that
+        arrives during a rebuild joins it (:meth:`_arrived`)."""
         now = {p.robot: p for p in placed}
 
         def kept(robot: str) -> bool:
@@ -210,8 +215,12 @@ class FleetGraph:
         out = sorted(robot for robot in held if not kept(robot))
         for robot in out:
             self.forget(robot)
-        for p in placed:
-            if p.robot not in self._placed_at and len(p.layer):
+        new = [p for p in placed if p.robot not in self._placed_at and len(p.layer)]
+        if new and self.cfg.rebuild_on_arrival and len(self.solution) >= 2 and not self.rebuilding:
+            self.reset(aligned=any(p.status == "aligned" for p in placed))
+            self.stats["rebuilds_on_arrival"] = self.stats.get("rebuilds_on_arrival", 0) + 1
+        else:
+            for p in new:
                 self._arrived(p, [o for o in placed if o.robot != p.robot])
         return out
 
@@ -220,7 +229,8 @@ class FleetGraph:
         tried near its map are due again — tried before it was there, they met none of its walls
         (Intel in 3 pieces, the last piece placed after the rebuild that followed the last
         departure: its overlap tied from its own side only, 0.041 m over the log against 0.033 m
-        with both sides)."""
+        with both sides). An arrival while nothing is being rebuilt rebuilds the graph instead
+        (``rebuild_on_arrival``: :meth:`sync`)."""
         rows = self.rows(p).reshape(-1, 2)
         lo, hi = rows.min(axis=0) - self.cfg.crop_radius_m, rows.max(axis=0) + self.cfg.crop_radius_m
         for o in others:

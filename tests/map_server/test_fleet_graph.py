@@ -547,22 +547,26 @@ def test_a_departure_with_no_bend_to_hold_holds_nothing():
     assert g.rebuilding and set(g.held) == {"r0", "r1"}
 
 
-def test_a_robot_placed_after_the_others_were_matched_is_sought_from_their_side_too():
-    """The others' keyframes tried before a robot was placed met none of its walls: near its map
-    they are due again when it arrives, and are tied to it as when all came at once (Intel in 3
-    pieces, the last placed after the others' rebuild: tied from its own side only, 0.041 m over
-    the log against 0.033 m)."""
+@pytest.mark.parametrize("rebuild", [True, False])
+def test_a_robot_placed_after_the_others_were_matched_is_sought_from_their_side_too(rebuild):
+    """The others' keyframes tried before a robot was placed met none of its walls. When it
+    arrives the graph is matched and solved anew (``rebuild_on_arrival``), or — arriving during a
+    rebuild, or with that off — the others' keyframes near its map are due again; either way they
+    are tied to it as when all came at once (Intel in 3 pieces, the last placed after the others'
+    rebuild: tied from its own side only, 0.041 m over the log against 0.033 m)."""
     runs = {"r0": bent_run(0, 0.0), "r1": bent_run(1, BEND), "r2": bent_run(2, 0.0)}
 
     def tied_to(fleet: Fleet, robot: str, other: str) -> int:
         return sum(o == other for _, o in fleet.graph.constraints.get(robot, {}))
 
     together, _ = fleet_of(True, runs=runs)
-    fleet, _ = fleet_of(True, runs={k: runs[k] for k in ("r0", "r1")})
+    fleet, _ = fleet_of(True, runs={k: runs[k] for k in ("r0", "r1")}, rebuild_on_arrival=rebuild)
     assert tied_to(fleet, "r1", "r0") >= 20  # measured 39
     fleet.put_map(graph_message("r2", runs["r2"], prior=runs["r2"][3][0]), 200.0)
     fleet.fuse(200.0)
+    assert fleet.graph.rebuilding == rebuild
     fuse_on(fleet, 200.0, 400.0)
+    assert fleet.graph.stats.get("rebuilds_on_arrival", 0) == int(rebuild)
     assert tied_to(together, "r1", "r2") >= 8  # measured 22
     assert tied_to(fleet, "r1", "r2") >= 0.7 * tied_to(together, "r1", "r2")  # measured 22 (without: 0)
 
