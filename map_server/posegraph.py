@@ -198,7 +198,10 @@ class FleetGraph:
         makes it matched and solved anew, as a departure does (:meth:`reset`; ``rebuild_on_arrival``):
         going on from the last solution, only the keyframes near it matched again, left Intel's
         pieces 0.041 m over the log where a rebuild on the same maps gives 0.032-0.038 m. One that
-        arrives during a rebuild joins it (:meth:`_arrived`)."""
+        arrives during a rebuild joins it (:meth:`_arrived`), and so does one that arrives while the
+        bend is beyond a wide search's reach of the placements (:meth:`_bent_far`): it was placed
+        against the unbent maps, the others would be matched from their bend (ACES in 3 pieces,
+        the reference bent by 2.3 m at the median: the new piece ended 3 m off its place)."""
         now = {p.robot: p for p in placed}
 
         def kept(robot: str) -> bool:
@@ -216,7 +219,13 @@ class FleetGraph:
         for robot in out:
             self.forget(robot)
         new = [p for p in placed if p.robot not in self._placed_at and len(p.layer)]
-        if new and self.cfg.rebuild_on_arrival and len(self.solution) >= 2 and not self.rebuilding:
+        if (
+            new
+            and self.cfg.rebuild_on_arrival
+            and len(self.solution) >= 2
+            and not self.rebuilding
+            and not self._bent_far(self.solution)
+        ):
             self.reset(aligned=any(p.status == "aligned" for p in placed))
             self.stats["rebuilds_on_arrival"] = self.stats.get("rebuilds_on_arrival", 0) + 1
         else:

@@ -600,3 +600,18 @@ def test_a_rebuild_starts_from_the_bend_when_robots_were_placed_against_it_far_f
                 np.testing.assert_allclose(shape(fleet.graph.poses(p)), shape(bend[robot]), atol=1e-6)
         fuse_on(fleet, 300.0, 400.0)
         assert not fleet.graph.rebuilding and not fleet.graph._from_bend
+
+
+def test_a_robot_placed_while_the_bend_is_beyond_reach_joins_without_a_rebuild():
+    """A robot placed by a search against the unbent maps while the graph holds the others bent
+    beyond a wide search's reach of their placements is not rebuilt from there (the others would
+    be matched from their bend, the newcomer from its placement: ACES in 3 pieces, the new piece
+    ended 3 m off); the others' keyframes near it are matched again instead."""
+    runs = {"r0": bent_run(0, 0.0), "r1": bent_run(1, BEND), "r2": bent_run(2, 0.0)}
+    fleet, _ = fleet_of(True, runs={k: runs[k] for k in ("r0", "r1")})
+    g1, x1 = fleet.graph.solution["r1"]
+    fleet.graph.solution["r1"] = (g1, x1 + np.array([2.0, 0.0, 0.0]))  # (bent 2 m from its placement)
+    fleet.put_map(graph_message("r2", runs["r2"], prior=runs["r2"][3][0]), 200.0)
+    fleet.fuse(200.0)
+    assert not fleet.graph.rebuilding and "rebuilds_on_arrival" not in fleet.graph.stats
+    assert any(o == "r2" for _, o in fleet.graph.constraints.get("r0", {}))  # (r0 near r2: matched again)
