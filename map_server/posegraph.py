@@ -47,8 +47,12 @@ with (``shared/messages.py``, RobotMap). The server joins them:
   final) the graph forgets its solution and constraints (:meth:`FleetGraph.reset`) and is
   matched and solved anew: constraints found on young maps, re-matched narrowly where the graph
   had put their keyframes, held the simulated warehouse's robots 0.12-0.14 m off where their
-  final maps, placed on the reference's, are within 0.012 m. Meanwhile the maps keep the last
-  whole bend (``held``; after a restart, the restored one), and the fused map says so.
+  final maps, placed on the reference's, are within 0.012 m. A robot placed while two are solved
+  makes the graph rebuilt the same way (``rebuild_on_arrival``). A rebuild starts from the
+  placements, or from the last solution when that bent robots placed by matching beyond a wide
+  search's reach of their placements (their placements are then the bend's: ``_bent_far``).
+  Meanwhile the maps keep the last whole bend (``held``; after a restart, the restored one), and
+  the fused map says so.
 
 Each element then moves with its keyframe: ``global = X[k] ∘ P[k]⁻¹ ∘ local`` (``X`` the solved
 pose, ``P`` the robot's own).
