@@ -282,11 +282,11 @@ class FleetGraph:
         """Forget every robot's solution and constraints: every keyframe is due again, searched
         wide from the robots' placements (from the solution before, when it bent a robot far from
         its placement and ``aligned`` — some robot was placed by matching, against the maps as
-        the graph bent them: :meth:`_bent_far`), and the graph solved from there (the robots' maps are
-        final: a robot left). The solution before is ``held`` until :meth:`rebuilt` (new maps
-        are carried by it: :meth:`carried`; a reset during a rebuild keeps the one before the
-        first), and where each robot was placed is kept (one that jumps meanwhile is forgotten:
-        :meth:`jumped`)."""
+        the graph bent them: :meth:`_bent_far`), and the graph solved from there (a robot left:
+        the maps are final; or one was placed: :meth:`sync`). The solution before is ``held``
+        until :meth:`rebuilt` (new maps are carried by it: :meth:`carried`; a reset during a
+        rebuild keeps the one before the first), and where each robot was placed is kept (one that
+        jumps meanwhile is forgotten: :meth:`jumped`)."""
         self.hold(self.held if self.rebuilding else self.solution)
         self._from_bend = aligned and self.rebuilding and self._bent_far(self.held)
         self.solution = {}
