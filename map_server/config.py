@@ -108,8 +108,13 @@ class GraphConfig:
     # maps are placed where the bend put the others; FleetGraph._bent_far)
     rebuild_from_bend_share: float = 0.25
     # a robot placed (or placed again) while two robots are solved makes the graph matched and solved
-    # anew, as a departure does (FleetGraph.sync)
-    rebuild_on_arrival: bool = True
+    # anew, as a departure does (FleetGraph.sync); off: the others' keyframes near it are matched
+    # again. On, Intel in 3 pieces ended 0.032-0.037 m (off 0.037-0.045 m), but a newcomer whose
+    # placement is metres from its bent place (ACES's middle piece) is rebuilt from there: 0.78 m
+    # off the first piece where going on gives 0.19 m on the same maps (a pair flagged wrong), and
+    # the one run that placed ACES's first piece wrongly made it 3 m off. Off by default: no run
+    # of it merged wrongly (9 runs)
+    rebuild_on_arrival: bool = False
     min_submap_m: float = 4.0  # a submap with less wall than this is not matched
     min_matched_m: float = 2.0  # a constraint rests on this much matched wall ...
     min_matched_share: float = 0.4  # ... and this share of the submap

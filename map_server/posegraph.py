@@ -48,7 +48,8 @@ with (``shared/messages.py``, RobotMap). The server joins them:
   matched and solved anew: constraints found on young maps, re-matched narrowly where the graph
   had put their keyframes, held the simulated warehouse's robots 0.12-0.14 m off where their
   final maps, placed on the reference's, are within 0.012 m. A robot placed while two are solved
-  makes the graph rebuilt the same way (``rebuild_on_arrival``). A rebuild starts from the
+  can make the graph rebuilt the same way (``rebuild_on_arrival``, off by default; otherwise the
+  others' keyframes near it are matched again). A rebuild starts from the
   placements, or from the last solution when that bent robots placed by matching beyond a wide
   search's reach of their placements (their placements are then the bend's: ``_bent_far``).
   Meanwhile the maps keep the last whole bend (``held``; after a restart, the restored one), and
@@ -198,8 +199,9 @@ class FleetGraph:
         placed elsewhere, or revised): its last solution and the constraints found where it was
         (its own, and the others' on it) would hold it there. Returns the robots forgotten. Called
         before :meth:`match` and :meth:`solve` with the same robots (they hold nothing of others).
-        A robot new to the graph (placed, or placed again elsewhere) with two robots solved already
-        makes it matched and solved anew, as a departure does (:meth:`reset`; ``rebuild_on_arrival``):
+        With ``rebuild_on_arrival`` (off by default: see its comment), a robot new to the graph
+        (placed, or placed again elsewhere) with two robots solved already makes it matched and
+        solved anew, as a departure does (:meth:`reset`):
         going on from the last solution, only the keyframes near it matched again, left Intel's
         pieces 0.041 m over the log where a rebuild on the same maps gives 0.032-0.038 m. One that
         arrives during a rebuild joins it (:meth:`_arrived`), and so does one that arrives while the
@@ -242,8 +244,8 @@ class FleetGraph:
         tried near its map are due again — tried before it was there, they met none of its walls
         (Intel in 3 pieces, the last piece placed after the rebuild that followed the last
         departure: its overlap tied from its own side only, 0.041 m over the log against 0.033 m
-        with both sides). An arrival while nothing is being rebuilt rebuilds the graph instead
-        (``rebuild_on_arrival``: :meth:`sync`)."""
+        with both sides). With ``rebuild_on_arrival``, an arrival while nothing is being rebuilt
+        rebuilds the graph instead (:meth:`sync`)."""
         rows = self.rows(p).reshape(-1, 2)
         lo, hi = rows.min(axis=0) - self.cfg.crop_radius_m, rows.max(axis=0) + self.cfg.crop_radius_m
         for o in others:
@@ -283,10 +285,10 @@ class FleetGraph:
         wide from the robots' placements (from the solution before, when it bent a robot far from
         its placement and ``aligned`` — some robot was placed by matching, against the maps as
         the graph bent them: :meth:`_bent_far`), and the graph solved from there (a robot left:
-        the maps are final; or one was placed: :meth:`sync`). The solution before is ``held``
-        until :meth:`rebuilt` (new maps are carried by it: :meth:`carried`; a reset during a
-        rebuild keeps the one before the first), and where each robot was placed is kept (one that
-        jumps meanwhile is forgotten: :meth:`jumped`)."""
+        the maps are final; or one was placed, with ``rebuild_on_arrival``: :meth:`sync`). The
+        solution before is ``held`` until :meth:`rebuilt` (new maps are carried by it:
+        :meth:`carried`; a reset during a rebuild keeps the one before the first), and where each
+        robot was placed is kept (one that jumps meanwhile is forgotten: :meth:`jumped`)."""
         self.hold(self.held if self.rebuilding else self.solution)
         self._from_bend = aligned and self.rebuilding and self._bent_far(self.held)
         self.solution = {}
