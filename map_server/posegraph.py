@@ -49,9 +49,9 @@ with (``shared/messages.py``, RobotMap). The server joins them:
   had put their keyframes, held the simulated warehouse's robots 0.12-0.14 m off where their
   final maps, placed on the reference's, are within 0.012 m. A robot placed while two are solved
   can make the graph rebuilt the same way (``rebuild_on_arrival``, off by default; otherwise the
-  others' keyframes near it are matched again). A rebuild starts from the
-  placements, or from the last solution when that bent robots placed by matching beyond a wide
-  search's reach of their placements (their placements are then the bend's: ``_bent_far``).
+  others' keyframes near it are matched again). A rebuild starts from the placements, or from the
+  last solution when that bent robots placed by matching beyond a wide search's reach of their
+  placements (their placements are then the bend's: ``_bent_far``).
   Meanwhile the maps keep the last whole bend (``held``; after a restart, the restored one), and
   the fused map says so.
 
@@ -201,9 +201,9 @@ class FleetGraph:
         before :meth:`match` and :meth:`solve` with the same robots (they hold nothing of others).
         With ``rebuild_on_arrival`` (off by default: see its comment), a robot new to the graph
         (placed, or placed again elsewhere) with two robots solved already makes it matched and
-        solved anew, as a departure does (:meth:`reset`):
-        going on from the last solution, only the keyframes near it matched again, left Intel's
-        pieces 0.041 m over the log where a rebuild on the same maps gives 0.032-0.038 m. One that
+        solved anew, as a departure does (:meth:`reset`): going on from the last solution, only the
+        keyframes near it matched again, left Intel's pieces 0.041 m over the log where a rebuild
+        on the same maps gives 0.032-0.038 m. One that
         arrives during a rebuild joins it (:meth:`_arrived`), and so does one that arrives while the
         bend is beyond a wide search's reach of the placements (:meth:`_bent_far`): it was placed
         against the unbent maps, the others would be matched from their bend (ACES in 3 pieces,
@@ -310,7 +310,7 @@ class FleetGraph:
         its bend)."""
         for robot, (g, x) in solution.items():
             at = self._placed_at.get(robot)
-            if at is None or g is None:
+            if at is None:
                 continue
             d = compose(at, g.pose)[:, :2] - x[:, :2]
             beyond = np.hypot(d[:, 0], d[:, 1]) > self.cfg.first_shift_m
@@ -358,7 +358,7 @@ class FleetGraph:
         """The robot's keyframes in the global frame: solved, or (new ones) carried from the last
         solution (or ``solution``) by the nearest solved keyframe's correction, or at its rigid
         placement."""
-        if solution is None and self.rebuilding and self._from_bend and p.robot in self.held:
+        if solution is None and self._from_bend and p.robot in self.held:  # (only while rebuilding)
             solution = self.held  # (matched, and solved from, where the bend had it until rebuilt)
         old = (self.solution if solution is None else solution).get(p.robot)
         g = p.graph
