@@ -51,9 +51,8 @@ with (``shared/messages.py``, RobotMap). The server joins them:
   can make the graph rebuilt the same way (``rebuild_on_arrival``, off by default; otherwise the
   others' keyframes near it are matched again). A rebuild starts from the placements, or from the
   last solution when that bent robots placed by matching beyond a wide search's reach of their
-  placements (their placements are then the bend's: ``_bent_far``).
-  Meanwhile the maps keep the last whole bend (``held``; after a restart, the restored one), and
-  the fused map says so.
+  placements (their placements are then the bend's: ``_bent_far``). Meanwhile the maps keep the
+  last whole bend (``held``; after a restart, the restored one), and the fused map says so.
 
 Each element then moves with its keyframe: ``global = X[k] ∘ P[k]⁻¹ ∘ local`` (``X`` the solved
 pose, ``P`` the robot's own).
@@ -203,11 +202,11 @@ class FleetGraph:
         (placed, or placed again elsewhere) with two robots solved already makes it matched and
         solved anew, as a departure does (:meth:`reset`): going on from the last solution, only the
         keyframes near it matched again, left Intel's pieces 0.041 m over the log where a rebuild
-        on the same maps gives 0.032-0.038 m. One that
-        arrives during a rebuild joins it (:meth:`_arrived`), and so does one that arrives while the
-        bend is beyond a wide search's reach of the placements (:meth:`_bent_far`): it was placed
-        against the unbent maps, the others would be matched from their bend (ACES in 3 pieces,
-        the reference bent by 2.3 m at the median: the new piece ended 3 m off its place)."""
+        on the same maps gives 0.032-0.038 m. One that arrives during a rebuild joins it
+        (:meth:`_arrived`), and so does one that arrives while the bend is beyond a wide search's
+        reach of the placements (:meth:`_bent_far`): it was placed against the unbent maps, the
+        others would be matched from their bend (ACES in 3 pieces, the reference bent by 2.3 m at
+        the median: the new piece ended 3 m off its place)."""
         now = {p.robot: p for p in placed}
 
         def kept(robot: str) -> bool:
