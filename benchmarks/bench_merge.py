@@ -24,9 +24,17 @@ without processes or network, in simulated time:
   (``confirmations=1``, ``alignment.min_share=0.3``, ...); when each robot is placed, whether
   correctly, and where its first keyframe ends (the fleet's graph) against the truth.
 
-Prints one row per robot (evidence, false verdicts, placed, delay, final error) and a summary:
-median and worst delay, wrong merges, robots never placed (or placed and undone by the end), how
-many final errors exceed issue 21's bound (0.05 m / 0.5°); writes benchmarks/results/bench_merge.json.
+- **against the truth** (each robot's true path simulated again): the *floor* — the final error a
+  merge would have that placed every robot's map where it truly lies as a whole (its keyframes
+  fitted rigidly to its true path; the error counts the first keyframe against the reference's, so
+  an agent whose map turned 0.3° from its first pose leaves 5 cm at 10 m to any merge) — and the
+  keyframes' error (ATE, RMSE) in the fleet's graph (the whole fleet fitted to the truth at once)
+  against in the robot's own map (fitted alone): what the merge costs or gains over the agents.
+
+Prints one row per robot (evidence, false verdicts, placed, delay, final error, floor, ATE fleet /
+own) and a summary: median and worst delay, wrong merges, robots never placed (or placed and undone
+by the end), how many final errors exceed issue 21's bound (0.05 m / 0.5°) and how many floors do;
+writes benchmarks/results/bench_merge.json.
 Live timing (a fusion takes time, messages queue) is not in this figure: bench_demo.py measures
 the whole fleet on loopback.
 """
@@ -61,6 +69,7 @@ from shared import codec  # noqa: E402
 from shared.config import apply_overrides  # noqa: E402
 from shared.geometry import apply_segments, compose, inverse, relative  # noqa: E402
 from shared.messages import FreeSpace, RobotMap  # noqa: E402
+from shared.metrics import align_se2, ate  # noqa: E402
 
 CACHE_FORMAT = 3  # 2: with the free space; 3: the end of the run (corrected, rebuilt maps)
 
@@ -163,6 +172,56 @@ ERROR_BOUND_M, ERROR_BOUND_DEG = 0.05, 0.5  # issue 21: every robot's transform 
 def _error(t: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     d = relative(truth, t)
     return float(np.hypot(d[0], d[1])), float(np.degrees(abs(d[2])))
+
+
+def true_path(world_name: str, route: int, seed: int, duration_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """A recorded robot's true poses (N,3) at its scans' stamps (N,) [s], simulated again without
+    its laser: the route follower steers by the true pose, so the truth does not depend on the
+    noise drawn (the same to the bit as beside the scans, in a third of the time)."""
+    from robot_agent.sim import LiveSim, builtin_world
+
+    sim = LiveSim(builtin_world(world_name), route, seed=seed)
+    end, stamps, poses = sim.stamp_s + duration_s + 1e-9, [], []
+    while sim.stamp_s <= end:
+        stamps.append(sim.stamp_s)
+        poses.append(sim.truth)
+        for _ in range(sim.cfg.steps_per_scan):
+            sim.step()
+    return np.array(stamps), np.array(poses)
+
+
+def _against_truth(paths_now: dict, names: list[str], ref: str, truth: dict, true: list) -> dict:
+    """Each bent robot's keyframes against its true path: ``own_ate_m`` (its own map, placed as
+    well as it can be rigidly: the agent's accuracy), ``fleet_ate_m`` (where the fleet's graph
+    puts them, the whole fleet aligned to the truth at once: the fused map's), and ``floor_m`` /
+    ``floor_deg``: the final error (its first keyframe against the reference's, the start
+    relation) of a merge that placed each map where it truly lies as a whole — what the agents'
+    own maps leave to any rigid merge (an agent whose map turned 0.3° from its first pose puts
+    its start 5 cm from where its walls say it is)."""
+    fits, out = {}, {}
+    for n, p in paths_now.items():
+        if len(p.local) >= 3:  # (a map placed as a whole has no path to compare)
+            fits[n] = ate(p.kf_stamp, p.local, *true[names.index(n)])
+    if not fits:
+        return out
+    xy, target, owner = [], [], []
+    for n in fits:
+        p = paths_now[n]
+        ts, tp = true[names.index(n)]
+        j = np.clip(np.searchsorted(ts, p.kf_stamp - 1e-6), 0, len(ts) - 1)
+        xy.append(p.pose[:, :2])
+        target.append(tp[j, :2])
+        owner += [n] * len(p.pose)
+    xy, target, owner = np.concatenate(xy), np.concatenate(target), np.array(owner)
+    moved = compose(align_se2(xy, target), np.column_stack([xy, np.zeros(len(xy))]))[:, :2]
+    e = np.hypot(*(moved - target).T)
+    for n, a in fits.items():
+        row = out[n] = dict(own_ate_m=a.rmse_m, fleet_ate_m=float(np.sqrt(np.mean(e[owner == n] ** 2))))
+        if ref in fits:
+            row["floor_m"], row["floor_deg"] = _error(
+                compose(inverse(fits[ref].alignment), a.alignment), truth[n]
+            )
+    return out
 
 
 def _wrong(t: np.ndarray, truth: np.ndarray) -> bool:
@@ -315,9 +374,11 @@ def run_seed(
                 e["evidence_s"] = t
                 found.add(i)
 
+    true = [true_path(world, i, 100 * seed + i, float(recs[i].stamps[-1]) + 1.0) for i in range(robots)]
+    against = _against_truth(paths_now, names, ref, truth, true)
     out = {}
     for i, n in enumerate(names):
-        row = dict(robot=n, reference=n == ref, placed_s=placed_at.get(n))
+        row = dict(robot=n, reference=n == ref, placed_s=placed_at.get(n)) | against.get(n, {})
         if n in fleet.robots and not fleet.robots[n].alignment.placed:
             row["reason"] = fleet.robots[n].alignment.reason
         if n in first_place:
@@ -404,8 +465,8 @@ def main() -> int:
         results = [f.result() for f in futures]
 
     print(f"{'world':9} {'seed':>4} {'robot':7} {'evidence':>8} {'false':>9} {'placed':>6} {'delay':>6} "
-          f"{'error':>14}  wrong")  # fmt: skip
-    delays, wrong, unplaced, unplaced_end, errors = [], 0, 0, 0, []
+          f"{'error':>14} {'floor':>14} {'ATE fleet/own':>13}  wrong")  # fmt: skip
+    delays, wrong, unplaced, unplaced_end, errors, floors, ates = [], 0, 0, 0, [], [], []
     for res in results:
         for n, r in res["robots"].items():
 
@@ -413,16 +474,22 @@ def main() -> int:
                 return "-" if v is None else fmt.format(v)
 
             err = "-" if "error_m" not in r else f"{r['error_m']:.3f}m/{r['error_deg']:.2f}°"
+            flo = "-" if "floor_m" not in r else f"{r['floor_m']:.3f}m/{r['floor_deg']:.2f}°"
+            at = "-" if "own_ate_m" not in r else f"{r['fleet_ate_m']:.3f}/{r['own_ate_m']:.3f}"
             print(
                 f"{res['world']:9} {res['seed']:4d} {n:7} {f(r.get('evidence_s')):>8} "
                 f"{r.get('false_verdicts', 0):5d}/{r.get('false_after', 0):<3d} "
-                f"{f(r['placed_s']):>6} {f(r.get('delay_s')):>6} {err:>14}  "
+                f"{f(r['placed_s']):>6} {f(r.get('delay_s')):>6} {err:>14} {flo:>14} {at:>13}  "
                 + ("REFERENCE" if r["reference"] else ("WRONG" if r.get("wrong_merge") else ""))
                 + contra_text(r)
                 + (f"  unplaced: {r['reason']}" if r.get("reason") else "")
             )
+            if "own_ate_m" in r:
+                ates.append((r["fleet_ate_m"], r["own_ate_m"]))
             if r["reference"]:
                 continue
+            if "floor_m" in r:
+                floors.append((r["floor_m"], r["floor_deg"]))
             wrong += bool(r.get("wrong_merge"))
             unplaced += r["placed_s"] is None
             if r.get("delay_s") is not None:
@@ -432,6 +499,7 @@ def main() -> int:
             else:
                 unplaced_end += r["placed_s"] is not None  # placed once, not at the end (undone)
     over = sum(m > ERROR_BOUND_M or deg > ERROR_BOUND_DEG for m, deg in errors)
+    floor_over = sum(m > ERROR_BOUND_M or deg > ERROR_BOUND_DEG for m, deg in floors)
     summary = dict(
         runs=len(results), wrong_merges=wrong, unplaced=unplaced, unplaced_at_end=unplaced_end,
         errors_over_bound=over, errors_scored=len(errors),
@@ -440,13 +508,21 @@ def main() -> int:
         delay_max_s=float(np.max(delays)) if delays else None,
         error_max_m=max((e[0] for e in errors), default=None),
         error_max_deg=max((e[1] for e in errors), default=None),
+        floors_over_bound=floor_over, floors_scored=len(floors),
+        floor_max_m=max((e[0] for e in floors), default=None),
+        fleet_ate_mean_m=float(np.mean([a[0] for a in ates])) if ates else None,
+        own_ate_mean_m=float(np.mean([a[1] for a in ates])) if ates else None,
     )  # fmt: skip
     print(
         f"{len(results)} runs: {wrong} wrong merges, {unplaced} robots never placed, {unplaced_end} placed "
         f"but not at the end; delay from evidence to merge median {summary['delay_median_s']} s, worst "
         f"{summary['delay_max_s']} s; final errors over {ERROR_BOUND_M} m / {ERROR_BOUND_DEG}°: {over} of "
         f"{len(errors)} (mean {summary['error_mean_m'] or 0:.3f} m), worst {summary['error_max_m']} m / "
-        f"{summary['error_max_deg']}°"
+        f"{summary['error_max_deg']}°; a merge placing every map where it truly lies as a whole would be "
+        f"over the bound {floor_over} of {len(floors)} times (worst {summary['floor_max_m'] or 0:.3f} m: the "
+        f"agents' own maps); keyframes against the truth (ATE, RMSE, mean) "
+        f"{summary['fleet_ate_mean_m'] or 0:.3f} m in the fleet's graph, "
+        f"{summary['own_ate_mean_m'] or 0:.3f} m in the robots' own maps"
     )
     args_out = vars(args) | {
         "cache": str(args.cache),

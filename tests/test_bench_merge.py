@@ -48,3 +48,48 @@ def test_one_seed_gives_a_row_per_robot(recorded, enabled):
         assert r["placed_s"] is None and r["reason"], r
     with pytest.raises(AttributeError):
         module._with_overrides(module.FleetConfig(), ["no_such_field=1"])
+
+
+def test_the_truth_simulated_again_is_the_truth_beside_the_scans():
+    from robot_agent.sim import LiveSim, builtin_world
+
+    with bench_script("bench_merge") as module:
+        stamps, poses = module.true_path("office", 2, 7, 6.0)
+    sim = LiveSim(builtin_world("office"), 2, seed=7)
+    beside = [(s.stamp_s, *sim.truth) for s in sim.scans(6.0)]
+    np.testing.assert_array_equal(np.column_stack([stamps, poses]), np.array(beside))
+
+
+def test_a_map_turned_from_its_first_pose_leaves_a_floor_to_any_rigid_merge():
+    """A robot whose own map is turned 0.3° about a point 10 m from its first pose, placed where its
+    map truly lies: its keyframes agree with the truth, its first one is 5 cm and 0.3° off."""
+    from types import SimpleNamespace
+
+    from shared.geometry import compose, inverse, relative
+
+    t = np.arange(40.0)
+    ref_true = np.column_stack([t * 0.5, np.zeros(40), np.zeros(40)])
+    rob_true = np.column_stack([np.full(40, 3.0), 2.0 + t * 0.5, np.full(40, np.pi / 2)])
+    turn = np.radians(0.3)
+    pivot = np.array([10.0, 0.0, 0.0])  # (in the robot's own frame: its map's middle, 10 m ahead)
+    own = relative(rob_true[0], rob_true)
+    turned = compose(compose(pivot, np.array([0.0, 0.0, turn])), compose(inverse(pivot), own))
+    truth = {"ref": np.zeros(3), "rob": relative(ref_true[0], rob_true[0])}
+    # placed where its map truly lies: its turned keyframes put back on the truth as a whole
+    place = compose(
+        relative(ref_true[0], rob_true[0]), compose(pivot, compose([0.0, 0.0, -turn], inverse(pivot)))
+    )
+    paths = {
+        "ref": SimpleNamespace(
+            kf_stamp=t, local=relative(ref_true[0], ref_true), pose=relative(ref_true[0], ref_true)
+        ),
+        "rob": SimpleNamespace(kf_stamp=t, local=turned, pose=compose(place, turned)),
+    }
+    true = [(t, ref_true), (t, rob_true)]
+    with bench_script("bench_merge") as module:
+        rows = module._against_truth(paths, ["ref", "rob"], "ref", truth, true)
+    assert rows["ref"]["floor_m"] == pytest.approx(0.0, abs=1e-9)
+    assert rows["rob"]["own_ate_m"] == pytest.approx(0.0, abs=1e-9)
+    assert rows["rob"]["fleet_ate_m"] == pytest.approx(0.0, abs=1e-9)
+    assert rows["rob"]["floor_m"] == pytest.approx(10.0 * turn, rel=1e-3)  # 0.052 m
+    assert rows["rob"]["floor_deg"] == pytest.approx(0.3, rel=1e-3)
