@@ -88,6 +88,15 @@ class GraphConfig:
     every_keyframes: int = 3  # a constraint is sought around every this many keyframes ...
     crop_radius_m: float = 6.0  # ... from the robot's elements this near it (where the graph puts them)
     window_keyframes: int = 10  # ... and anchored this many keyframes before or after it
+    # ... or this many, of a robot whose walls stand in its own free space (Fleet._consistent): its
+    # rows anchored far apart agree with each other, and the wider submap holds what a narrow one
+    # in a long aisle lacks (walls across it). bench_merge (office and warehouse, 10 seeds,
+    # --evidence-from the same run): 10 for all — final errors over 0.05 m 8 of 40, mean 0.034 m,
+    # worst 0.124 m (warehouse seed 4, whose maps placed as a whole would be 0.021 m off); 20 — 6,
+    # 0.030 m, 0.079 m, each of the 6 a robot whose own map leaves more than 0.05 m to any rigid
+    # merge (bench_merge's floor); 30 — 9, 0.031 m, 0.071 m. A real log's pieces contradict
+    # themselves by metres: 10 (30 for them: Intel 0.037 -> 0.050 m on one run's final maps)
+    window_consistent_keyframes: int = 20
     # a constraint ties the keyframe the submap's matched rows move with (their most common
     # anchor), its pose carried there by the fit's correction, rather than the keyframe tried: an
     # agent anchors each wall to the keyframe that first saw it, and one long wall moves with one

@@ -108,7 +108,7 @@ class Fleet:
         # freespace.FreeSpaces.area; without it no placement is checked for contradiction
         self.free_of: Callable[[str, str], object] | None = None
         self.placer = Placer(self)  # the alignment rounds (placing.py)
-        self._stiff: dict[str, tuple] = {}  # robot -> what Fleet._stiffness measured
+        self._stiff: dict[str, tuple] = {}  # robot -> what Fleet._consistent measured
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -257,8 +257,13 @@ class Fleet:
 
     def _stiffness(self, r: RobotState) -> float:
         """How many times its own edges' information the graph takes a placed robot's
-        (posegraph.py): ``consistent_scale`` while its walls stand in its own free space by at
-        most ``consistent_self_m``, else 1 (also while its free space is not known). Measured
+        (posegraph.py): ``consistent_scale`` while it is :meth:`_consistent`, else 1."""
+        return self.cfg.graph.consistent_scale if self._consistent(r) else 1.0
+
+    def _consistent(self, r: RobotState) -> bool:
+        """Whether a placed robot's walls stand in its own free space by at most
+        ``consistent_self_m`` (not while its free space is not known): the graph takes its own
+        edges' information ``consistent_scale`` times and matches wider submaps of it. Measured
         when the graph solves, again once its map grew by ``retry_growth_m`` since; a map once
         found contradicting itself stays so for its session (a real log's piece: metres within
         seconds — its free space, thousands of vertices, is not shrunk again for this)."""
@@ -270,9 +275,12 @@ class Fleet:
         if stale:
             if len(self._stiff) > 2 * len(self.robots) + 8:  # (robots forgotten)
                 self._stiff = {k: v for k, v in self._stiff.items() if k in self.robots}
+            was = hit is not None and hit[0] == session and _agrees(hit[2], g.consistent_self_m)
             hit = self._stiff[r.robot] = (session, r.layer.length_m, self.placer.own_noise_m(r))
-        noisy = hit[2]
-        return g.consistent_scale if noisy is not None and noisy <= g.consistent_self_m else 1.0
+            if hit[2] is not None and _agrees(hit[2], g.consistent_self_m) != was:
+                how = "bent as the others' walls say" if was else "held to its shape, wide submaps"
+                log.info("%s: its walls stand %.1f m in its own free space: %s", r.robot, hit[2], how)
+        return _agrees(hit[2], g.consistent_self_m)
 
     def _carry(self) -> None:
         """A bent robot whose map changed since the graph's last solve: its new layer moved by the
@@ -305,7 +313,7 @@ class Fleet:
         the rest stays due (``graph_stale``)."""
         cfg = self.cfg.graph
         placed = self._bend_placed()
-        items = [_graph_item(r, self._stiffness(r)) for r in placed]
+        items = [_graph_item(r, self._consistent(r), cfg.consistent_scale) for r in placed]
         rebuilding = self.graph.rebuilding
         for robot in self.graph.sync(items):  # what the graph found where the robot was would hold it
             log.info("%s: unplaced or moved far: the fleet graph forgets where it had it", robot)
@@ -686,7 +694,14 @@ class Fleet:
         return f
 
 
-def _graph_item(r: RobotState, stiff: float = 1.0) -> Placed:
-    """What the fleet's graph takes of a placed robot."""
+def _agrees(noise_m: float | None, limit_m: float) -> bool:
+    """Whether a map's own contradiction (None: not known) is within ``limit_m``."""
+    return noise_m is not None and noise_m <= limit_m
+
+
+def _graph_item(r: RobotState, consistent: bool = False, scale: float = 1.0) -> Placed:
+    """What the fleet's graph takes of a placed robot (``consistent``: Fleet._consistent, its own
+    edges' information then taken ``scale`` times)."""
     a = r.alignment
-    return Placed(r.robot, r.graph, r.layer, a.transform, a.status, r.map.prior_sigma, stiff)
+    stiff = scale if consistent else 1.0
+    return Placed(r.robot, r.graph, r.layer, a.transform, a.status, r.map.prior_sigma, stiff, consistent)

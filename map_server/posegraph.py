@@ -23,7 +23,8 @@ with (``shared/messages.py``, RobotMap). The server joins them:
   prior's holds with the prior's sigma; an aligned robot's is weak — only what keeps a robot
   with no constraint yet where its verified placement put it.
 - **constraints between robots**: around every few keyframes of a robot, the part of its map
-  anchored to its neighbouring keyframes (a local submap, in that keyframe's frame) is
+  anchored to its neighbouring keyframes (a local submap, in that keyframe's frame; more of them
+  for a map that stands in none of its own free space: its rows anchored apart agree) is
   registered (registration.refine: point-to-line Gauss-Newton, shrinking gates) against the
   other robots' maps where the graph puts them now. The robot was placed by the rigid alignment
   first — the candidates, the verification by overlap, the refusal of ambiguous places are
@@ -175,6 +176,7 @@ class Placed:
     status: str  # reference / prior / aligned
     sigma: np.ndarray | None = None  # a prior's sigma (status prior)
     stiff: float = 1.0  # its own edges' information is taken times this (GraphConfig.consistent_scale)
+    consistent: bool = False  # its walls stand in its own free space (Fleet._consistent): wider submaps
 
 
 @dataclass
@@ -502,13 +504,14 @@ class FleetGraph:
         out = []
         mid = cKDTree(0.5 * (mine[:, 0] + mine[:, 1]))
         alone: dict[int, tuple[MapIndex, np.ndarray]] = {}  # another robot's rows alone, indexed
+        window = cfg.window_consistent_keyframes if p.consistent else cfg.window_keyframes
         for k, wide in zip(ks, first, strict=True):
             stages = cfg.first_stages if wide else cfg.stages
             shift_m, turn_rad = (
                 (cfg.first_shift_m, cfg.first_turn_rad) if wide else (cfg.max_shift_m, cfg.max_turn_rad)
             )
             near = np.asarray(mid.query_ball_point(x[k, :2], cfg.crop_radius_m), int)
-            near = near[np.abs(g.row_kf[near] - k) <= cfg.window_keyframes]  # (those moving with it)
+            near = near[np.abs(g.row_kf[near] - k) <= window]  # (those moving with it)
             if not len(near):
                 self._count("small")
                 continue
