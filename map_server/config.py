@@ -88,14 +88,16 @@ class GraphConfig:
     every_keyframes: int = 3  # a constraint is sought around every this many keyframes ...
     crop_radius_m: float = 6.0  # ... from the robot's elements this near it (where the graph puts them)
     window_keyframes: int = 10  # ... and anchored this many keyframes before or after it
-    # ... or this many, of a robot whose walls stand in its own free space (Fleet._consistent): its
-    # rows anchored far apart agree with each other, and the wider submap holds what a narrow one
-    # in a long aisle lacks (walls across it). bench_merge (office and warehouse, 10 seeds,
-    # --evidence-from the same run): 10 for all — final errors over 0.05 m 8 of 40, mean 0.034 m,
-    # worst 0.124 m (warehouse seed 4, whose maps placed as a whole would be 0.021 m off); 20 — 6,
-    # 0.030 m, 0.079 m, each of the 6 a robot whose own map leaves more than 0.05 m to any rigid
-    # merge (bench_merge's floor); 30 — 9, 0.031 m, 0.071 m. A real log's pieces contradict
-    # themselves by metres: 10 (30 for them: Intel 0.037 -> 0.050 m on one run's final maps)
+    # ... or this many, of a robot whose walls stand in none of its own free space (Fleet._consistent)
+    # matched against robots of which that holds too: their rows anchored far apart agree with each other
+    # (a bent robot's do not, even where the graph put them: the graph's test, 0.21 m against 0.09 m), and
+    # the wider submap holds what a narrow one in a long aisle lacks (walls across it). bench_merge
+    # (office and warehouse, 10 seeds, --evidence-from the same run): 10 for all — final errors over 0.05
+    # m 8 of 40, mean 0.034 m, worst 0.124 m (warehouse seed 4, whose maps placed as a whole would be
+    # 0.021 m off); 20 — 6, 0.030 m, 0.079 m, each of the 6 a robot whose own map leaves more than 0.05 m
+    # to any rigid merge (bench_merge's floor); 30 — 9, 0.031 m, 0.071 m. A real log's pieces contradict
+    # themselves by metres and keep 10 (30 for every piece, on one Intel run's final maps rebuilt offline:
+    # 0.050 m against 0.037 m)
     window_consistent_keyframes: int = 20
     # a constraint ties the keyframe the submap's matched rows move with (their most common
     # anchor), its pose carried there by the fit's correction, rather than the keyframe tried: an
@@ -114,8 +116,12 @@ class GraphConfig:
     # a rebuild (FleetGraph.reset: a robot left) matches the keyframes from the placements, unless
     # the last solution put more than this share of some robot's keyframes beyond a wide search's
     # reach (first_shift_m) from its placement: then from that solution (robots placed against bent
-    # maps are placed where the bend put the others; FleetGraph._bent_far)
-    rebuild_from_bend_share: float = 0.25
+    # maps are placed where the bend put the others; FleetGraph._bent_far). Offline, on 38 stored
+    # final states of Intel, ACES and MIT-CSAIL in 3 pieces (sessions 36-37), rebuilt from the
+    # placements and from the bend: 0.25 left a share of 0.13 to the placements (Intel: 0.41 m,
+    # two pairs of pieces 2 m apart; from the bend 0.051 m); 0.1 changes four rebuilds, 0.409 ->
+    # 0.051, 0.0353 -> 0.0337, 0.0377 -> 0.0395 m (Intel), 0.0404 -> 0.0396 m (ACES)
+    rebuild_from_bend_share: float = 0.1
     # a robot placed (or placed again) while two robots are solved makes the graph matched and solved
     # anew, as a departure does (FleetGraph.sync); off: the others' keyframes near it are matched
     # again. On, Intel in 3 pieces ended 0.032-0.037 m (off 0.037-0.045 m), but a newcomer whose
