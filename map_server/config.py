@@ -116,7 +116,7 @@ class GraphConfig:
     # a rebuild (FleetGraph.reset: a robot left) matches the keyframes from the placements, unless
     # the last solution put more than this share of some robot's keyframes beyond a wide search's
     # reach (first_shift_m) from its placement: then from that solution (robots placed against bent
-    # maps are placed where the bend put the others; FleetGraph._bent_far). Offline, on 38 stored
+    # maps are placed where the bend put the others; FleetGraph._bent_far). Offline, on 40 stored
     # final states of Intel, ACES and MIT-CSAIL in 3 pieces (sessions 36-37), rebuilt from the
     # placements and from the bend: 0.25 left a share of 0.13 to the placements (Intel: 0.41 m,
     # two pairs of pieces 2 m apart; from the bend 0.051 m); 0.1 changes four rebuilds, 0.409 ->
