@@ -67,9 +67,9 @@ from map_server.freespace import FreeSpaces, place_area  # noqa: E402
 from map_server.fusion import fuse_particles, merge_segments  # noqa: E402
 from shared import codec  # noqa: E402
 from shared.config import apply_overrides  # noqa: E402
-from shared.geometry import apply_segments, compose, inverse, relative  # noqa: E402
+from shared.geometry import apply_segments, compose, inverse, relative, transform_points  # noqa: E402
 from shared.messages import FreeSpace, RobotMap  # noqa: E402
-from shared.metrics import align_se2, ate  # noqa: E402
+from shared.metrics import align_se2, ate, poses_at  # noqa: E402
 
 CACHE_FORMAT = 3  # 2: with the free space; 3: the end of the run (corrected, rebuilt maps)
 
@@ -207,14 +207,11 @@ def _against_truth(paths_now: dict, names: list[str], ref: str, truth: dict, tru
     xy, target, owner = [], [], []
     for n in fits:
         p = paths_now[n]
-        ts, tp = true[names.index(n)]
-        j = np.clip(np.searchsorted(ts, p.kf_stamp - 1e-6), 0, len(ts) - 1)
         xy.append(p.pose[:, :2])
-        target.append(tp[j, :2])
+        target.append(poses_at(*true[names.index(n)], p.kf_stamp)[:, :2])  # (as ate matches them)
         owner += [n] * len(p.pose)
     xy, target, owner = np.concatenate(xy), np.concatenate(target), np.array(owner)
-    moved = compose(align_se2(xy, target), np.column_stack([xy, np.zeros(len(xy))]))[:, :2]
-    e = np.hypot(*(moved - target).T)
+    e = np.hypot(*(transform_points(align_se2(xy, target), xy) - target).T)
     for n, a in fits.items():
         row = out[n] = dict(own_ate_m=a.rmse_m, fleet_ate_m=float(np.sqrt(np.mean(e[owner == n] ** 2))))
         if ref in fits:

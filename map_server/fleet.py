@@ -255,11 +255,6 @@ class Fleet:
             (r.robot, id(r.graph), r.alignment.transform.tobytes(), r.alignment.status) for r in placed
         )
 
-    def _stiffness(self, r: RobotState) -> float:
-        """How many times its own edges' information the graph takes a placed robot's
-        (posegraph.py): ``consistent_scale`` while it is :meth:`_consistent`, else 1."""
-        return self.cfg.graph.consistent_scale if self._consistent(r) else 1.0
-
     def _consistent(self, r: RobotState) -> bool:
         """Whether a placed robot's walls stand in its own free space by at most
         ``consistent_self_m`` (not while its free space is not known): the graph takes its own
@@ -313,7 +308,7 @@ class Fleet:
         the rest stays due (``graph_stale``)."""
         cfg = self.cfg.graph
         placed = self._bend_placed()
-        items = [_graph_item(r, self._consistent(r), cfg.consistent_scale) for r in placed]
+        items = [_graph_item(r, self._consistent(r)) for r in placed]
         rebuilding = self.graph.rebuilding
         for robot in self.graph.sync(items):  # what the graph found where the robot was would hold it
             log.info("%s: unplaced or moved far: the fleet graph forgets where it had it", robot)
@@ -699,9 +694,7 @@ def _agrees(noise_m: float | None, limit_m: float) -> bool:
     return noise_m is not None and noise_m <= limit_m
 
 
-def _graph_item(r: RobotState, consistent: bool = False, scale: float = 1.0) -> Placed:
-    """What the fleet's graph takes of a placed robot (``consistent``: Fleet._consistent, its own
-    edges' information then taken ``scale`` times)."""
+def _graph_item(r: RobotState, consistent: bool = False) -> Placed:
+    """What the fleet's graph takes of a placed robot (``consistent``: Fleet._consistent)."""
     a = r.alignment
-    stiff = scale if consistent else 1.0
-    return Placed(r.robot, r.graph, r.layer, a.transform, a.status, r.map.prior_sigma, stiff, consistent)
+    return Placed(r.robot, r.graph, r.layer, a.transform, a.status, r.map.prior_sigma, consistent)

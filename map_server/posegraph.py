@@ -176,8 +176,8 @@ class Placed:
     transform: np.ndarray  # its rigid placement
     status: str  # reference / prior / aligned
     sigma: np.ndarray | None = None  # a prior's sigma (status prior)
-    stiff: float = 1.0  # its own edges' information is taken times this (GraphConfig.consistent_scale)
-    consistent: bool = False  # its walls stand in its own free space (Fleet._consistent): wider submaps
+    consistent: bool = False  # its walls stand in none of its own free space (Fleet._consistent): its
+    # own edges' information taken GraphConfig.consistent_scale times, its submaps wider
 
 
 @dataclass
@@ -616,7 +616,7 @@ class FleetGraph:
             a.append(g.a + s)
             b.append(g.b + s)
             z.append(g.z)
-            info.append(g.info * p.stiff)
+            info.append(g.info * (cfg.consistent_scale if p.consistent else 1.0))
         for p in placed:  # placement edges: origin -> first keyframe
             if p.status == "reference" or p.graph.rigid:  # the gauge, or a map placed as a whole
                 sig = np.array([cfg.reference_sigma_m, cfg.reference_sigma_m, cfg.reference_sigma_rad])
