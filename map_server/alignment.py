@@ -160,7 +160,7 @@ def estimate_alignment(
         return _revise(current, cur, cands, robot_seg, index, robot, total, cfg, veto)
     if not cands:
         return Alignment("unaligned", np.zeros(3), np.zeros(3), reason="no corner correspondences")
-    return _accept_best(cands, robot_seg, index, robot, total, cfg, veto)
+    return _accept_best(cands, robot_seg, index, robot, total, cfg, veto, coarse)
 
 
 MAX_VETOED = 20  # distinct places checked for contradiction, best first, before the search gives up
@@ -197,15 +197,26 @@ def _set_aside(
 
 
 def _rivals_aside(
-    best: Scored, cands: list[Scored], veto, points: np.ndarray, cfg: AlignmentConfig, budget: int
+    best: Scored,
+    cands: list[Scored],
+    veto,
+    points: np.ndarray,
+    cfg: AlignmentConfig,
+    budget: int,
+    strict: Callable[[Scored, list[Scored], float], list[Scored]] | None = None,
 ) -> tuple[list[Scored], list[tuple[Scored, str]]]:
     """While the best distinct rival keeps ``best`` below ``min_rival_ratio``, the rival is checked
     by ``veto``; a contradicted one (and the candidates at its place) is set aside, at most
     ``budget`` places checked. A symmetric building's true place often ties with a mirror image
     that the free space seen rules out (the simulated warehouse: rival ratios 1.000-1.02 at the end
-    of a run, the rival half-turned). Returns the candidates left and those set aside with why."""
+    of a run, the rival half-turned). A rival the free space seen prefers less than the best
+    (``Check.outshone``) is no rival either. Returns the candidates left and those set aside with
+    why. ``strict``: the candidates with the close rivals only pre-scored scored strictly
+    (:func:`_rivals_refined`), before each rival is looked at."""
     aside = []
     for _ in range(max(budget, 0)):
+        if strict is not None:
+            cands = strict(best, cands, cfg.min_rival_ratio)
         far = [c for c in cands if cand.mean_displacement(c.pose, best.pose, points) > cfg.distinct_m]
         if not far:
             break
@@ -213,6 +224,8 @@ def _rivals_aside(
         if best.net >= cfg.min_rival_ratio * r.net:
             break
         why = veto(r.pose, r.matched_m)
+        if why is None and isinstance(veto, Check):  # ... or outshone by the best (a close call)
+            why = veto.outshone(r.pose, best.pose)
         if why is None:
             break
         gone = [c for c in far if cand.mean_displacement(c.pose, r.pose, points) <= cfg.distinct_m]
@@ -222,7 +235,72 @@ def _rivals_aside(
     return cands, aside
 
 
-def _accept_best(cands: list[Scored], robot_seg, index, robot, total, cfg, veto=None) -> Alignment:
+def _rivals_refined(
+    best: Scored, cands: list[Scored], index: MapIndex, robot: Samples, coarse: Samples, cfg, ratio: float
+) -> list[Scored]:
+    """``cands`` with the distinct rivals that keep ``best`` below ``ratio`` of their net score
+    scored as strictly as ``best``: while the best distinct rival is one only pre-scored (generous
+    tolerances, candidates.search refines the best ``max_refined``), it is refined and scored and
+    takes its place, at most ``max_refined`` of them. A close call is made between strict scores:
+    a pre-score has no conflict term, and a real log's piece loses a third of its net score to it
+    at its true place (ACES in 3 pieces: the truth 29.1 net against a half turn in place pre-scored
+    27.8 and -2.7 refined)."""
+    for _ in range(cfg.max_refined):
+        far = [c for c in cands if cand.mean_displacement(c.pose, best.pose, robot.points) > cfg.distinct_m]
+        if not far:
+            break
+        r = max(far, key=lambda c: c.net)
+        if r.refined is not None or best.net >= ratio * r.net:
+            break
+        s = cand.refine_and_score(index, robot, coarse, r.pose, cfg)
+        cands = [s if c is r else c for c in cands]
+    return cands
+
+
+def _outshone_aside(
+    cands: list[Scored],
+    veto: Check,
+    points: np.ndarray,
+    cfg: AlignmentConfig,
+    budget: int,
+    strict: Callable[[Scored, list[Scored], float], list[Scored]] | None = None,
+) -> tuple[list[Scored], list[tuple[Scored, str]]]:
+    """While the best candidate has a distinct rival within ``close_ratio`` of its net score and
+    the free space seen prefers the rival (``Check.outshone``), the best (and the candidates at its
+    place) is set aside and the next best looked at, at most ``budget`` places. A close call
+    between a place and its mirror image is not one a repeated search can settle (the same maps
+    give the same verdict); the walls each puts where the other side saw free space can. Returns
+    the candidates left and those set aside with why (the why is the same object for one place)."""
+    aside: list[tuple[Scored, str]] = []
+    close = veto.cfg.close_ratio
+    for _ in range(max(budget, 0)):
+        if not cands:
+            break
+        best = max(cands, key=lambda s: s.net)
+        if strict is not None:
+            cands = strict(best, cands, close)
+        far = [c for c in cands if cand.mean_displacement(c.pose, best.pose, points) > cfg.distinct_m]
+        if not far:
+            break
+        r = max(far, key=lambda s: s.net)
+        if best.net >= close * r.net:
+            break
+        why = veto.outshone(best.pose, r.pose)
+        if why is None:
+            break
+        gone = [c for c in cands if cand.mean_displacement(c.pose, best.pose, points) <= cfg.distinct_m]
+        aside += [(c, why) for c in gone]
+        ids = {id(c) for c in gone}
+        cands = [c for c in cands if id(c) not in ids]
+    return cands, aside
+
+
+def _accept_best(
+    cands: list[Scored], robot_seg, index, robot, total, cfg, veto=None, coarse=None
+) -> Alignment:
+    def strict(best: Scored, cands: list[Scored], ratio: float) -> list[Scored]:
+        return cands if coarse is None else _rivals_refined(best, cands, index, robot, coarse, cfg, ratio)
+
     set_aside = []
     if veto is not None:
         cands, set_aside, distinct = _set_aside(cands, veto, robot.points, cfg.distinct_m)
@@ -230,15 +308,24 @@ def _accept_best(cands: list[Scored], robot_seg, index, robot, total, cfg, veto=
             s, why = set_aside[0]
             reason = f"rejected: the best {distinct} distinct places contradicted (best: {why})"
             return _verdict("unaligned", s, total, 1.0, reason)
+    outshone = []
+    if isinstance(veto, Check):  # a close call is decided by the free space seen
+        cands, outshone = _outshone_aside(cands, veto, robot.points, cfg, MAX_VETOED - distinct, strict)
+        distinct += len({id(w) for _, w in outshone})  # (a rival is always left: never empty)
     best = max(cands, key=lambda s: s.net)
     rivals_aside = []
     if veto is not None:  # a rival too close to call is checked too: a contradicted one is no rival
-        cands, rivals_aside = _rivals_aside(best, cands, veto, robot.points, cfg, MAX_VETOED - distinct)
+        cands, rivals_aside = _rivals_aside(
+            best, cands, veto, robot.points, cfg, MAX_VETOED - distinct, strict
+        )
+    cands = strict(best, cands, cfg.min_rival_ratio)
     ratio = best.net / max(cand.rival(best, cands, robot.points, cfg.distinct_m), 1e-9)
     problems = _problems(best, total, index, robot, robot_seg, cfg)
     if ratio < cfg.min_rival_ratio:
         problems.append(f"rival ratio {ratio:.3f} < {cfg.min_rival_ratio:g}")
     aside = f"; {len(set_aside)} better-scored place(s) contradicted ({set_aside[0][1]})" if set_aside else ""
+    if outshone:
+        aside += f"; {len(outshone)} better-scored place(s) outshone ({outshone[0][1]})"
     if rivals_aside:
         aside += f"; {len(rivals_aside)} rival place(s) contradicted ({rivals_aside[0][1]})"
     if problems:
