@@ -339,3 +339,80 @@ def test_a_young_map_that_contradicts_itself_waits_for_maturity():
     a = fleet.robots["r2"].alignment
     assert not a.placed and "its map contradicts itself by" in a.reason, a.reason
     assert "r2" not in searched
+
+
+def test_a_place_whose_walls_stand_densely_in_free_space_yields_to_a_rival_that_agrees():
+    """Check.outshone: a place contradicted by more than ``max_m`` yields to a rival whose walls
+    stand ``outshone_factor`` times less densely in the free space both sides saw (m per m2) —
+    not when it is contradicted little itself, nor against a rival over too little free space."""
+    room = shapely.box(0.0, 0.0, 12.0, 8.0)
+    walls = np.array(
+        [
+            [[0.0, 0.0], [12.0, 0.0]],
+            [[12.0, 0.0], [12.0, 8.0]],
+            [[12.0, 8.0], [0.0, 8.0]],
+            [[0.0, 8.0], [0.0, 0.0]],
+        ]
+    )
+    free = cd.shrink(room, CC.margin_m)
+    check = cd.Check(walls, free, walls, free, CC)  # the robot saw the room a placed robot saw
+    truth, shifted = np.zeros(3), np.array([4.0, 0.0, 0.0])
+    assert check.contradicted_m(truth) == 0.0 and check.seen_m2(truth) > CC.outshone_min_seen_m2
+    assert check.contradicted_m(shifted) > CC.max_m  # its west wall across the placed room (both ways)
+    why = check.outshone(shifted, truth)
+    assert why is not None and "against 0.00 at a rival place" in why, why
+    assert check.outshone(truth, shifted) is None  # the truth is not contradicted at all
+    small = dataclasses.replace(CC, outshone_min_seen_m2=check.seen_m2(truth) + 1.0)
+    assert cd.Check(walls, free, walls, free, small).outshone(shifted, truth) is None  # too little seen
+    near = np.array([3.5, 0.0, 0.0])  # contradicted about as densely: no better
+    assert check.contradicted_m(near) > CC.max_m and check.outshone(shifted, near) is None
+
+
+def test_a_close_call_between_two_places_is_decided_by_the_free_space_seen():
+    """The best place within ``close_ratio`` of a distinct rival and outshone by it is set aside
+    (with the candidates at its place); a rival far enough behind is not compared."""
+    from map_server import alignment
+    from map_server.candidates import Scored
+
+    points = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 3.0]])
+    mirror = [Scored(np.array([10.0 + 0.01 * k, 0.0, np.pi]), 99.0, 0.0, 99.0 - k, None) for k in range(3)]
+    truth = Scored(np.zeros(3), 60.0, 0.0, 60.0, None)
+    asked = []
+
+    class Veto:
+        cfg = CC
+
+        def outshone(self, pose, rival):
+            asked.append((np.asarray(pose).copy(), np.asarray(rival).copy()))
+            return "denser" if pose[2] == np.pi else None
+
+    left, aside = alignment._outshone_aside([*mirror, truth], Veto(), points, CFG, 20)
+    assert left == [truth] and [s for s, _ in aside] == mirror and len(asked) == 1
+    asked.clear()
+    behind = Scored(np.zeros(3), 40.0, 0.0, 40.0, None)  # 99 > 2 x 40: no close call
+    left, aside = alignment._outshone_aside([*mirror, behind], Veto(), points, CFG, 20)
+    assert aside == [] and asked == []
+
+
+def test_a_close_rival_only_prescored_is_scored_as_strictly_as_the_best():
+    """Exact office maps: a half turn in place pre-scored as high as the truth (a pre-score has no
+    conflict term) is refined and scored strictly before it counts as the truth's rival."""
+    from map_server import alignment
+    from map_server import candidates as cand
+    from map_server.candidates import Scored
+    from map_server.registration import MapIndex, Samples
+
+    args, truth = exact_pair("office", 0, 2, 70.0)
+    seg, placed = args[0], args[2]
+    index = MapIndex(placed, CFG.sample_step_m, compiled=CFG.compiled)
+    robot, coarse = Samples.of(seg, CFG.sample_step_m), Samples.of(seg, CFG.coarse_step_m)
+    best = cand.refine_and_score(index, robot, coarse, truth, CFG)
+    turned = compose(truth, np.array([0.0, 0.0, np.pi]))
+    generous = Scored(turned, best.net, 0.0, best.net, None)
+    left = alignment._rivals_refined(best, [best, generous], index, robot, coarse, CFG, CFG.min_rival_ratio)
+    assert left[0] is best and left[1].refined is not None and best.net >= CFG.min_rival_ratio * left[1].net
+    behind = Scored(turned, best.net / 2.0, 0.0, best.net / 2.0, None)  # not close: left as it is
+    assert (
+        alignment._rivals_refined(best, [best, behind], index, robot, coarse, CFG, CFG.min_rival_ratio)[1]
+        is behind
+    )
