@@ -188,6 +188,15 @@ class GraphConfig:
     moved_m: float = 0.005  # a robot's elements are moved again when a keyframe moved this much
     moved_rad: float = np.radians(0.05)
     budget_keyframes: int = 40  # keyframes matched per fusion (the rest in the next ones)
+    # constraints on the same pair of keyframes (neighbouring tried keyframes tied to one anchor:
+    # overlapping submaps, one piece of evidence) share one constraint's information. bench_merge
+    # (session 38): 6 of 40 over 0.05 m either way, mean 0.0295 -> 0.0289 m, worst 0.079 -> 0.067 m;
+    # offline rebuilds of 51 stored real-log final states (3 pieces): Intel mean 0.0366 -> 0.0365 m
+    # (9 better, 5 worse by over 0.5 mm), ACES 0.0489 -> 0.0480 (4 better, 0 worse), MIT-CSAIL
+    # 0.0318 -> 0.0316 — within the spread; and the graph's test of anchored ties (rows anchored two
+    # keyframes back, every anchor tied by several tried keyframes) bends its bent robot back less
+    # (90th percentile 0.047 -> 0.067 m): off
+    share_pairs: bool = False
 
 
 @dataclass(frozen=True)

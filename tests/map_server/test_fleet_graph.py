@@ -655,3 +655,39 @@ def test_a_robot_placed_while_the_bend_is_beyond_reach_joins_without_a_rebuild()
     fleet.fuse(200.0)
     assert not fleet.graph.rebuilding and "rebuilds_on_arrival" not in fleet.graph.stats
     assert any(o == "r2" for _, o in fleet.graph.constraints.get("r0", {}))  # (r0 near r2: matched again)
+
+
+@pytest.mark.parametrize("share", [True, False])
+def test_constraints_on_one_pair_of_keyframes_share_its_information(monkeypatch, share):
+    """Neighbouring keyframes' submaps overlap, and tied to the keyframe their matched rows move
+    with they constrain the same pair of keyframes again and again (robot 1's rows anchored two
+    keyframes back: several tried keyframes tie one anchor) — one piece of evidence, not several:
+    with ``share_pairs`` each of the N constraints on a pair enters the solve with 1/N of its
+    information (the pair's total the mean of theirs)."""
+    ks, stamps, est, truth, seg, anchor = bent_run(1, BEND)
+    moved = ks[np.maximum(np.searchsorted(ks, anchor) - 2, 0)]
+    runs = {"r0": bent_run(0, 0.0), "r1": (ks, stamps, est, truth, seg, moved)}
+    seen = []
+    solve = posegraph.posegraph.optimize
+
+    def spy(x0, a, b, z, info, **kw):
+        seen.append((a.copy(), b.copy(), info.copy(), kw["robust_from"]))
+        return solve(x0, a, b, z, info, **kw)
+
+    monkeypatch.setattr(posegraph.posegraph, "optimize", spy)
+    fleet, _ = fleet_of(True, runs=runs, tie_own_anchor=True, share_pairs=share)
+    cons = list(fleet.graph.constraints["r1"].values()) + list(fleet.graph.constraints["r0"].values())
+    pairs: dict = {}
+    for c in cons:
+        pairs.setdefault((c.b_id, c.a_id), []).append(c.info)
+    assert max(len(v) for v in pairs.values()) >= 2  # pairs constrained more than once
+    a, b, info, robust_from = seen[-1]
+    given = {}
+    for i in range(robust_from, len(a)):
+        given.setdefault((a[i], b[i]), []).append(info[i])
+    many = [v for v in given.values() if len(v) >= 2]
+    assert many
+    found = [c.info for c in cons]
+    for v in many:  # each the information a constraint was found with, or 1/N of it
+        scale = len(v) if share else 1
+        assert all(any(np.allclose(m * scale, f) for f in found) for m in v)
