@@ -56,9 +56,10 @@ class ContradictionConfig:
     # so is a mirror image: ACES in 3 pieces (78b5f0c, seed 0) merged its first piece half-turned
     # at 1.17x the truth's net score, 151 m of walls contradicted over 149 m2 (1.0 m/m2) against
     # the truth's 130 m over 314 m2 (0.41). Over 46 stored real-log final states (Intel, ACES,
-    # MIT-CSAIL in 3 pieces, sessions 36-37) every true place within 2x of a distinct rival had
-    # at most 1.4 times the rival's density; the simulated maps' true places are contradicted by
-    # 0-2.1 m, mostly under ``max_m``, so the rule rarely looks at them
+    # MIT-CSAIL in 3 pieces, sessions 36-37; each piece searched again against the others where
+    # they ended) no piece's final place with a distinct rival within 2x had over 1.4 times the
+    # rival's density; the simulated maps' true places are contradicted by 0-2.1 m, mostly under
+    # ``max_m``, so the rule rarely looks at them (bench_merge: every row the same with it)
     close_ratio: float = 2.0
     outshone_factor: float = 2.0
     outshone_min_seen_m2: float = 50.0
