@@ -217,21 +217,16 @@ def _rivals_aside(
     for _ in range(max(budget, 0)):
         if strict is not None:
             cands = strict(best, cands, cfg.min_rival_ratio)
-        far = [c for c in cands if cand.mean_displacement(c.pose, best.pose, points) > cfg.distinct_m]
-        if not far:
-            break
-        r = max(far, key=lambda s: s.net)
-        if best.net >= cfg.min_rival_ratio * r.net:
+        r = cand.best_rival(best, cands, points, cfg.distinct_m)
+        if r is None or best.net >= cfg.min_rival_ratio * r.net:
             break
         why = veto(r.pose, r.matched_m)
         if why is None and isinstance(veto, Check):  # ... or outshone by the best (a close call)
             why = veto.outshone(r.pose, best.pose)
         if why is None:
             break
-        gone = [c for c in far if cand.mean_displacement(c.pose, r.pose, points) <= cfg.distinct_m]
+        cands, gone = cand.without_place(cands, r.pose, points, cfg.distinct_m)
         aside += [(c, why) for c in gone]
-        ids = {id(c) for c in gone}
-        cands = [c for c in cands if id(c) not in ids]
     return cands, aside
 
 
@@ -246,11 +241,8 @@ def _rivals_refined(
     at its true place (ACES in 3 pieces: the truth 29.1 net against a half turn in place pre-scored
     27.8 and -2.7 refined)."""
     for _ in range(cfg.max_refined):
-        far = [c for c in cands if cand.mean_displacement(c.pose, best.pose, robot.points) > cfg.distinct_m]
-        if not far:
-            break
-        r = max(far, key=lambda c: c.net)
-        if r.refined is not None or best.net >= ratio * r.net:
+        r = cand.best_rival(best, cands, robot.points, cfg.distinct_m)
+        if r is None or r.refined is not None or best.net >= ratio * r.net:
             break
         s = cand.refine_and_score(index, robot, coarse, r.pose, cfg)
         cands = [s if c is r else c for c in cands]
@@ -270,29 +262,24 @@ def _outshone_aside(
     place) is set aside and the next best looked at, at most ``budget`` places. A close call
     between a place and its mirror image is not one a repeated search can settle (the same maps
     give the same verdict); the walls each puts where the other side saw free space can. Returns
-    the candidates left and those set aside with why (the why is the same object for one place)."""
+    the candidates left (never none: a rival stays), those set aside with why, and how many
+    distinct places were set aside."""
     aside: list[tuple[Scored, str]] = []
-    close = veto.cfg.close_ratio
+    close, places = veto.cfg.close_ratio, 0
     for _ in range(max(budget, 0)):
-        if not cands:
-            break
         best = max(cands, key=lambda s: s.net)
         if strict is not None:
             cands = strict(best, cands, close)
-        far = [c for c in cands if cand.mean_displacement(c.pose, best.pose, points) > cfg.distinct_m]
-        if not far:
-            break
-        r = max(far, key=lambda s: s.net)
-        if best.net >= close * r.net:
+        r = cand.best_rival(best, cands, points, cfg.distinct_m)
+        if r is None or best.net >= close * r.net:
             break
         why = veto.outshone(best.pose, r.pose)
         if why is None:
             break
-        gone = [c for c in cands if cand.mean_displacement(c.pose, best.pose, points) <= cfg.distinct_m]
+        cands, gone = cand.without_place(cands, best.pose, points, cfg.distinct_m)
         aside += [(c, why) for c in gone]
-        ids = {id(c) for c in gone}
-        cands = [c for c in cands if id(c) not in ids]
-    return cands, aside
+        places += 1
+    return cands, aside, places
 
 
 def _accept_best(
@@ -310,8 +297,10 @@ def _accept_best(
             return _verdict("unaligned", s, total, 1.0, reason)
     outshone = []
     if isinstance(veto, Check):  # a close call is decided by the free space seen
-        cands, outshone = _outshone_aside(cands, veto, robot.points, cfg, MAX_VETOED - distinct, strict)
-        distinct += len({id(w) for _, w in outshone})  # (a rival is always left: never empty)
+        cands, outshone, places = _outshone_aside(
+            cands, veto, robot.points, cfg, MAX_VETOED - distinct, strict
+        )
+        distinct += places
     best = max(cands, key=lambda s: s.net)
     rivals_aside = []
     if veto is not None:  # a rival too close to call is checked too: a contradicted one is no rival

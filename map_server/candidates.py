@@ -114,8 +114,24 @@ def search(
     return sorted(refined, key=lambda s: -s.net) + rest
 
 
+def best_rival(best: Scored, others: list[Scored], points: np.ndarray, distinct_m: float) -> Scored | None:
+    """The best-scored (net) of the candidates that are a distinct place from ``best`` (they move
+    the robot map's ``points`` more than ``distinct_m`` away on average), or None."""
+    far = [o for o in others if mean_displacement(o.pose, best.pose, points) > distinct_m]
+    return max(far, key=lambda o: o.net, default=None)
+
+
 def rival(best: Scored, others: list[Scored], points: np.ndarray, distinct_m: float) -> float:
-    """The best net score among candidates that are a distinct place from ``best`` (they move the
-    robot map's ``points`` more than ``distinct_m`` away on average)."""
-    nets = [o.net for o in others if mean_displacement(o.pose, best.pose, points) > distinct_m]
-    return max(nets, default=0.0)
+    """The best net score among candidates that are a distinct place from ``best`` (0: none)."""
+    r = best_rival(best, others, points, distinct_m)
+    return 0.0 if r is None else r.net
+
+
+def without_place(
+    cands: list[Scored], pose: np.ndarray, points: np.ndarray, distinct_m: float
+) -> tuple[list[Scored], list[Scored]]:
+    """``cands`` split into those that are a distinct place from ``pose`` and those at it."""
+    at = [mean_displacement(c.pose, pose, points) <= distinct_m for c in cands]
+    return [c for c, a in zip(cands, at, strict=True) if not a], [
+        c for c, a in zip(cands, at, strict=True) if a
+    ]

@@ -161,7 +161,10 @@ class Check:
             placed_noise if placed_noise is not None else (np.zeros((0, 2)), np.zeros(0))
         )
         self._reach = None  # the robot's map and free space: its box in its frame
-        self._last: tuple[np.ndarray, float] | None = None  # the last place measured, and its metres
+        # each place measured, by its pose's bytes: a search measures the best again, and a close
+        # call the best and its rival in turn (bounded: a Check lives for one search)
+        self._contradicted: dict[bytes, float] = {}
+        self._seen: dict[bytes, float] = {}
         boxes = [robot_seg.reshape(-1, 2)] if len(robot_seg) else []
         if robot_free is not None:
             boxes.append(np.reshape(robot_free.bounds, (2, 2)))
@@ -172,20 +175,24 @@ class Check:
 
     def contradicted_m(self, pose: np.ndarray) -> float:
         pose = np.asarray(pose, float)
-        if self._last is not None and np.array_equal(self._last[0], pose):
-            return self._last[1]  # (the place just checked: a search's best is measured again)
-        m = contradiction_m(
-            pose, self.robot_seg, self.robot_free, self.placed_seg, self.placed_free, self.cfg
-        )
-        self._last = (pose.copy(), m)
-        return m
+        key = pose.tobytes()
+        if key not in self._contradicted:
+            self._contradicted[key] = contradiction_m(
+                pose, self.robot_seg, self.robot_free, self.placed_seg, self.placed_free, self.cfg
+            )
+        return self._contradicted[key]
 
     def seen_m2(self, pose: np.ndarray) -> float:
         """The area both sides saw free (as :func:`shrink` gives it) with the robot's map frame at
         ``pose``: where a wrong place could have been contradicted at all (0: either is unknown)."""
         if self.robot_free is None or self.placed_free is None:
             return 0.0
-        return float(shapely.intersection(place_area(self.robot_free, pose), self.placed_free).area)
+        key = np.asarray(pose, float).tobytes()
+        if key not in self._seen:
+            self._seen[key] = float(
+                shapely.intersection(place_area(self.robot_free, pose), self.placed_free).area
+            )
+        return self._seen[key]
 
     def noise_m(self, pose: np.ndarray) -> float:
         """What the robot and the placed robots within its reach at ``pose`` contradict

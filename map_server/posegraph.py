@@ -643,16 +643,21 @@ class FleetGraph:
                     continue
                 cons.append((start[c.other] + ai, start[p.robot] + bi, c.z, c.info))
         self.stats["constraints"] = len(cons)
-        if cons and cfg.share_pairs:  # constraints on one pair of keyframes share its information
-            pair = np.array([(c[0], c[1]) for c in cons])
-            _, inv, count = np.unique(pair, axis=0, return_inverse=True, return_counts=True)
-            share = 1.0 / count[inv.ravel()]
-            cons = [(c[0], c[1], c[2], c[3] * f) for c, f in zip(cons, share, strict=True)]
         if cons:
-            a.append(np.array([c[0] for c in cons]))
-            b.append(np.array([c[1] for c in cons]))
+            ca, cb, ci = (
+                np.array([c[0] for c in cons]),
+                np.array([c[1] for c in cons]),
+                np.array([c[3] for c in cons]),
+            )
+            if cfg.share_pairs:  # constraints on one pair of keyframes share its information
+                _, inv, count = np.unique(
+                    np.column_stack([ca, cb]), axis=0, return_inverse=True, return_counts=True
+                )
+                ci = ci / count[inv.ravel()][:, None, None]
+            a.append(ca)
+            b.append(cb)
             z.append(np.array([c[2] for c in cons]))
-            info.append(np.array([c[3] for c in cons]))
+            info.append(ci)
         a, b = np.concatenate(a).astype(int), np.concatenate(b).astype(int)
         z, info = np.vstack(z), np.concatenate(info)
         keep = np.ones(len(a), bool)

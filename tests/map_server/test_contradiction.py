@@ -386,12 +386,12 @@ def test_a_close_call_between_two_places_is_decided_by_the_free_space_seen():
             asked.append((np.asarray(pose).copy(), np.asarray(rival).copy()))
             return "denser" if pose[2] == np.pi else None
 
-    left, aside = alignment._outshone_aside([*mirror, truth], Veto(), points, CFG, 20)
-    assert left == [truth] and [s for s, _ in aside] == mirror and len(asked) == 1
+    left, aside, places = alignment._outshone_aside([*mirror, truth], Veto(), points, CFG, 20)
+    assert left == [truth] and [s for s, _ in aside] == mirror and len(asked) == 1 and places == 1
     asked.clear()
     behind = Scored(np.zeros(3), 40.0, 0.0, 40.0, None)  # 99 > 2 x 40: no close call
-    left, aside = alignment._outshone_aside([*mirror, behind], Veto(), points, CFG, 20)
-    assert aside == [] and asked == []
+    left, aside, places = alignment._outshone_aside([*mirror, behind], Veto(), points, CFG, 20)
+    assert aside == [] and asked == [] and places == 0
 
 
 def test_a_close_rival_only_prescored_is_scored_as_strictly_as_the_best():
