@@ -1,8 +1,10 @@
-/* Compiled kernels of the map server's hot loops (the SLAM's are in robot_agent/slam/_kernels.c):
+/* Compiled kernels of the map server's hot loops and of the scan matcher both sides use (the SLAM's are in robot_agent/slam/_kernels.c):
  * the k nearest points within a distance, for map_server/registration.py's map index (the same
  * answer as scipy's cKDTree.query with distance_upper_bound, ties in distance ordered by index),
  * with what registration computes of each neighbour (facing difference, distance to its line);
- * and the merge's collinearity test of segment pairs (map_server/fusion.collinear).
+ * the merge's collinearity test of segment pairs (map_server/fusion.collinear); and the scan
+ * matcher's window sums (shared/scanmatch.py: the agents' loop search and the fleet graph's
+ * keyframe-scan constraints).
  * shared/kernels.py wraps it and keeps the k-d tree as the reference and the fallback when this
  * module is not built; tests/map_server/test_server_kernels.py holds both to the same results.
  *
@@ -305,6 +307,83 @@ done:
     return result;
 }
 
+/* ---- scan matching (shared/scanmatch.py) ------------------------------------------------------------ */
+
+/* scanmatch.window_scores' inner sums: out[a, t] = mean over n of values[cells[a, n] + (ox, oy)[t]],
+ * 0 outside the (W, H) grid. */
+static PyObject *window_sums(PyObject *self, PyObject *args) {
+    Py_buffer b_v, b_c, b_ox, b_oy, b_out;
+    Py_ssize_t W, H, A, N, T;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*w*nnnnn", &b_v, &b_c, &b_ox, &b_oy, &b_out, &W, &H, &A, &N, &T))
+        return NULL;
+    Py_buffer *all[] = {&b_v, &b_c, &b_ox, &b_oy, &b_out};
+    Py_ssize_t need[] = {W * H * 8, A * N * 2 * 8, T * 8, T * 8, A * T * 8};
+    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
+    PyObject *result = NULL;
+    if (!sizes_ok("window_sums", all, need, n_buf)) goto done;
+    const double *v = b_v.buf;
+    const int64_t *cells = b_c.buf, *ox = b_ox.buf, *oy = b_oy.buf;
+    double *out = b_out.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t a = 0; a < A; a++) {
+        const int64_t *c = cells + 2 * N * a;
+        for (Py_ssize_t t = 0; t < T; t++) {
+            double sum = 0.0;
+            for (Py_ssize_t n = 0; n < N; n++) {
+                int64_t ix = c[2 * n] + ox[t], iy = c[2 * n + 1] + oy[t];
+                if (ix >= 0 && ix < W && iy >= 0 && iy < H) sum += v[ix * H + iy];
+            }
+            out[a * T + t] = N > 0 ? sum / (double)N : NAN;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    release(all, n_buf);
+    return result;
+}
+
+/* scanmatch.branch_and_bound's scores without padding: out[m] = mean over n of
+ * level[cells[a[m], n] + (ox[m], oy[m])], 0 off the (W, H) float32 grid. */
+static PyObject *block_sums(PyObject *self, PyObject *args) {
+    Py_buffer b_l, b_c, b_a, b_ox, b_oy, b_out;
+    Py_ssize_t W, H, A, N, M;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*w*nnnnn", &b_l, &b_c, &b_a, &b_ox, &b_oy, &b_out, &W, &H, &A, &N, &M))
+        return NULL;
+    Py_buffer *all[] = {&b_l, &b_c, &b_a, &b_ox, &b_oy, &b_out};
+    Py_ssize_t need[] = {W * H * 4, A * N * 2 * 8, M * 8, M * 8, M * 8, M * 8};
+    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
+    PyObject *result = NULL;
+    if (!sizes_ok("block_sums", all, need, n_buf)) goto done;
+    const float *level = b_l.buf;
+    const int64_t *cells = b_c.buf, *am = b_a.buf, *ox = b_ox.buf, *oy = b_oy.buf;
+    double *out = b_out.buf;
+    for (Py_ssize_t m = 0; m < M; m++) {
+        if (am[m] < 0 || am[m] >= A) {
+            PyErr_Format(PyExc_IndexError, "block_sums: angle %lld of %zd", (long long)am[m], A);
+            goto done;
+        }
+    }
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t m = 0; m < M; m++) {
+        const int64_t *c = cells + 2 * N * am[m];
+        int64_t dx = ox[m], dy = oy[m];
+        double sum = 0.0;
+        for (Py_ssize_t n = 0; n < N; n++) {
+            int64_t ix = c[2 * n] + dx, iy = c[2 * n + 1] + dy;
+            if (ix >= 0 && ix < W && iy >= 0 && iy < H) sum += level[ix * H + iy];
+        }
+        out[m] = sum / (double)(N > 0 ? N : 1);
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    release(all, n_buf);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"near", near, METH_VARARGS,
      "near(data, order, start, q, qf, line0, d_out, j_out, dang_out, perp_out, N, S, M, W, H, Q, k, x0, y0, "
@@ -315,6 +394,10 @@ static PyMethodDef methods[] = {
      "for near()."},
     {"collinear", collinear, METH_VARARGS,
      "collinear(seg, i, j, ok_out, N, K, cos_min, perp_max, gap_max): map_server/fusion.collinear's mask."},
+    {"window_sums", window_sums, METH_VARARGS,
+     "window_sums(values, cells, ox, oy, out, W, H, A, N, T): scanmatch.window_scores' mean likelihoods."},
+    {"block_sums", block_sums, METH_VARARGS,
+     "block_sums(level, cells, a, ox, oy, out, W, H, A, N, M): branch_and_bound's scores, no padding."},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

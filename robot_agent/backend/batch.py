@@ -3,7 +3,7 @@
 One implementation for every robot that has its scans: ``replay`` at the end of a log, a log
 piece's agent, a simulated agent at the end of its run (the pure graph and matching live in
 :mod:`robot_agent.slam.backend`, :mod:`~robot_agent.slam.posegraph`,
-:mod:`~robot_agent.slam.scanmatch`).
+:mod:`~shared.scanmatch`).
 """
 
 from __future__ import annotations

@@ -40,8 +40,8 @@ from robot_agent.slam.backend import (
     optimize,
     path_drift,
 )
-from robot_agent.slam.extraction import voxel_thin
 from shared.geometry import compose, inverse, relative, wrap_angle
+from shared.scanmatch import voxel_thin
 
 
 @dataclass(frozen=True)

@@ -777,43 +777,6 @@ done:
     return result;
 }
 
-/* ---- scan matching (scanmatch.py) ------------------------------------------------------------ */
-
-/* scanmatch.window_scores' inner sums: out[a, t] = mean over n of values[cells[a, n] + (ox, oy)[t]],
- * 0 outside the (W, H) grid. */
-static PyObject *window_sums(PyObject *self, PyObject *args) {
-    Py_buffer b_v, b_c, b_ox, b_oy, b_out;
-    Py_ssize_t W, H, A, N, T;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*w*nnnnn", &b_v, &b_c, &b_ox, &b_oy, &b_out, &W, &H, &A, &N, &T))
-        return NULL;
-    Py_buffer *all[] = {&b_v, &b_c, &b_ox, &b_oy, &b_out};
-    Py_ssize_t need[] = {W * H * 8, A * N * 2 * 8, T * 8, T * 8, A * T * 8};
-    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
-    PyObject *result = NULL;
-    if (!sizes_ok("window_sums", all, need, n_buf)) goto done;
-    const double *v = b_v.buf;
-    const int64_t *cells = b_c.buf, *ox = b_ox.buf, *oy = b_oy.buf;
-    double *out = b_out.buf;
-    Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t a = 0; a < A; a++) {
-        const int64_t *c = cells + 2 * N * a;
-        for (Py_ssize_t t = 0; t < T; t++) {
-            double sum = 0.0;
-            for (Py_ssize_t n = 0; n < N; n++) {
-                int64_t ix = c[2 * n] + ox[t], iy = c[2 * n + 1] + oy[t];
-                if (ix >= 0 && ix < W && iy >= 0 && iy < H) sum += v[ix * H + iy];
-            }
-            out[a * T + t] = N > 0 ? sum / (double)N : NAN;
-        }
-    }
-    Py_END_ALLOW_THREADS
-    result = Py_None;
-    Py_INCREF(result);
-done:
-    release(all, n_buf);
-    return result;
-}
-
 /* FastSLAM._local_columns: the columns with an element, in any of the particles ``rows``, whose
  * distance from (cx, cy) to its midpoint less its half length is below ``limit``. */
 static PyObject *local_columns(PyObject *self, PyObject *args) {
@@ -854,46 +817,6 @@ static PyObject *local_columns(PyObject *self, PyObject *args) {
     }
     Py_END_ALLOW_THREADS
     result = PyLong_FromSsize_t(n);
-done:
-    release(all, n_buf);
-    return result;
-}
-
-/* scanmatch.branch_and_bound's scores without padding: out[m] = mean over n of
- * level[cells[a[m], n] + (ox[m], oy[m])], 0 off the (W, H) float32 grid. */
-static PyObject *block_sums(PyObject *self, PyObject *args) {
-    Py_buffer b_l, b_c, b_a, b_ox, b_oy, b_out;
-    Py_ssize_t W, H, A, N, M;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*w*nnnnn", &b_l, &b_c, &b_a, &b_ox, &b_oy, &b_out, &W, &H, &A, &N, &M))
-        return NULL;
-    Py_buffer *all[] = {&b_l, &b_c, &b_a, &b_ox, &b_oy, &b_out};
-    Py_ssize_t need[] = {W * H * 4, A * N * 2 * 8, M * 8, M * 8, M * 8, M * 8};
-    const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
-    PyObject *result = NULL;
-    if (!sizes_ok("block_sums", all, need, n_buf)) goto done;
-    const float *level = b_l.buf;
-    const int64_t *cells = b_c.buf, *am = b_a.buf, *ox = b_ox.buf, *oy = b_oy.buf;
-    double *out = b_out.buf;
-    for (Py_ssize_t m = 0; m < M; m++) {
-        if (am[m] < 0 || am[m] >= A) {
-            PyErr_Format(PyExc_IndexError, "block_sums: angle %lld of %zd", (long long)am[m], A);
-            goto done;
-        }
-    }
-    Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t m = 0; m < M; m++) {
-        const int64_t *c = cells + 2 * N * am[m];
-        int64_t dx = ox[m], dy = oy[m];
-        double sum = 0.0;
-        for (Py_ssize_t n = 0; n < N; n++) {
-            int64_t ix = c[2 * n] + dx, iy = c[2 * n + 1] + dy;
-            if (ix >= 0 && ix < W && iy >= 0 && iy < H) sum += level[ix * H + iy];
-        }
-        out[m] = sum / (double)(N > 0 ? N : 1);
-    }
-    Py_END_ALLOW_THREADS
-    result = Py_None;
-    Py_INCREF(result);
 done:
     release(all, n_buf);
     return result;
@@ -1073,12 +996,8 @@ static PyMethodDef methods[] = {
     {"merge_pieces", merge_pieces, METH_VARARGS,
      "merge_pieces(pts, threshold, starts, cluster, K, S, max_rms, range_sigma, merge_angle, n_sigma) -> count: "
      "extraction._merge in place on starts and cluster (int64)."},
-    {"window_sums", window_sums, METH_VARARGS,
-     "window_sums(values, cells, ox, oy, out, W, H, A, N, T): scanmatch.window_scores' mean likelihoods."},
     {"local_columns", local_columns, METH_VARARGS,
      "local_columns(valid, seg, rows, out, P, M, R, cx, cy, limit) -> count: FastSLAM._local_columns."},
-    {"block_sums", block_sums, METH_VARARGS,
-     "block_sums(level, cells, a, ox, oy, out, W, H, A, N, M): branch_and_bound's scores, no padding."},
     {"redundant_pairs", redundant_pairs, METH_VARARGS,
      "redundant_pairs(valid, seg, cos_alpha, sin_alpha, rho, facing, recent, out, P, C, R, max_angle, max_perp, "
      "min_overlap): update._redundant_pairs."},

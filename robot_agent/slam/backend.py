@@ -27,21 +27,19 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from robot_agent.slam import posegraph
-from robot_agent.slam.extraction import voxel_thin
-from robot_agent.slam.scanmatch import (
+from shared.geometry import compose, relative, relative_one, wrap_angle
+from shared.scanmatch import (
     Field,
+    MatchConfig,
     SurfaceConfig,
     branch_and_bound,
-    icp,
     likelihood_field,
-    match_covariance,
-    window_scores,
-    window_surface,
+    local_cloud,
+    voxel_thin,
+    window_match,
 )
-from shared.geometry import apply_points, compose, relative, relative_one, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -114,6 +112,15 @@ class BackendConfig:
     # particles, their maps and history move with it (False: the correction is applied only to
     # what is published, the filter keeps drifting in its own frame)
 
+    def match_config(self) -> MatchConfig:
+        """The narrow match's part of this (shared/scanmatch.window_match)."""
+        return MatchConfig(
+            self.search_xy_m, self.search_theta_rad, self.search_step_m, self.search_step_rad,
+            self.field_sigma_m, self.surface, self.min_score, self.icp_iterations, self.icp_max_m,
+            self.inlier_m, self.min_inlier_share, self.loop_sigma_xy_m, self.loop_sigma_theta_rad,
+            self.compiled,
+        )  # fmt: skip
+
 
 def select_keyframes(poses: np.ndarray, cfg: BackendConfig, jumps: np.ndarray | None = None) -> np.ndarray:
     """Indices ``(K,)`` into ``poses (S,3)``: the first pose, then one each keyframe_m / _rad,
@@ -130,17 +137,6 @@ def select_keyframes(poses: np.ndarray, cfg: BackendConfig, jumps: np.ndarray | 
             keep.append(i)
             last = poses[i]
     return np.asarray(keep)
-
-
-def local_cloud(
-    kf_poses: np.ndarray, kf_points: list[np.ndarray], centre: int, lo: int, hi: int
-) -> np.ndarray:
-    """Points of keyframes ``lo..hi`` (inclusive) in keyframe ``centre``'s frame."""
-    parts = []
-    for m in range(max(lo, 0), min(hi, len(kf_points) - 1) + 1):
-        rel = relative_one(kf_poses[centre], kf_poses[m])
-        parts.append(apply_points(rel, kf_points[m]))
-    return np.vstack(parts) if parts else np.zeros((0, 2))
 
 
 @dataclass(frozen=True)
@@ -185,35 +181,11 @@ def match_loop(
         if wide is None:
             return None
         guess = wide[0][0]  # the small window around the wide search's best
-    scores, angles, offs = window_scores(
-        fld, query, guess, cfg.search_xy_m, cfg.search_theta_rad, cfg.search_step_m, cfg.search_step_rad,
-        compiled=cfg.compiled,
-    )  # fmt: skip
-    best = float(scores.max())
-    if best < cfg.min_score:
+    found = window_match(fld, cloud, query, guess, cfg.match_config(), stats, wide)
+    if found is None:
         return None
-    rel, d_local, edge_local = window_surface(scores, angles, offs, cfg.search_xy_m, cfg.search_theta_rad)
-    pose0 = np.array([guess[0] + rel[0], guess[1] + rel[1], rel[2]])
-    # the score surface: the window around the best, and the wide search's near-best poses (which
-    # went beyond the small window's edge)
-    d, s, edge = d_local, scores.ravel(), edge_local
-    if wide is not None:
-        d_wide = wide[0] - pose0
-        d_wide[:, 2] = wrap_angle(d_wide[:, 2])
-        d, s = np.vstack([d, d_wide]), np.concatenate([s, wide[1]])
-        edge = np.concatenate([np.zeros_like(edge), wide[2]])
-    floor = np.array([cfg.search_step_m**2 / 12 + cfg.loop_sigma_xy_m**2] * 2
-                     + [cfg.search_step_rad**2 / 12 + cfg.loop_sigma_theta_rad**2])  # fmt: skip
-    cov = match_covariance(d, s, float(s.max()), edge, floor, cfg.surface)
-    if cov is None:
-        stats["ambiguous"] = stats.get("ambiguous", 0) + 1
-        return None
-    z, share = icp(cKDTree(cloud), cloud, query, pose0, cfg.icp_iterations, cfg.icp_max_m, cfg.inlier_m)
-    if share < cfg.min_inlier_share:
-        stats["low_overlap"] = stats.get("low_overlap", 0) + 1
-        return None
-    z[2] = wrap_angle(z[2])
-    return Loop(old, new, z, best, np.linalg.inv(cov), share)
+    z, best, info, share = found
+    return Loop(old, new, z, best, info, share)
 
 
 def _wide_search(

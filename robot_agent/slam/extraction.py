@@ -198,16 +198,6 @@ def scan_points(
     return np.stack([r[ok] * np.cos(phi[ok]), r[ok] * np.sin(phi[ok])], axis=-1)
 
 
-def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """The first of ``points (K,2)`` in each ``voxel_m`` square cell, in their order: a scan
-    thinned to a spatial resolution (near walls hold many points per cell, far ones few)."""
-    if len(points) == 0 or voxel_m <= 0:
-        return points
-    key = np.floor(points / voxel_m).astype(np.int64)
-    _, first = np.unique(key[:, 0] * 1_000_003 + key[:, 1], return_index=True)
-    return points[np.sort(first)]
-
-
 def _clusters(
     xy: np.ndarray, r: np.ndarray, phi: np.ndarray, valid: np.ndarray, cfg: ExtractionConfig
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -242,19 +242,6 @@ def merge_pieces(
     return starts[:n], cluster[:n]
 
 
-def window_sums(values: np.ndarray, cells: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
-    """Mean of ``values (W,H)`` (0 off the grid) over the cells ``(A,N,2)`` moved by each offset
-    ``(ox, oy) (T,)``: ``(A,T)`` — scanmatch.window_scores."""
-    lib = _lib()
-    a, n = cells.shape[:2]
-    out = np.empty((a, len(ox)))
-    lib.window_sums(
-        _f64(values), _i64(cells), _i64(ox), _i64(oy), out,
-        values.shape[0], values.shape[1], a, n, len(ox),
-    )  # fmt: skip
-    return out
-
-
 def local_columns(
     valid: np.ndarray, seg: np.ndarray, rows: np.ndarray, centre: np.ndarray, limit_m: float
 ) -> np.ndarray:
@@ -269,21 +256,6 @@ def local_columns(
         _f64(seg), rows, out, p, m, len(rows), float(centre[0]), float(centre[1]), float(limit_m),
     )  # fmt: skip
     return out[:n]
-
-
-def block_sums(
-    level: np.ndarray, cells: np.ndarray, a: np.ndarray, ox: np.ndarray, oy: np.ndarray
-) -> np.ndarray:
-    """Mean of ``level (W,H)`` (float32; 0 off the grid) over the cells ``(A,N,2)`` of angle ``a``
-    moved by ``(ox, oy)``, for every block ``(M,)`` — scanmatch.branch_and_bound's scores."""
-    lib = _lib()
-    lv = np.ascontiguousarray(level, dtype=np.float32)
-    out = np.empty(len(a))
-    lib.block_sums(
-        lv, _i64(cells), _i64(a), _i64(ox),
-        _i64(oy), out, lv.shape[0], lv.shape[1], cells.shape[0], cells.shape[1], len(a),
-    )  # fmt: skip
-    return out
 
 
 def redundant_pairs(

@@ -5,8 +5,8 @@ import pytest
 
 from robot_agent.slam import backend as be
 from robot_agent.slam.posegraph import ChainNoise, chain_edges, optimize
-from robot_agent.slam.scanmatch import match_covariance, window_surface
 from shared.geometry import apply_points, compose, inverse, relative
+from shared.scanmatch import match_covariance, window_surface
 
 
 def _square(drift_rad: float) -> tuple[np.ndarray, np.ndarray]:

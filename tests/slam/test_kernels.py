@@ -22,10 +22,11 @@ from robot_agent.slam.kidnap import KidnapConfig, overlap
 from robot_agent.slam.lines import fit_lines, moments_of
 from robot_agent.slam.particles import SegmentMaps
 from robot_agent.slam.proposal import ProposalConfig, align_points, associate_points
-from robot_agent.slam.scanmatch import branch_and_bound, likelihood_field, window_scores
 from robot_agent.slam.update import CleaningConfig, UpdateConfig, _redundant_pairs, visibility
 from robot_agent.sources import carmen
+from shared import kernels as shared_kernels
 from shared.geometry import apply_points, inverse, relative, sample_segments, wrap_angle
+from shared.scanmatch import branch_and_bound, likelihood_field, window_scores
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 
@@ -411,7 +412,7 @@ def test_the_observations_are_the_numpy_ones(seed):
 @needs_kernels
 def test_a_block_of_an_angle_not_searched_is_refused():
     with pytest.raises(IndexError, match="angle 3 of 1"):
-        kernels.block_sums(np.zeros((4, 4), np.float32), np.zeros((1, 2, 2), np.int64), np.array([3]),
+        shared_kernels.block_sums(np.zeros((4, 4), np.float32), np.zeros((1, 2, 2), np.int64), np.array([3]),
                            np.array([0]), np.array([0]))  # fmt: skip
 
 

@@ -4,14 +4,14 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from robot_agent.slam.scanmatch import (
+from shared.geometry import apply_points, compose, inverse, relative
+from shared.scanmatch import (
     branch_and_bound,
     icp,
     likelihood_field,
     max_pyramid,
     window_scores,
 )
-from shared.geometry import apply_points, compose, inverse, relative
 
 ROOMS = np.array(
     [

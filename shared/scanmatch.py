@@ -9,7 +9,10 @@ an old place, and how sure is that (the back end's loop closures).
   of decimetres;
 - :func:`match_covariance`: the uncertainty of the best pose from the scores of all the others
   (a corridor: certain across, uncertain along);
-- :func:`icp`: the final fit, point to point.
+- :func:`icp`: the final fit, point to point;
+- :func:`window_match`: the narrow search, its covariance and the ICP together — a keyframe's
+  scan against an old keyframe's cloud (the agent's loops, robot_agent/slam/backend.py) or
+  against another robot's (the fleet graph's constraints, map_server/posegraph.py).
 """
 
 from __future__ import annotations
@@ -20,8 +23,8 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
-from robot_agent.slam import kernels
-from shared.geometry import apply_points, compose
+from shared import kernels
+from shared.geometry import apply_points, compose, relative_one, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -33,6 +36,28 @@ class SurfaceConfig:
     max_theta_sigma_rad: float = float(np.radians(3.0))  # ... or in heading is ambiguous: refused
     edge_mass: float = 0.05  # likelihood this large at the window's edge: unbounded along that axis
     unbounded_sigma_m: float = 5.0  # ... then its std along it
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    """A match around a guess (:func:`window_match`): the correlative window and its steps, the
+    score it needs, the covariance's floor (its own resolution plus ``sigma_*``), the ICP and the
+    overlap it needs after it."""
+
+    search_xy_m: float = 0.8  # half widths of the window ...
+    search_theta_rad: float = float(np.radians(8.0))
+    search_step_m: float = 0.1  # ... its steps (and the field's cells)
+    search_step_rad: float = float(np.radians(2.0))
+    field_sigma_m: float = 0.08  # likelihood field: exp(-d^2 / 2 sigma^2)
+    surface: SurfaceConfig = SurfaceConfig()
+    min_score: float = 0.4  # mean likelihood of the query at the best pose
+    icp_iterations: int = 8
+    icp_max_m: float = 0.15
+    inlier_m: float = 0.05
+    min_inlier_share: float = 0.6  # verified overlap after ICP
+    sigma_xy_m: float = 0.05  # added to the window's resolution in the covariance's floor
+    sigma_theta_rad: float = float(np.radians(1.0))
+    compiled: bool = True  # the window's sums by the compiled kernels when built
 
 
 @dataclass(frozen=True)
@@ -258,3 +283,69 @@ def icp(
         x = compose(np.array([t[0], t[1], th]), x)
     d, _ = target.query(apply_points(x, query), distance_upper_bound=inlier_m)
     return x, float(np.mean(np.isfinite(d)))
+
+
+def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """The first of ``points (K,2)`` in each ``voxel_m`` square cell, in their order: a scan
+    thinned to a spatial resolution (near walls hold many points per cell, far ones few)."""
+    if len(points) == 0 or voxel_m <= 0:
+        return points
+    key = np.floor(points / voxel_m).astype(np.int64)
+    _, first = np.unique(key[:, 0] * 1_000_003 + key[:, 1], return_index=True)
+    return points[np.sort(first)]
+
+
+def local_cloud(
+    kf_poses: np.ndarray, kf_points: list[np.ndarray], centre: int, lo: int, hi: int
+) -> np.ndarray:
+    """Points of keyframes ``lo..hi`` (inclusive) in keyframe ``centre``'s frame."""
+    parts = []
+    for m in range(max(lo, 0), min(hi, len(kf_points) - 1) + 1):
+        rel = relative_one(kf_poses[centre], kf_poses[m])
+        parts.append(apply_points(rel, kf_points[m]))
+    return np.vstack(parts) if parts else np.zeros((0, 2))
+
+
+def window_match(
+    fld: Field,
+    cloud: np.ndarray,
+    query: np.ndarray,
+    guess: np.ndarray,
+    cfg: MatchConfig,
+    stats: dict,
+    wide: tuple | None = None,
+) -> tuple[np.ndarray, float, np.ndarray, float] | None:
+    """Where ``query (Q,2)`` fits ``cloud (C,2)`` (``fld`` its likelihood field) near ``guess
+    (3,)``: ``(pose (3,), best score, information (3,3), inlier share)``, or None (counted in
+    ``stats``: too low a score, ambiguous, too little overlap after ICP). ``wide``: a wide
+    search's near-best poses, scores and edge flags (:func:`branch_and_bound`), which join the
+    window's surface in the covariance."""
+    scores, angles, offs = window_scores(
+        fld, query, guess, cfg.search_xy_m, cfg.search_theta_rad, cfg.search_step_m, cfg.search_step_rad,
+        compiled=cfg.compiled,
+    )  # fmt: skip
+    best = float(scores.max())
+    if best < cfg.min_score:
+        return None
+    rel, d_local, edge_local = window_surface(scores, angles, offs, cfg.search_xy_m, cfg.search_theta_rad)
+    pose0 = np.array([guess[0] + rel[0], guess[1] + rel[1], rel[2]])
+    # the score surface: the window around the best, and the wide search's near-best poses (which
+    # went beyond the small window's edge)
+    d, s, edge = d_local, scores.ravel(), edge_local
+    if wide is not None:
+        d_wide = wide[0] - pose0
+        d_wide[:, 2] = wrap_angle(d_wide[:, 2])
+        d, s = np.vstack([d, d_wide]), np.concatenate([s, wide[1]])
+        edge = np.concatenate([np.zeros_like(edge), wide[2]])
+    floor = np.array([cfg.search_step_m**2 / 12 + cfg.sigma_xy_m**2] * 2
+                     + [cfg.search_step_rad**2 / 12 + cfg.sigma_theta_rad**2])  # fmt: skip
+    cov = match_covariance(d, s, float(s.max()), edge, floor, cfg.surface)
+    if cov is None:
+        stats["ambiguous"] = stats.get("ambiguous", 0) + 1
+        return None
+    z, share = icp(cKDTree(cloud), cloud, query, pose0, cfg.icp_iterations, cfg.icp_max_m, cfg.inlier_m)
+    if share < cfg.min_inlier_share:
+        stats["low_overlap"] = stats.get("low_overlap", 0) + 1
+        return None
+    z[2] = wrap_angle(z[2])
+    return z, best, np.linalg.inv(cov), share
