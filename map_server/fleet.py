@@ -131,6 +131,7 @@ class Fleet:
             return  # a late map of a replaced session (e.g. pulled from the state after a restart)
         if not m.has_graph and m.graph_seq is not None:
             m = self._with_graph(r, m)
+        m = m.with_scans_of(r.map)  # (the keyframe scans came once each: the map kept is whole)
         if r.map is not None and m.session != r.map.session:
             self._retire(r, now_s)
             r.new_session()

@@ -74,8 +74,16 @@ from map_server.registration import MapIndex, Samples, refine
 from shared import posegraph
 from shared.geometry import compose, inverse, relative, segment_lengths, transform_points, wrap_angle
 from shared.messages import RobotMap, info_matrices
+from shared.scanmatch import likelihood_field, local_cloud, voxel_thin, window_match
 
 PRUNE_SLACK = 64  # a robot's matched keyframes and constraints kept beyond its graph's size
+MIN_SCAN_POINTS = 30  # a keyframe scan match needs this many points in the query and the cloud
+_NO_POINTS = np.zeros((0, 2))
+
+
+def _scan_points(g: RobotGraph) -> list[np.ndarray]:
+    """A graph's keyframe scans, empty where none came (for shared.scanmatch.local_cloud)."""
+    return [_NO_POINTS if q is None else q for q in g.points]
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,6 +100,7 @@ class RobotGraph:
     info: np.ndarray
     row_kf: np.ndarray
     rigid: bool = False  # no graph came: one keyframe at the origin, held where the alignment put it
+    points: tuple = ()  # each keyframe's scan points (its frame), None where none came; () without
 
     @classmethod
     def of(cls, m: RobotMap, layer: RobotLayer) -> RobotGraph:
@@ -109,7 +118,11 @@ class RobotGraph:
         # outvoted), with the edge's information — alone, the graph stays where the robot put it
         z = relative(pose[pos[:, 0]], pose[pos[:, 1]])
         info = info_matrices(m.edge_info)
-        return cls(ids, pose, pos[:, 0], pos[:, 1], z, info, np.searchsorted(ids, layer.anchor))
+        scans = m.scans()
+        points = tuple(scans.get(int(i)) for i in ids) if scans else ()
+        return cls(
+            ids, pose, pos[:, 0], pos[:, 1], z, info, np.searchsorted(ids, layer.anchor), points=points
+        )
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -481,8 +494,68 @@ class FleetGraph:
         self, p: Placed, ks: np.ndarray, first: np.ndarray, others: list[Placed], where: dict
     ) -> list[tuple[int, Constraint]]:
         """Constraints for keyframes ``ks`` of robot ``p`` against the ``others``, each with the
-        keyframe tried: searched wide where ``first``, narrow otherwise (``where``: see
-        :meth:`_where`)."""
+        keyframe tried: by keyframe scans against the robots that, like ``p``, sent them
+        (``GraphConfig.scans``), by submaps against the rest (``where``: see :meth:`_where`)."""
+        scans = [o for o in others if self._has_scans(p) and self._has_scans(o)]
+        rest = [o for o in others if not any(o is s for s in scans)]
+        out = self._match_scans(p, ks, scans, where) if scans else []
+        return out + (self._match_segments(p, ks, first, rest, where) if rest else [])
+
+    def _has_scans(self, p: Placed) -> bool:
+        return self.cfg.scans and len(p.graph.points) > 0
+
+    def _match_scans(
+        self, p: Placed, ks: np.ndarray, others: list[Placed], where: dict
+    ) -> list[tuple[int, Constraint]]:
+        """Each of keyframes ``ks``: its scan with the ones before it matched against the cloud
+        of each other robot's nearest keyframes (and their neighbours) where the graph puts them,
+        the nearest that matches tied (its pose in that keyframe's frame, the match's information)."""
+        cfg, mc = self.cfg, self.cfg.scan_match
+        x = self._where(p, where)[0]
+        mine = _scan_points(p.graph)
+        out, refused = [], {}
+        for o in others:
+            xo, theirs = self._where(o, where)[0], _scan_points(o.graph)
+            for k in ks:
+                if p.graph.points[k] is None:
+                    continue
+                d = np.hypot(*(xo[:, :2] - x[k, :2]).T)
+                near = np.flatnonzero(
+                    (d <= cfg.scan_radius_m)
+                    & (np.abs(wrap_angle(xo[:, 2] - x[k, 2])) <= cfg.scan_max_turn_rad)
+                )
+                near = near[np.argsort(d[near], kind="stable")][: cfg.scan_candidates]
+                if not len(near):
+                    continue
+                q = cfg.scan_query_neighbours
+                query = voxel_thin(local_cloud(p.graph.pose, mine, k, k - q, k), cfg.scan_voxel_m)
+                if len(query) > cfg.scan_query_points:
+                    query = query[np.linspace(0, len(query) - 1, cfg.scan_query_points).astype(int)]
+                if len(query) < MIN_SCAN_POINTS:
+                    self._count("scan_small")
+                    continue
+                for a in near:
+                    w = cfg.scan_cloud_neighbours
+                    cloud = voxel_thin(local_cloud(o.graph.pose, theirs, a, a - w, a + w), cfg.scan_voxel_m)
+                    if len(cloud) < MIN_SCAN_POINTS:
+                        continue
+                    fld = likelihood_field(cloud, mc.search_step_m, mc.field_sigma_m, 4.0 * mc.field_sigma_m)
+                    found = window_match(fld, cloud, query, relative(xo[a], x[k]), mc, refused)
+                    if found is not None:
+                        kid = int(p.graph.ids[k])
+                        out.append((kid, Constraint(kid, o.robot, int(o.graph.ids[a]), found[0], found[2])))
+                        break
+                else:
+                    self._count("scan_unmatched")
+        for why, n in refused.items():
+            self.stats[f"refused_scan_{why}"] = self.stats.get(f"refused_scan_{why}", 0) + n
+        return out
+
+    def _match_segments(
+        self, p: Placed, ks: np.ndarray, first: np.ndarray, others: list[Placed], where: dict
+    ) -> list[tuple[int, Constraint]]:
+        """Constraints for keyframes ``ks`` of robot ``p`` against the ``others``' walls, each with
+        the keyframe tried: its submap searched wide where ``first``, narrow otherwise."""
         cfg = self.cfg
         x, mine = self._where(p, where)
         if not len(mine):

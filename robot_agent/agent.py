@@ -40,6 +40,7 @@ from shared.messages import FreeSpace, PoseUpdate, RobotMap, ring_subset
 log = logging.getLogger("fleet_slam.agent")
 
 DEFAULT_PRIOR_SIGMA = np.array([0.05, 0.05, np.radians(1.0)])  # a surveyed start pose
+SCANS_AGAIN = 16  # keyframe scans sent before that a map with a new graph carries again, in turn
 
 
 @dataclass(frozen=True)
@@ -84,6 +85,9 @@ class AgentCore:
         self._graph: dict = {}  # the pose graph of the map being published (LiveCorrector.graph_fields)
         self._rebuilt_graph: tuple | None = None  # the graph of a map rebuilt along it (rebuilt())
         self._graph_sent: tuple = (None, None)  # the graph last sent and the map seq that carried it
+        self._scans_sent: set[int] = set()  # keyframes whose scans went out in this session ...
+        self._scan_roll = 0  # ... and where the next map's few old ones (SCANS_AGAIN) start
+        self._rebuilt_scans: dict = {}  # the keyframe scans of a map rebuilt along its graph
         self.map_whole: list[RobotMap] = []  # the latest map with its graph (what a query gets)
         self._next_pose_s = -np.inf
         self._next_map_s = -np.inf
@@ -185,6 +189,7 @@ class AgentCore:
         self.prior = self.prior_sigma = None  # the new frame is nowhere known
         self.joiner = None
         self._fingerprint, self._rebuilt_graph, self._graph_sent = None, None, (None, None)
+        self._scans_sent, self._scan_roll, self._rebuilt_scans = set(), 0, {}
         self._next_map_s = -np.inf
         self.free = FreeSpaceViews(self.cfg.free)  # (the ended session's went out with its map)
         self.free_seq, self._free_fingerprint, self._next_free_s = 0, None, -np.inf
@@ -205,6 +210,8 @@ class AgentCore:
         goes out with the map (its frame moved by ``gauge``; ``slam``'s scan ``i`` is this
         session's scan ``first + i``)."""
         self.slam = slam
+        if self.corrector is not None:
+            self._rebuilt_scans = self.corrector.scans
         self.corrector = None  # the rebuilt map and pose are in the corrected frame already
         self._rebuilt_graph = graph
         if self.estimate is not None:
@@ -267,10 +274,16 @@ class AgentCore:
             self._graph_sent = (graph, None if graph is None else self.map_seq)
         if self._graph:
             self._graph["graph_seq"] = self._graph_sent[1]
+        graph = self._graph
+        if "kf_id" in graph:  # the whole carries every keyframe's scan
+            self._graph = graph | self._scan_fields(graph["kf_id"], whole=True)
         chunks = self.map_whole = self._chunks(arrays)
         if self._graph and self._graph_sent[1] != self.map_seq:  # unchanged since it went out: the
             # anchors name it, the receiver has it (the queryable answers with the whole)
-            self._graph = {"anchor": self._graph["anchor"], "graph_seq": self._graph_sent[1]}
+            self._graph = {"anchor": graph["anchor"], "graph_seq": self._graph_sent[1]}
+            chunks = self._chunks(arrays)
+        elif "kf_id" in graph:  # a new graph: the scans of its new keyframes, and a few sent before
+            self._graph = graph | self._scan_fields(graph["kf_id"], whole=False)
             chunks = self._chunks(arrays)
         self.map_seq += 1
         return chunks
@@ -308,6 +321,28 @@ class AgentCore:
         self.free_whole, self._free_sent = whole, len(self.free)
         self.free_seq += 1
         return msg
+
+    def _scan_fields(self, kf_id: np.ndarray, whole: bool) -> dict:
+        """The keyframe scans of graph ``kf_id`` as map fields: every one (``whole``), or those not
+        sent in this session and SCANS_AGAIN of those sent, in turn (a receiver that missed a
+        map has them all again within a few graphs, without asking)."""
+        scans = self.corrector.scans if self.corrector is not None else self._rebuilt_scans
+        ids = [k for k in kf_id.tolist() if k in scans]
+        if not whole:
+            sent = [k for k in ids if k in self._scans_sent]
+            if len(self._scans_sent) > 2 * len(ids):  # (bounded: keyframes leave the graph)
+                self._scans_sent = set(sent)
+            again = sent[self._scan_roll % len(sent) :][:SCANS_AGAIN] if sent else []
+            self._scan_roll += len(again)
+            ids = sorted([k for k in ids if k not in self._scans_sent] + again)
+            self._scans_sent.update(ids)
+        if not ids:
+            return {}
+        pts = [scans[k] for k in ids]
+        return dict(
+            scan_id=np.array(ids, np.int64), scan_count=np.array([len(p) for p in pts], np.int64),
+            scan_xy=np.concatenate(pts).astype(float),
+        )  # fmt: skip
 
     def _chunks(self, a: MapArrays) -> list[RobotMap]:
         return codec.robot_map_chunks(

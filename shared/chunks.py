@@ -20,6 +20,7 @@ from shared.messages import (
     MAX_CHUNK_ELEMENTS,
     MAX_CHUNKS,
     MAX_ROBOTS,
+    SCAN_FIELDS,
     FusedMap,
     Message,
     RobotMap,
@@ -65,7 +66,7 @@ def _slice(msg: RobotMap | FusedMap, i: int, n_chunks: int, a: int, b: int) -> R
     if isinstance(msg, RobotMap):
         per_element = {f: _rows(getattr(msg, f), a, b) for f in PER_ELEMENT}
         if i > 0:  # the graph travels in chunk 0 only
-            per_element.update(dict.fromkeys(GRAPH_FIELDS))
+            per_element.update(dict.fromkeys(GRAPH_FIELDS + SCAN_FIELDS))
         return dataclasses.replace(msg, chunk=i, n_chunks=n_chunks, **per_element)
     pa, pb = msg.prov_offsets[a], msg.prov_offsets[b]
     return dataclasses.replace(

@@ -37,6 +37,7 @@ from shared.messages import (
     MAX_MAP_ELEMENTS,
     MAX_PARTICLES,
     MAX_ROBOTS,
+    MAX_SCANS_POINTS,
     MAX_VERTICES,
     SCHEMA_VERSION,
     FreeSpace,
@@ -77,6 +78,8 @@ WIRE_DTYPES = {
     # (seven digits of a weight)
     "kf_id": "<u4", "kf_stamp": "<f8", "kf_pose": "<f8", "edge_ids": "<u4", "edge_z": "<f8",
     "edge_info": "<f4", "anchor": "<u4", "local": "<f8",
+    # keyframe scans: points in int16 centimetres in the keyframe's frame (±327 m)
+    "scan_id": "<u4", "scan_count": "<u2", "scan_cm": "<i2",
     "support": "<u4", "prov_offsets": "<u4", "prov_robot": "<u2",
     # free space: a robot's views in centimetres around each view's pose (±327 m), the fused
     # polygons in float32 metres
@@ -90,7 +93,8 @@ KEYS = {
         "robot", "session", "seq", "stamp_s", "chunk", "n_chunks", "n_particles", "n_elements",
         "particle_weights", "particle_poses", "seg", "element", "members", "trust", "hits", "age",
         "prior", "prior_sigma", "n_keyframes", "n_edges", "kf_id", "kf_stamp", "kf_pose", "edge_ids",
-        "edge_z", "edge_info", "anchor", "graph_seq", "joined",
+        "edge_z", "edge_info", "anchor", "graph_seq", "joined", "n_scans", "n_scan_points", "scan_id",
+        "scan_count", "scan_cm",
     ),
     "pose": ("robot", "session", "seq", "stamp_s", "pose", "status"),
     "fused_map": (
@@ -115,13 +119,15 @@ KEYS = {
 }  # fmt: skip
 
 
-# What schemas 2 to 5 carried: their messages are still decoded (5 had no joined flag; 4 no robot
-# graph; 3 no free space; 2 no pose status).
+# What schemas 2 to 6 carried: their messages are still decoded (6 had no keyframe scans; 5 no
+# joined flag; 4 no robot graph; 3 no free space; 2 no pose status).
 _GRAPH_KEYS = (
     "n_keyframes", "n_edges", "kf_id", "kf_stamp", "kf_pose", "edge_ids", "edge_z", "edge_info", "anchor",
     "graph_seq",
 )  # fmt: skip
-KEYS_SCHEMA_5 = dict(KEYS, robot_map=tuple(k for k in KEYS["robot_map"] if k != "joined"))
+_SCAN_KEYS = ("n_scans", "n_scan_points", "scan_id", "scan_count", "scan_cm")
+KEYS_SCHEMA_6 = dict(KEYS, robot_map=tuple(k for k in KEYS["robot_map"] if k not in _SCAN_KEYS))
+KEYS_SCHEMA_5 = dict(KEYS_SCHEMA_6, robot_map=tuple(k for k in KEYS_SCHEMA_6["robot_map"] if k != "joined"))
 KEYS_SCHEMA_4 = dict(
     {k: v for k, v in KEYS_SCHEMA_5.items() if k != "robot_path"},
     robot_map=tuple(k for k in KEYS_SCHEMA_5["robot_map"] if k not in _GRAPH_KEYS),
@@ -129,7 +135,8 @@ KEYS_SCHEMA_4 = dict(
 KEYS_SCHEMA_3 = {k: v for k, v in KEYS_SCHEMA_4.items() if k not in ("free_space", "fused_free")}
 KEYS_SCHEMA_2 = dict(KEYS_SCHEMA_3, pose=tuple(k for k in KEYS["pose"] if k != "status"))
 _KEYS_BY_SCHEMA = {
-    2: KEYS_SCHEMA_2, 3: KEYS_SCHEMA_3, 4: KEYS_SCHEMA_4, 5: KEYS_SCHEMA_5, SCHEMA_VERSION: KEYS,
+    2: KEYS_SCHEMA_2, 3: KEYS_SCHEMA_3, 4: KEYS_SCHEMA_4, 5: KEYS_SCHEMA_5, 6: KEYS_SCHEMA_6,
+    SCHEMA_VERSION: KEYS,
 }  # fmt: skip
 
 
@@ -205,6 +212,10 @@ def _encode_robot_map(m: RobotMap) -> dict:
         "graph_seq": None if m.graph_seq is None else int(m.graph_seq),
         "n_edges": 0 if m.edge_ids is None else len(m.edge_ids),
         "joined": bool(m.joined),
+        **_arrays(m, "scan_id", "scan_count"),
+        "scan_cm": None if m.scan_xy is None else _wire("scan_cm", np.rint(np.asarray(m.scan_xy) * 100.0)),
+        "n_scans": 0 if m.scan_id is None else len(m.scan_id),
+        "n_scan_points": 0 if m.scan_xy is None else len(m.scan_xy),
     }  # fmt: skip
 
 
@@ -426,6 +437,13 @@ def _decode_graph(r: _Reader, n: int) -> dict:
     out = {name: r.array(name, shape, optional=True) for name, shape in shapes.items()}
     seq = r.fields["graph_seq"]
     out["graph_seq"] = None if seq is None else r.integer("graph_seq")
+    if "scan_id" in r.fields:  # (schema 6 and before: none)
+        m = r.count("n_scans", MAX_KEYFRAMES)
+        p = r.count("n_scan_points", MAX_SCANS_POINTS)
+        out["scan_id"] = r.array("scan_id", (m,), optional=True)
+        out["scan_count"] = r.array("scan_count", (m,), optional=True)
+        cm = r.array("scan_cm", (p, 2), optional=True)
+        out["scan_xy"] = None if cm is None else cm.astype(np.float64) / 100.0
     return out
 
 

@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-SCHEMA_VERSION = 6  # 2: FusedMap.session; 3: PoseUpdate.status; 4: free space; 5: RobotMap keyframes
-# and graph; 6: RobotMap.joined (2 to 5 still read: codec)
+SCHEMA_VERSION = 7  # 2: FusedMap.session; 3: PoseUpdate.status; 4: free space; 5: RobotMap keyframes
+# and graph; 6: RobotMap.joined; 7: RobotMap keyframe scans (2 to 6 still read: codec)
 
 MAX_CHUNK_ELEMENTS = 2048  # elements (segments) per chunk: ~64 KB per message
 MAX_CHUNKS = 64  # chunks per map
@@ -42,6 +42,9 @@ ALIGNMENT_STATUSES = ("reference", "prior", "aligned", "unaligned")
 
 MAX_KEYFRAMES = 4096  # keyframes of one robot's pose graph in a map message
 MAX_GRAPH_EDGES = 2 * MAX_KEYFRAMES  # its edges (chain, loops, carried over): a full graph ~0.7 MB
+MAX_SCAN_POINTS = 256  # points of one keyframe's scan in a map message (an agent sends 64)
+MAX_SCANS_POINTS = 1 << 17  # keyframe scan points in one map message (512 kB of int16 pairs)
+MAX_SCAN_REACH_M = 327.0  # a keyframe's scan points travel as int16 centimetres in its frame
 MAX_VIEWS = 4096  # free-space views (keyframes) in one robot's FreeSpace
 MAX_RINGS = 16384  # polygon rings in one free-space message
 MAX_VERTICES = 131072  # polygon vertices in one free-space message (robot: 512 kB of int16 pairs)
@@ -158,6 +161,12 @@ class RobotMap:
       one (the graph fields given), or an earlier one of the session whose graph is unchanged
       (the fields left out: the receiver has it). Only chunk 0 carries the graph; every chunk
       carries its rows' anchors.
+    - keyframe scans (schema 7; ``None`` from a robot that sends none): ``scan_id (M,)`` keyframes
+      of this graph (a subset of ``kf_id``, increasing) whose scan points this map carries,
+      ``scan_count (M,)`` points each, ``scan_xy (P,2)`` the points [m] in that keyframe's frame
+      (a thinned scan: the fleet graph matches robots' keyframes on them, map_server/posegraph.py).
+      A keyframe's scan never changes: an agent sends it once in a session and its queryable's
+      whole map carries all; the receiver keeps them (:meth:`with_scans_of`).
     """
 
     robot: str
@@ -185,6 +194,9 @@ class RobotMap:
     anchor: np.ndarray | None = None
     graph_seq: int | None = None
     joined: bool = False
+    scan_id: np.ndarray | None = None
+    scan_count: np.ndarray | None = None
+    scan_xy: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         check_id("robot", self.robot)
@@ -271,7 +283,54 @@ class RobotMap:
             raise WireFormatError("anchor: required with a graph (the keyframe of every element)")
         if self.anchor is not None and self.graph_seq is None:
             raise WireFormatError("graph_seq: required with anchors (the map whose graph they name)")
+        out.update(self._scans(out.get("kf_id")))
         return out
+
+    def _scans(self, kf_id: np.ndarray | None) -> dict:
+        given = [getattr(self, f) is not None for f in SCAN_FIELDS]
+        if not any(given):
+            return {}
+        if not all(given):
+            missing = SCAN_FIELDS[given.index(False)]
+            raise WireFormatError(f"{missing}: missing (the scans' fields come together)")
+        if kf_id is None:
+            raise WireFormatError("scan_id: keyframe scans need the graph (kf_id) beside them")
+        ids = check_array("scan_id", self.scan_id, (None,), "i", 0, 2**62)
+        if np.any(np.diff(ids) <= 0):
+            raise WireFormatError("scan_id: must increase")
+        if not np.isin(ids, kf_id).all():
+            raise WireFormatError("scan_id: names a keyframe not in kf_id")
+        count = check_array("scan_count", self.scan_count, (len(ids),), "i", 0, MAX_SCAN_POINTS)
+        total = int(count.sum())
+        if total > MAX_SCANS_POINTS:
+            raise WireFormatError(f"scan_xy: {total} points, at most {MAX_SCANS_POINTS}")
+        xy = check_array("scan_xy", self.scan_xy, (total, 2), lo=-MAX_SCAN_REACH_M, hi=MAX_SCAN_REACH_M)
+        return dict(scan_id=ids, scan_count=count, scan_xy=xy)
+
+    @property
+    def has_scans(self) -> bool:
+        return self.scan_id is not None
+
+    def scans(self) -> dict[int, np.ndarray]:
+        """Keyframe id -> its scan points ``(n,2)`` (empty without scans)."""
+        if self.scan_id is None:
+            return {}
+        parts = np.split(self.scan_xy, np.cumsum(self.scan_count)[:-1])
+        return dict(zip(self.scan_id.tolist(), parts, strict=True))
+
+    def with_scans_of(self, before: RobotMap | None) -> RobotMap:
+        """This map with the scans of ``before`` (an earlier map of its session) added for the
+        keyframes of its graph that it carries none of: what the receiver keeps, the whole."""
+        if self.kf_id is None or before is None or before.session != self.session or not before.has_scans:
+            return self
+        got = before.scans() | self.scans()
+        ids = np.array(sorted(k for k in got if k in set(self.kf_id.tolist())), np.int64)
+        if self.has_scans and len(ids) == len(self.scan_id):
+            return self
+        pts = [got[int(i)] for i in ids]
+        xy = np.concatenate(pts) if pts else np.zeros((0, 2))
+        count = np.array([len(p) for p in pts], np.int64)
+        return replace(self, scan_id=ids, scan_count=count, scan_xy=xy)
 
     @property
     def n_particles(self) -> int:
@@ -283,6 +342,7 @@ class RobotMap:
 
 
 GRAPH_FIELDS = ("kf_id", "kf_stamp", "kf_pose", "edge_ids", "edge_z", "edge_info")
+SCAN_FIELDS = ("scan_id", "scan_count", "scan_xy")
 _UPPER = ([0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2])
 
 

@@ -247,6 +247,7 @@ class LiveCorrector:
         self.stats: dict = {}
         self.max_tail = max_tail
         self.dropped_tail = 0  # scans dropped from an overlong tail (the robot stood still)
+        self.scans: dict[int, np.ndarray] = {}  # graph keyframe (scan) -> its scan's points, robot frame
         self._tail: deque[ScanRecord] = deque()
         self._kf_scan = np.zeros(0, int)  # the back end's keyframes as of its last answer
         self._hints = 0
@@ -405,6 +406,15 @@ class LiveCorrector:
         out[old] = c.filter[at]
         return out, jumps
 
+    def _keep_scans(self, g) -> None:
+        """The keyframe scans ``g`` hands out, kept for what is published (those of keyframes no
+        longer in the graph dropped: bounded by the graph)."""
+        if g is None:
+            return
+        self.scans.update(zip(g.new_scan.tolist(), g.new_points, strict=True))
+        if len(self.scans) > len(g.scan):
+            self.scans = {k: self.scans[k] for k in g.scan.tolist() if k in self.scans}
+
     def _collect(self, done) -> bool:
         if done is None:
             return False
@@ -415,6 +425,7 @@ class LiveCorrector:
             return False
         self.correction, self.stats = done
         self.updates += 1
+        self._keep_scans(self.correction.graph)
         if self.cfg.backend.online_adopt:
             self.frame.adopt(self.slam, self.correction)
         self.update_s_recent = max(self.update_s_recent, self.stats.get("update_s_last", 0.0))

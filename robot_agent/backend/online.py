@@ -85,6 +85,20 @@ class Graph:
     b: np.ndarray
     z: np.ndarray
     info: np.ndarray
+    new_scan: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # keyframes (scans)
+    new_points: tuple = ()  # ... added since the last graph handed out, and their points (robot
+    # frame, float32, at most SCAN_POINTS each, evenly thinned): the fleet graph matches them
+
+
+SCAN_POINTS = 64  # points of a keyframe's scan handed out with the graph (an Intel piece's cross-robot
+# constraints on 64 points per keyframe, in centimetres, as on all ~140: 0.0268 m against 0.0269 m)
+
+
+def scan_sample(points: np.ndarray, n: int = SCAN_POINTS) -> np.ndarray:
+    """At most ``n`` of ``points (K,2)``, evenly along the scan, as float32."""
+    if len(points) > n:
+        points = points[np.unique(np.linspace(0, len(points) - 1, n).astype(int))]
+    return np.asarray(points, np.float32)
 
 
 @dataclass(frozen=True)
@@ -160,6 +174,7 @@ class OnlineBackend:
     _ret_filter: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # ... its filter pose
     _waiting: int = 0
     _flushed: bool = False  # the last _admit let waiting surprises in
+    _handed: int = -1  # the newest keyframe (scan) whose points a graph handed out
 
     @property
     def keyframes(self) -> int:
@@ -325,7 +340,8 @@ class OnlineBackend:
     def graph(self) -> Graph | None:
         """The graph as last solved (None before the first update): its keyframes, their solved
         poses, every edge held like the chain and the loops that the solution keeps (normalized
-        residual within max_loop_chi)."""
+        residual within max_loop_chi); and the points of the keyframes no graph handed out before
+        (each call hands them out once: :meth:`correction` calls it once an update)."""
         if len(self._ref) != len(self.kf_scan) or not len(self.kf_scan):
             return None
         a, b, z, info = held_edges(self._ref, self.cfg, *self._held())
@@ -340,7 +356,20 @@ class OnlineBackend:
             a, b = np.concatenate([a, la[ok]]), np.concatenate([b, lb[ok]])
             z, info = np.vstack([z, lz[ok]]), np.vstack([info, li[ok]])
         scan = np.asarray(self.kf_scan, np.int64)
-        return Graph(scan, np.asarray(self.kf_stamp, float), self._x.copy(), scan[a], scan[b], z, info)
+        new = np.flatnonzero(scan > self._handed)
+        self._handed = int(scan[-1]) if len(scan) else self._handed
+        points = tuple(scan_sample(self.kf_points[i]) for i in new)
+        return Graph(
+            scan,
+            np.asarray(self.kf_stamp, float),
+            self._x.copy(),
+            scan[a],
+            scan[b],
+            z,
+            info,
+            scan[new],
+            points,
+        )
 
     def _retire(self) -> None:
         """Keyframes older than the window leave the graph (:meth:`_retire_onto`): those that the

@@ -52,7 +52,8 @@ def test_a_schema_4_map_is_read_without_a_graph():
                                                 "members", "trust", "hits", "age")))  # fmt: skip
     fields = msgpack.unpackb(codec.encode(plain), raw=False)
     for name in ("n_keyframes", "n_edges", "kf_id", "kf_stamp", "kf_pose", "edge_ids", "edge_z", "edge_info",
-                 "anchor", "graph_seq", "joined"):  # fmt: skip
+                 "anchor", "graph_seq", "joined", "n_scans", "n_scan_points", "scan_id", "scan_count",
+                 "scan_cm"):  # fmt: skip
         del fields[name]
     old = codec.decode(msgpack.packb(dict(fields, schema=4), use_bin_type=True))
     assert not old.has_graph and old.anchor is None and len(old.seg) == 10
