@@ -19,7 +19,7 @@ from robot_agent.publish import directed
 from robot_agent.sim import SimConfig, builtin_world, simulate_robot
 from robot_agent.slam.extraction import extract_segments
 from shared.geometry import compose, relative, wrap_angle
-from shared.messages import RobotMap, info_upper
+from shared.messages import GRAPH_FIELDS, RobotMap, info_upper
 
 
 @lru_cache(maxsize=8)
@@ -691,3 +691,90 @@ def test_constraints_on_one_pair_of_keyframes_share_its_information(monkeypatch,
     for v in many:  # each the information a constraint was found with, or 1/N of it
         scale = len(v) if share else 1
         assert all(any(np.allclose(m * scale, f) for f in found) for m in v)
+
+
+@lru_cache(maxsize=4)
+def keyframe_scans(robot_index: int, duration_s: float = 120.0, every: int = 5) -> tuple:
+    """The scans of :func:`bent_run`'s keyframes as an agent sends them (robot frame, laser mount
+    applied, a point per 5 cm, at most SCAN_POINTS evenly along the scan)."""
+    from robot_agent.backend.online import scan_sample
+    from shared.geometry import apply_points
+    from shared.scanmatch import voxel_thin
+
+    sim = simulate_robot(builtin_world("office"), robot_index, duration_s, 0, SimConfig())
+    out = []
+    for k in np.arange(0, len(sim.stamps_s), every):
+        r = sim.ranges_m[k]
+        ok = (r > 0) & (r < sim.range_max_m)
+        xy = np.column_stack([r[ok] * np.cos(sim.angles_rad[ok]), r[ok] * np.sin(sim.angles_rad[ok])])
+        out.append(scan_sample(voxel_thin(apply_points(sim.laser_offset, xy), 0.05)))
+    return tuple(out)
+
+
+def test_robots_that_send_keyframe_scans_are_tied_by_matching_them(monkeypatch):
+    """Both robots send their keyframes' scans (schema 7): the constraints between them come from
+    matching the scans (the agents' loop matcher), not the segment submaps, and bend the bent
+    robot back at least as closely; with a robot that sends none, the submaps tie them."""
+    runs = {"r0": bent_run(0, 0.0), "r1": bent_run(1, BEND)}
+    submaps = []
+    original_match, original_put = posegraph.FleetGraph._match_segments, Fleet.put_map
+    senders = {"r0", "r1"}
+
+    def counted(self, p, ks, first, others, where):
+        submaps.append(p.robot)
+        return original_match(self, p, ks, first, others, where)
+
+    def put(self, m, now_s):
+        if m.robot in senders:
+            pts = keyframe_scans(0 if m.robot == "r0" else 1)
+            m = dataclasses.replace(
+                m, scan_id=m.kf_id, scan_count=np.array([len(p) for p in pts]),
+                scan_xy=np.concatenate(pts).astype(float),
+            )  # fmt: skip
+        return original_put(self, m, now_s)
+
+    monkeypatch.setattr(posegraph.FleetGraph, "_match_segments", counted)
+    monkeypatch.setattr(Fleet, "put_map", put)
+    fleet, _ = fleet_of(True, runs=runs)
+    assert not submaps  # every constraint from the scans
+    assert fleet.graph.stats["constraints_kept"] >= 20  # measured 33 (by submaps: 79)
+    after = keyframe_errors(fleet, runs, "r1")
+    assert np.percentile(after, 90) < 0.045  # measured 0.032 m (by submaps: 0.056 m)
+    assert np.median(after) < 0.03  # measured 0.021 m (0.025 m)
+    assert np.max(keyframe_errors(fleet, runs, "r0")) < 0.07  # measured 0.049 m (0.061 m)
+    senders.discard("r0")
+    fleet, _ = fleet_of(True, runs=runs)
+    assert set(submaps) == {"r0", "r1"} and fleet.graph.stats["constraints_kept"] >= 50  # (as above)
+
+
+def test_the_keyframe_scans_that_came_map_by_map_are_kept_whole_and_survive_a_restart():
+    """An agent sends each keyframe's scan once (and a few again): the server keeps every scan of
+    the graph's keyframes with the robot's map, a map whose graph went out before (``graph_seq``)
+    included, stores them with it, and its graph has them all after a restart."""
+    from shared import codec
+
+    run = bent_run(0, 0.0)
+    pts = keyframe_scans(0)
+    whole = graph_message("r0", run, prior=run[3][0])
+    k = len(whole.kf_id)
+
+    def carrying(m: RobotMap, lo: int, hi: int) -> RobotMap:
+        return dataclasses.replace(
+            m, scan_id=m.kf_id[lo:hi], scan_count=np.array([len(p) for p in pts[lo:hi]]),
+            scan_xy=np.concatenate(pts[lo:hi]).astype(float),
+        )  # fmt: skip
+
+    fleet = Fleet(FleetConfig(), "srv")
+    fleet.put_map(carrying(whole, 0, k // 2), 0.0)
+    fleet.put_map(carrying(dataclasses.replace(whole, seq=2, graph_seq=2), k // 2 - 3, k), 1.0)
+    later = dataclasses.replace(whole, seq=3, **dict.fromkeys(GRAPH_FIELDS))  # (graph_seq 1: unchanged)
+    fleet.put_map(dataclasses.replace(later, graph_seq=2), 2.0)
+    kept = fleet.robots["r0"].map
+    assert kept.seq == 3 and np.array_equal(kept.scan_id, whole.kf_id)
+    _, maps = fleet.snapshot()
+    stored = {n: codec.decode_stored_map(codec.encode_stored_map(m)) for n, m in maps.items()}
+    meta, _ = fleet.snapshot()
+    back = Fleet.restore(json.loads(json.dumps(meta)), stored, fleet.cfg, "srv")
+    g = back.robots["r0"].graph
+    assert g is not None and len(g.points) == k and all(p is not None for p in g.points)
+    np.testing.assert_allclose(g.points[k - 1], pts[k - 1], atol=0.006)
