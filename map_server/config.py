@@ -217,11 +217,13 @@ class GraphConfig:
     scan_voxel_m: float = 0.05  # both thinned to a point per voxel ...
     scan_query_points: int = 200  # ... the query to at most this many points
     scan_match: MatchConfig = field(default_factory=MatchConfig)  # the window, its covariance, ICP
-    # two robots whose maps both stand in their own free space (Fleet._consistent) are matched
-    # with wide submaps all the same (False): bench_merge's simulated robots (clean walls, long
-    # aisles alike) by scans: 15 of 39 final errors over 0.05 m, worst 0.097 m, the fleet's ATE
-    # 0.027 m; by wide submaps 6 of 40, 0.079 m, 0.023 m
-    scans_consistent: bool = False
+    # two robots are tied by scans only when one of their maps was found contradicting its own
+    # free space by more than consistent_self_m (a real log's piece, within seconds of its start);
+    # clean maps by submaps (False): bench_merge's simulated robots tied by scans: 15 of 39 final
+    # errors over 0.05 m, worst 0.097 m, the fleet's ATE 0.027 m; by submaps 6 of 40, 0.079 m,
+    # 0.023 m; by scans unless both were found consistent (their free space not known yet: scans)
+    # 7 of 40, warehouse seed 2's robot2 0.190 m (0.022)
+    scans_always: bool = False
 
 
 @dataclass(frozen=True)

@@ -278,6 +278,16 @@ class Fleet:
                 log.info("%s: its walls stand %.1f m in its own free space: %s", r.robot, hit[2], how)
         return _agrees(hit[2], g.consistent_self_m)
 
+    def _contradicts(self, r: RobotState) -> bool:
+        """Whether a placed robot's walls were found standing in its own free space by more than
+        ``consistent_self_m`` (after :meth:`_consistent` measured it; not known: False)."""
+        hit = self._stiff.get(r.robot)
+        return (
+            hit is not None
+            and hit[0] == r.map.session
+            and _contradicts_self(hit[2], self.cfg.graph.consistent_self_m)
+        )
+
     def _carry(self) -> None:
         """A bent robot whose map changed since the graph's last solve: its new layer moved by the
         last solution (:meth:`FleetGraph.poses`: new keyframes carried by their neighbours'
@@ -309,7 +319,7 @@ class Fleet:
         the rest stays due (``graph_stale``)."""
         cfg = self.cfg.graph
         placed = self._bend_placed()
-        items = [_graph_item(r, self._consistent(r)) for r in placed]
+        items = [_graph_item(r, self._consistent(r), self._contradicts(r)) for r in placed]
         rebuilding = self.graph.rebuilding
         for robot in self.graph.sync(items):  # what the graph found where the robot was would hold it
             log.info("%s: unplaced or moved far: the fleet graph forgets where it had it", robot)
@@ -690,12 +700,20 @@ class Fleet:
         return f
 
 
+def _contradicts_self(noise_m: float | None, limit_m: float) -> bool:
+    """Whether a map's own contradiction is known and beyond ``limit_m``."""
+    return noise_m is not None and noise_m > limit_m
+
+
 def _agrees(noise_m: float | None, limit_m: float) -> bool:
     """Whether a map's own contradiction (None: not known) is within ``limit_m``."""
     return noise_m is not None and noise_m <= limit_m
 
 
-def _graph_item(r: RobotState, consistent: bool = False) -> Placed:
-    """What the fleet's graph takes of a placed robot (``consistent``: Fleet._consistent)."""
+def _graph_item(r: RobotState, consistent: bool = False, contradicts: bool = False) -> Placed:
+    """What the fleet's graph takes of a placed robot (``consistent``: Fleet._consistent,
+    ``contradicts``: Fleet._contradicts)."""
     a = r.alignment
-    return Placed(r.robot, r.graph, r.layer, a.transform, a.status, r.map.prior_sigma, consistent)
+    return Placed(
+        r.robot, r.graph, r.layer, a.transform, a.status, r.map.prior_sigma, consistent, contradicts
+    )

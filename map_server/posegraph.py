@@ -30,11 +30,11 @@ with (``shared/messages.py``, RobotMap). The server joins them:
   (``shared/scanmatch.window_match``; ``scan_match``: the agents' defaults); the nearest of up to
   three keyframes that matches is tied, the keyframe to it, with the match's information. The
   segment maps summarize the scans (an Intel piece's submap constraints, fitted where a single
-  robot's run put both keyframes, 0.067 m off that run at the median; the scans 0.038 m). Two
-  robots whose maps both stand in their own free space are matched by submaps all the same
-  (``scans_consistent``: bench_merge's simulated robots tied by scans ended 15 of 39 over 0.05 m,
-  by wide submaps 6 of 40).
-- **constraints between robots by submaps** (robots without scans, or both self-consistent):
+  robot's run put both keyframes, 0.067 m off that run at the median; the scans 0.038 m). Only
+  a pair of which one map was found contradicting its own free space (a real log's piece, within
+  seconds) is tied so; others are matched by submaps (``scans_always`` off: bench_merge's
+  simulated robots tied by scans ended 15 of 39 over 0.05 m, by submaps 6 of 40).
+- **constraints between robots by submaps** (robots without scans, or clean maps):
   around every few keyframes of a robot, the part of its map
   anchored to its neighbouring keyframes (a local submap, in that keyframe's frame; more of them
   when its map and the others' stand in none of their own free space: their rows anchored apart
@@ -204,6 +204,8 @@ class Placed:
     sigma: np.ndarray | None = None  # a prior's sigma (status prior)
     consistent: bool = False  # its walls stand in none of its own free space (Fleet._consistent): its
     # own edges' information taken GraphConfig.consistent_scale times, its submaps wider
+    contradicts: bool = False  # its walls were found standing in its own free space (a real log's
+    # piece): it is tied by keyframe scans (GraphConfig.scans)
 
 
 @dataclass
@@ -516,12 +518,12 @@ class FleetGraph:
 
     def _by_scans(self, p: Placed, o: Placed) -> bool:
         """Whether robots ``p`` and ``o`` are tied by their keyframe scans: both sent them, and
-        not both maps agree with themselves (``scans_consistent``: those are matched with wide
-        submaps, which the scans do not beat)."""
+        one of them was found contradicting its own free space (``scans_always``: whatever their
+        maps; else clean maps are matched by submaps, which the scans do not beat there)."""
         cfg = self.cfg
         if not (cfg.scans and len(p.graph.points) and len(o.graph.points)):
             return False
-        return cfg.scans_consistent or not (p.consistent and o.consistent)
+        return cfg.scans_always or p.contradicts or o.contradicts
 
     def _match_scans(
         self, p: Placed, ks: np.ndarray, others: list[Placed], where: dict

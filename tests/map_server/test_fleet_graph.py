@@ -712,9 +712,11 @@ def keyframe_scans(robot_index: int, duration_s: float = 120.0, every: int = 5) 
 
 
 def test_robots_that_send_keyframe_scans_are_tied_by_matching_them(monkeypatch):
-    """Both robots send their keyframes' scans (schema 7): the constraints between them come from
-    matching the scans (the agents' loop matcher), not the segment submaps, and bend the bent
-    robot back at least as closely; with a robot that sends none, the submaps tie them."""
+    """Both robots send their keyframes' scans (schema 7) and are tied by them (``scans_always``;
+    by default a pair of which one map contradicts its own free space — a real log's piece): the
+    constraints come from matching the scans (the agents' loop matcher), not the segment submaps,
+    and bend the bent robot back at least as closely. With a robot that sends none, or maps not
+    known to contradict themselves (no free space here), the submaps tie them."""
     runs = {"r0": bent_run(0, 0.0), "r1": bent_run(1, BEND)}
     submaps = []
     original_match, original_put = posegraph.FleetGraph._match_segments, Fleet.put_map
@@ -735,16 +737,19 @@ def test_robots_that_send_keyframe_scans_are_tied_by_matching_them(monkeypatch):
 
     monkeypatch.setattr(posegraph.FleetGraph, "_match_segments", counted)
     monkeypatch.setattr(Fleet, "put_map", put)
-    fleet, _ = fleet_of(True, runs=runs)
+    fleet, _ = fleet_of(True, runs=runs, scans_always=True)
     assert not submaps  # every constraint from the scans
     assert fleet.graph.stats["constraints_kept"] >= 20  # measured 33 (by submaps: 79)
     after = keyframe_errors(fleet, runs, "r1")
     assert np.percentile(after, 90) < 0.045  # measured 0.032 m (by submaps: 0.056 m)
     assert np.median(after) < 0.03  # measured 0.021 m (0.025 m)
     assert np.max(keyframe_errors(fleet, runs, "r0")) < 0.07  # measured 0.049 m (0.061 m)
-    senders.discard("r0")
     fleet, _ = fleet_of(True, runs=runs)
     assert set(submaps) == {"r0", "r1"} and fleet.graph.stats["constraints_kept"] >= 50  # (as above)
+    submaps.clear()
+    senders.discard("r0")
+    fleet, _ = fleet_of(True, runs=runs, scans_always=True)
+    assert set(submaps) == {"r0", "r1"} and fleet.graph.stats["constraints_kept"] >= 50
 
 
 def test_the_keyframe_scans_that_came_map_by_map_are_kept_whole_and_survive_a_restart():
@@ -778,3 +783,28 @@ def test_the_keyframe_scans_that_came_map_by_map_are_kept_whole_and_survive_a_re
     g = back.robots["r0"].graph
     assert g is not None and len(g.points) == k and all(p is not None for p in g.points)
     np.testing.assert_allclose(g.points[k - 1], pts[k - 1], atol=0.006)
+
+
+@pytest.mark.parametrize(
+    "scans, contradicts, always, by_scans",
+    [
+        ((True, True), (False, False), False, False),  # clean maps (a simulated world's): submaps
+        ((True, True), (True, False), False, True),  # one found contradicting itself: scans
+        ((True, True), (False, True), False, True),
+        ((True, True), (False, False), True, True),  # scans_always
+        ((True, False), (True, True), True, False),  # one sends none: submaps
+    ],
+)
+def test_a_pair_is_tied_by_scans_when_both_send_them_and_a_map_contradicts_itself(
+    scans, contradicts, always, by_scans
+):
+    def placed(name: str, sends: bool, bad: bool) -> posegraph.Placed:
+        e, pts = np.zeros(0, np.int64), (np.zeros((40, 2)),) if sends else ()
+        g = posegraph.RobotGraph(np.zeros(1, np.int64), np.zeros((1, 3)), e, e, np.zeros((0, 3)),
+                                 np.zeros((0, 3, 3)), e, points=pts)  # fmt: skip
+        return posegraph.Placed(name, g, None, np.zeros(3), "aligned", contradicts=bad)
+
+    graph = posegraph.FleetGraph(GraphConfig(scans_always=always))
+    a, b = placed("a", scans[0], contradicts[0]), placed("b", scans[1], contradicts[1])
+    assert graph._by_scans(a, b) == graph._by_scans(b, a) == by_scans
+    assert not posegraph.FleetGraph(GraphConfig(scans=False, scans_always=True))._by_scans(a, b)
