@@ -151,6 +151,7 @@ class Constraint:
     a_id: int
     z: np.ndarray
     info: np.ndarray
+    by_scans: bool = False  # from matching keyframe scans (else a submap's fit)
 
 
 @dataclass
@@ -514,7 +515,19 @@ class FleetGraph:
         scans = [o for o in others if self._by_scans(p, o)]
         rest = [o for o in others if not any(o is s for s in scans)]
         out = self._match_scans(p, ks, scans, where) if scans else []
+        if scans and self.cfg.scan_fallback:  # a pair the scans have not tied yet: by submaps
+            untied = [o for o in scans if not self._tied_by_scans(p.robot, o.robot, out)]
+            out += self._match_segments(p, ks, first, untied, where) if untied else []
         return out + (self._match_segments(p, ks, first, rest, where) if rest else [])
+
+    def _tied_by_scans(self, a: str, b: str, found: list[tuple[int, Constraint]]) -> bool:
+        """Whether a constraint by scans ties robots ``a`` and ``b`` (kept, or in ``found``)."""
+        if any(c.by_scans and c.other == b for _, c in found):
+            return True
+        mine, theirs = self.constraints.get(a, {}).values(), self.constraints.get(b, {}).values()
+        return any(c.by_scans and c.other == b for c in mine) or any(
+            c.by_scans and c.other == a for c in theirs
+        )
 
     def _by_scans(self, p: Placed, o: Placed) -> bool:
         """Whether robots ``p`` and ``o`` are tied by their keyframe scans: both sent them, and
@@ -564,7 +577,8 @@ class FleetGraph:
                     found = window_match(fld, cloud, query, relative(xo[a], x[k]), mc, refused)
                     if found is not None:
                         kid = int(p.graph.ids[k])
-                        out.append((kid, Constraint(kid, o.robot, int(o.graph.ids[a]), found[0], found[2])))
+                        c = Constraint(kid, o.robot, int(o.graph.ids[a]), found[0], found[2], by_scans=True)
+                        out.append((kid, c))
                         break
                 else:
                     self._count("scan_unmatched")

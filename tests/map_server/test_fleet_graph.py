@@ -715,8 +715,10 @@ def test_robots_that_send_keyframe_scans_are_tied_by_matching_them(monkeypatch):
     """Both robots send their keyframes' scans (schema 7) and are tied by them (``scans_always``;
     by default a pair of which one map contradicts its own free space — a real log's piece): the
     constraints come from matching the scans (the agents' loop matcher), not the segment submaps,
-    and bend the bent robot back at least as closely. With a robot that sends none, or maps not
-    known to contradict themselves (no free space here), the submaps tie them."""
+    and bend the bent robot back at least as closely; a pair the scans do not tie (they never
+    passed near each other's keyframes) is tied by submaps (``scan_fallback``). With a robot that
+    sends none, or maps not known to contradict themselves (no free space here), the submaps tie
+    them."""
     runs = {"r0": bent_run(0, 0.0), "r1": bent_run(1, BEND)}
     submaps = []
     original_match, original_put = posegraph.FleetGraph._match_segments, Fleet.put_map
@@ -744,6 +746,11 @@ def test_robots_that_send_keyframe_scans_are_tied_by_matching_them(monkeypatch):
     assert np.percentile(after, 90) < 0.045  # measured 0.032 m (by submaps: 0.056 m)
     assert np.median(after) < 0.03  # measured 0.021 m (0.025 m)
     assert np.max(keyframe_errors(fleet, runs, "r0")) < 0.07  # measured 0.049 m (0.061 m)
+    # robots that never pass near each other's keyframes (here: no radius) are tied by submaps
+    fleet, _ = fleet_of(True, runs=runs, scans_always=True, scan_radius_m=0.0)
+    assert set(submaps) == {"r0", "r1"} and fleet.graph.stats["constraints_kept"] >= 50
+    assert np.percentile(keyframe_errors(fleet, runs, "r1"), 90) < 0.1  # (as by submaps alone)
+    submaps.clear()
     fleet, _ = fleet_of(True, runs=runs)
     assert set(submaps) == {"r0", "r1"} and fleet.graph.stats["constraints_kept"] >= 50  # (as above)
     submaps.clear()
