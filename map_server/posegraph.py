@@ -547,12 +547,22 @@ class FleetGraph:
         cfg, mc = self.cfg, self.cfg.scan_match
         x = self._where(p, where)[0]
         mine = _scan_points(p.graph)
+        queries = {}  # keyframe -> its query (its scan and the ones before it), once for every robot
+        for k in ks:
+            if p.graph.points[k] is None:
+                continue
+            q = cfg.scan_query_neighbours
+            query = voxel_thin(local_cloud(p.graph.pose, mine, k, k - q, k), cfg.scan_voxel_m)
+            if len(query) > cfg.scan_query_points:
+                query = query[np.linspace(0, len(query) - 1, cfg.scan_query_points).astype(int)]
+            if len(query) < MIN_SCAN_POINTS:
+                self._count("scan_small")
+                continue
+            queries[k] = query
         out, refused = [], {}
         for o in others:
             xo, theirs = self._where(o, where)[0], _scan_points(o.graph)
-            for k in ks:
-                if p.graph.points[k] is None:
-                    continue
+            for k, query in queries.items():
                 d = np.hypot(*(xo[:, :2] - x[k, :2]).T)
                 near = np.flatnonzero(
                     (d <= cfg.scan_radius_m)
@@ -560,13 +570,6 @@ class FleetGraph:
                 )
                 near = near[np.argsort(d[near], kind="stable")][: cfg.scan_candidates]
                 if not len(near):
-                    continue
-                q = cfg.scan_query_neighbours
-                query = voxel_thin(local_cloud(p.graph.pose, mine, k, k - q, k), cfg.scan_voxel_m)
-                if len(query) > cfg.scan_query_points:
-                    query = query[np.linspace(0, len(query) - 1, cfg.scan_query_points).astype(int)]
-                if len(query) < MIN_SCAN_POINTS:
-                    self._count("scan_small")
                     continue
                 for a in near:
                     w = cfg.scan_cloud_neighbours

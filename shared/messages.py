@@ -323,6 +323,9 @@ class RobotMap:
         keyframes of its graph that it carries none of: what the receiver keeps, the whole."""
         if self.kf_id is None or before is None or before.session != self.session or not before.has_scans:
             return self
+        if not self.has_scans and np.isin(before.scan_id, self.kf_id).all():  # (the same graph's, as a
+            # rule: a map whose graph went out before, filled in by the receiver — no copy)
+            return replace(self, scan_id=before.scan_id, scan_count=before.scan_count, scan_xy=before.scan_xy)
         got = before.scans() | self.scans()
         ids = np.array(sorted(k for k in got if k in set(self.kf_id.tolist())), np.int64)
         if self.has_scans and len(ids) == len(self.scan_id):
