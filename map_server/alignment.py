@@ -256,7 +256,7 @@ def _outshone_aside(
     cfg: AlignmentConfig,
     budget: int,
     strict: Callable[[Scored, list[Scored], float], list[Scored]] | None = None,
-) -> tuple[list[Scored], list[tuple[Scored, str]]]:
+) -> tuple[list[Scored], list[tuple[Scored, str]], int]:
     """While the best candidate has a distinct rival within ``close_ratio`` of its net score and
     the free space seen prefers the rival (``Check.outshone``), the best (and the candidates at its
     place) is set aside and the next best looked at, at most ``budget`` places. A close call

@@ -266,7 +266,7 @@ class Fleet:
         g, session = self.cfg.graph, r.map.session
         hit = self._stiff.get(r.robot)  # (session, map length measured at, own noise or None)
         stale = hit is None or hit[0] != session
-        if not stale and not (hit[2] is not None and hit[2] > g.consistent_self_m):  # (else: for good)
+        if not stale and not _contradicts_self(hit[2], g.consistent_self_m):  # (else: for good)
             stale = abs(r.layer.length_m - hit[1]) >= self.cfg.retry_growth_m
         if stale:
             if len(self._stiff) > 2 * len(self.robots) + 8:  # (robots forgotten)

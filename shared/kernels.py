@@ -178,29 +178,31 @@ def collinear(
     return ok
 
 
-def _lib():
-    """The extension module, or a RuntimeError when the install did not build it."""
-    if _kernels is None:
+def require(module):
+    """A compiled extension ``module``, or a RuntimeError when the install did not build it
+    (None); robot_agent/slam/kernels.py's too."""
+    if module is None:
         raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
-    return _kernels
+    return module
 
 
-def _f64(a: np.ndarray) -> np.ndarray:
+def f64(a: np.ndarray) -> np.ndarray:
+    """``a`` as the kernels take it: C-contiguous float64 (a view when it is already)."""
     return np.ascontiguousarray(a, dtype=np.float64)
 
 
-def _i64(a: np.ndarray) -> np.ndarray:
+def i64(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.int64)
 
 
 def window_sums(values: np.ndarray, cells: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
     """Mean of ``values (W,H)`` (0 off the grid) over the cells ``(A,N,2)`` moved by each offset
     ``(ox, oy) (T,)``: ``(A,T)`` — scanmatch.window_scores."""
-    lib = _lib()
+    lib = require(_kernels)
     a, n = cells.shape[:2]
     out = np.empty((a, len(ox)))
     lib.window_sums(
-        _f64(values), _i64(cells), _i64(ox), _i64(oy), out,
+        f64(values), i64(cells), i64(ox), i64(oy), out,
         values.shape[0], values.shape[1], a, n, len(ox),
     )  # fmt: skip
     return out
@@ -211,11 +213,11 @@ def block_sums(
 ) -> np.ndarray:
     """Mean of ``level (W,H)`` (float32; 0 off the grid) over the cells ``(A,N,2)`` of angle ``a``
     moved by ``(ox, oy)``, for every block ``(M,)`` — scanmatch.branch_and_bound's scores."""
-    lib = _lib()
+    lib = require(_kernels)
     lv = np.ascontiguousarray(level, dtype=np.float32)
     out = np.empty(len(a))
     lib.block_sums(
-        lv, _i64(cells), _i64(a), _i64(ox),
-        _i64(oy), out, lv.shape[0], lv.shape[1], cells.shape[0], cells.shape[1], len(a),
+        lv, i64(cells), i64(a), i64(ox),
+        i64(oy), out, lv.shape[0], lv.shape[1], cells.shape[0], cells.shape[1], len(a),
     )  # fmt: skip
     return out

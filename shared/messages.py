@@ -327,7 +327,8 @@ class RobotMap:
             # rule: a map whose graph went out before, filled in by the receiver — no copy)
             return replace(self, scan_id=before.scan_id, scan_count=before.scan_count, scan_xy=before.scan_xy)
         got = before.scans() | self.scans()
-        ids = np.array(sorted(k for k in got if k in set(self.kf_id.tolist())), np.int64)
+        ids = np.array(sorted(got), np.int64)
+        ids = ids[np.isin(ids, self.kf_id)]
         if self.has_scans and len(ids) == len(self.scan_id):
             return self
         pts = [got[int(i)] for i in ids]

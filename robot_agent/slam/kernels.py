@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from shared.kernels import f64, i64, require
+
 try:
     from robot_agent.slam import _kernels
 except ImportError:  # built without a C compiler: the numpy versions run
@@ -16,18 +18,7 @@ AVAILABLE = _kernels is not None
 
 
 def _lib():
-    """The extension module, or a RuntimeError when the install did not build it."""
-    if _kernels is None:
-        raise RuntimeError("the compiled kernels are not built (no C compiler at install)")
-    return _kernels
-
-
-def _f64(a: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=np.float64)
-
-
-def _i64(a: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=np.int64)
+    return require(_kernels)
 
 
 def _u8(mask: np.ndarray) -> np.ndarray:
@@ -68,17 +59,17 @@ def gn_points(
     gate = np.broadcast_to(np.asarray(gate_wide, dtype=np.float64), (p,))
     lib.gn_points(
         x,
-        _f64(prior_mean),
-        _f64(info_prior),
-        _f64(pts),
-        _f64(np.cos(alpha)),
-        _f64(np.sin(alpha)),
-        _f64(rho),
-        _f64(seg),
-        _f64(np.cos(facing)),
-        _f64(np.sin(facing)),
+        f64(prior_mean),
+        f64(info_prior),
+        f64(pts),
+        f64(np.cos(alpha)),
+        f64(np.sin(alpha)),
+        f64(rho),
+        f64(seg),
+        f64(np.cos(facing)),
+        f64(np.sin(facing)),
         _u8(valid),
-        _f64(gate),
+        f64(gate),
         h,
         idx,
         p,
@@ -119,17 +110,17 @@ def associate_segments(
     idx = np.empty((p, o), dtype=np.int64)
     cost, d_angle, d_perp = np.empty((p, o)), np.empty((p, o)), np.empty((p, o))
     lib.associate_segments(
-        _f64(obs_facing),
-        _f64(centroid[..., 0]),
-        _f64(centroid[..., 1]),
-        _f64(obs_ends),
-        _f64(var_angle),
-        _f64(var_perp),
-        _f64(np.cos(alpha)),
-        _f64(np.sin(alpha)),
-        _f64(rho),
-        _f64(facing),
-        _f64(seg),
+        f64(obs_facing),
+        f64(centroid[..., 0]),
+        f64(centroid[..., 1]),
+        f64(obs_ends),
+        f64(var_angle),
+        f64(var_perp),
+        f64(np.cos(alpha)),
+        f64(np.sin(alpha)),
+        f64(rho),
+        f64(facing),
+        f64(seg),
         _u8(valid),
         idx,
         cost,
@@ -169,15 +160,15 @@ def visibility(
     through = np.empty((p, c), dtype=np.int64)
     in_view = np.empty((p, c), dtype=np.uint8)
     lib.visibility(
-        _f64(seg),
-        _f64(np.cos(alpha)),
-        _f64(np.sin(alpha)),
-        _f64(np.cos(facing)),
-        _f64(np.sin(facing)),
+        f64(seg),
+        f64(np.cos(alpha)),
+        f64(np.sin(alpha)),
+        f64(np.cos(facing)),
+        f64(np.sin(facing)),
         _u8(valid),
-        _f64(laser_poses),
-        _f64(ranges_m),
-        _f64(samples),
+        f64(laser_poses),
+        f64(ranges_m),
+        f64(samples),
         through,
         in_view,
         p,
@@ -198,7 +189,7 @@ def nearest_within(samples: np.ndarray, queries: np.ndarray, radius_m: float) ->
     """Distance ``(Q,)`` from each of ``queries (Q,2)`` to the nearest of ``samples (S,2)`` when
     below ``radius_m``, else inf: ``cKDTree(samples).query(queries, distance_upper_bound=radius_m)[0]``."""
     lib = _lib()
-    samples, queries = _f64(samples).reshape(-1, 2), _f64(queries).reshape(-1, 2)
+    samples, queries = f64(samples).reshape(-1, 2), f64(queries).reshape(-1, 2)
     d = np.empty(len(queries))
     lib.nearest_within(samples, queries, d, len(samples), len(queries), float(radius_m))
     return d
@@ -208,8 +199,8 @@ def split_pieces(pts: np.ndarray, threshold: np.ndarray, starts: np.ndarray, min
     """extraction._split: the piece starts after iterative end-point fit of ``pts (K,2)``."""
     lib = _lib()
     out = np.empty(len(pts), dtype=np.int64)
-    starts = _i64(starts)
-    n = lib.split_pieces(_f64(pts), _f64(threshold), starts, out, len(pts), len(starts), int(min_points))
+    starts = i64(starts)
+    n = lib.split_pieces(f64(pts), f64(threshold), starts, out, len(pts), len(starts), int(min_points))
     return out[:n]
 
 
@@ -228,8 +219,8 @@ def merge_pieces(
     starts = np.array(starts, dtype=np.int64)
     cluster = np.array(cluster, dtype=np.int64)
     n = lib.merge_pieces(
-        _f64(pts),
-        _f64(threshold),
+        f64(pts),
+        f64(threshold),
         starts,
         cluster,
         len(pts),
@@ -250,10 +241,10 @@ def local_columns(
     lib = _lib()
     p, m = valid.shape
     out = np.empty(m, dtype=np.int64)
-    rows = _i64(rows)
+    rows = i64(rows)
     n = lib.local_columns(
         _u8(valid),
-        _f64(seg), rows, out, p, m, len(rows), float(centre[0]), float(centre[1]), float(limit_m),
+        f64(seg), rows, out, p, m, len(rows), float(centre[0]), float(centre[1]), float(limit_m),
     )  # fmt: skip
     return out[:n]
 
@@ -272,10 +263,10 @@ def redundant_pairs(
     """update._redundant_pairs for maps ``(P,C)`` and recent columns ``(R,)``: ``(P,C,R)`` bool."""
     lib = _lib()
     p, c = valid.shape
-    recent = _i64(recent)
+    recent = i64(recent)
     out = np.empty((p, c, len(recent)), dtype=np.uint8)
     lib.redundant_pairs(
-        _u8(valid), _f64(seg), _f64(np.cos(alpha)), _f64(np.sin(alpha)), _f64(rho), _f64(facing), recent, out,
+        _u8(valid), f64(seg), f64(np.cos(alpha)), f64(np.sin(alpha)), f64(rho), f64(facing), recent, out,
         p, c, len(recent), float(max_angle_rad), float(max_perp_m), float(min_overlap_m),
     )  # fmt: skip
     return out.view(bool)
@@ -296,7 +287,7 @@ def observe_segments(
         np.empty((p, o)),
         np.empty((p, o, 2, 2)),
     )
-    lib.observe_segments(_f64(poses), _f64(moments), _f64(ends), _f64(facing), mo, al, rh, fo, eo, p, o)
+    lib.observe_segments(f64(poses), f64(moments), f64(ends), f64(facing), mo, al, rh, fo, eo, p, o)
     return mo, al, rh, fo, eo
 
 
@@ -304,9 +295,9 @@ def segment_samples(segments: np.ndarray, step_m: float) -> np.ndarray:
     """``geometry.sample_segments(segments, step_m)[0]``: the middle of each piece of the segments
     ``(S,2,2)`` cut into equal pieces no longer than ``step_m`` (counted as sample_segments does)."""
     lib = _lib()
-    seg = _f64(segments).reshape(-1, 2, 2)
+    seg = f64(segments).reshape(-1, 2, 2)
     d = seg[:, 1] - seg[:, 0]
-    counts = _i64(np.maximum(np.ceil(np.hypot(d[:, 0], d[:, 1]) / step_m).astype(int), 1))
+    counts = i64(np.maximum(np.ceil(np.hypot(d[:, 0], d[:, 1]) / step_m).astype(int), 1))
     out = np.empty((int(counts.sum()), 2))
     lib.segment_samples(seg, counts, out, len(seg), len(out))
     return out
