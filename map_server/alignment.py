@@ -169,31 +169,39 @@ MAX_VETOED = 20  # distinct places checked for contradiction, best first, before
 
 
 def _set_aside(
-    cands: list[Scored], veto, points: np.ndarray, distinct_m: float
+    cands: list[Scored],
+    veto,
+    points: np.ndarray,
+    distinct_m: float,
+    top: Callable[[list[Scored]], list[Scored]] | None = None,
 ) -> tuple[list[Scored], list[tuple[Scored, str]], int]:
     """The places ``veto`` contradicts, best first, up to the first it does not (at most
     MAX_VETOED distinct places checked), and the candidates without them. A candidate that is
     the same place as a contradicted one (within ``distinct_m``, as rivals are told apart) goes
-    with it unchecked: a mirror image found six times over is one place, not six. Returns the
-    candidates left, those set aside with why, and how many distinct places were contradicted."""
+    with it unchecked: a mirror image found six times over is one place, not six. ``top``: the
+    candidates with the best scored strictly (:func:`_best_refined`), before each is looked at.
+    Returns the candidates left, those set aside with why, and how many distinct places were
+    contradicted."""
     aside, contradicted, checked = [], [], 0
-    for s in sorted(cands, key=lambda s: -s.net):
+    left = list(cands)
+    while left:
+        if top is not None:
+            left = top(left)
+        s = max(left, key=lambda s: s.net)
         same = next(
             (w for c, w in contradicted if cand.mean_displacement(s.pose, c.pose, points) <= distinct_m), None
         )
-        if same is not None:
-            aside.append((s, same))
-            continue
-        if checked == MAX_VETOED:
-            break
-        checked += 1
-        why = veto(s.pose, s.matched_m)
-        if why is None:
-            break
-        aside.append((s, why))
-        contradicted.append((s, why))
-    gone = {id(s) for s, _ in aside}
-    return [c for c in cands if id(c) not in gone], aside, len(contradicted)
+        if same is None:
+            if checked == MAX_VETOED:
+                break
+            checked += 1
+            same = veto(s.pose, s.matched_m)
+            if same is None:
+                break
+            contradicted.append((s, same))
+        aside.append((s, same))
+        left = [c for c in left if c is not s]
+    return left, aside, len(contradicted)
 
 
 def _rivals_aside(
@@ -249,6 +257,23 @@ def _rivals_refined(
     return cands
 
 
+def _best_refined(
+    cands: list[Scored], index: MapIndex, robot: Samples, coarse: Samples, cfg: AlignmentConfig
+) -> list[Scored]:
+    """``cands`` with the best scored strictly: while the best (net) is one only pre-scored (its
+    generous pre-score has no conflict term), it is refined and scored and takes its place, at
+    most ``max_refined`` of them. Once the refined candidates at the true place are set aside or
+    lose their conflicting length, an unrefined peak can lead; it used to decide the verdict
+    unrefined — rejected as an ill-conditioned fit (no refinement, no sigma)."""
+    for _ in range(cfg.max_refined):
+        best = max(cands, key=lambda s: s.net)
+        if best.refined is not None:
+            break
+        s = cand.refine_and_score(index, robot, coarse, best.pose, cfg)
+        cands = [s if c is best else c for c in cands]
+    return cands
+
+
 def _outshone_aside(
     cands: list[Scored],
     veto: Check,
@@ -256,6 +281,7 @@ def _outshone_aside(
     cfg: AlignmentConfig,
     budget: int,
     strict: Callable[[Scored, list[Scored], float], list[Scored]] | None = None,
+    top: Callable[[list[Scored]], list[Scored]] | None = None,
 ) -> tuple[list[Scored], list[tuple[Scored, str]], int]:
     """While the best candidate has a distinct rival within ``close_ratio`` of its net score and
     the free space seen prefers the rival (``Check.outshone``), the best (and the candidates at its
@@ -267,6 +293,8 @@ def _outshone_aside(
     aside: list[tuple[Scored, str]] = []
     close, places = veto.cfg.close_ratio, 0
     for _ in range(max(budget, 0)):
+        if top is not None:
+            cands = top(cands)
         best = max(cands, key=lambda s: s.net)
         if strict is not None:
             cands = strict(best, cands, close)
@@ -288,9 +316,16 @@ def _accept_best(
     def strict(best: Scored, cands: list[Scored], ratio: float) -> list[Scored]:
         return cands if coarse is None else _rivals_refined(best, cands, index, robot, coarse, cfg, ratio)
 
+    def top(cands: list[Scored]) -> list[Scored]:
+        return (
+            cands
+            if coarse is None or not cfg.refine_best
+            else _best_refined(cands, index, robot, coarse, cfg)
+        )
+
     set_aside = []
     if veto is not None:
-        cands, set_aside, distinct = _set_aside(cands, veto, robot.points, cfg.distinct_m)
+        cands, set_aside, distinct = _set_aside(cands, veto, robot.points, cfg.distinct_m, top)
         if set_aside and (not cands or distinct == MAX_VETOED):  # every place checked contradicted
             s, why = set_aside[0]
             reason = f"rejected: the best {distinct} distinct places contradicted (best: {why})"
@@ -298,9 +333,10 @@ def _accept_best(
     outshone = []
     if isinstance(veto, Check):  # a close call is decided by the free space seen
         cands, outshone, places = _outshone_aside(
-            cands, veto, robot.points, cfg, MAX_VETOED - distinct, strict
+            cands, veto, robot.points, cfg, MAX_VETOED - distinct, strict, top
         )
         distinct += places
+    cands = top(cands)
     best = max(cands, key=lambda s: s.net)
     rivals_aside = []
     if veto is not None:  # a rival too close to call is checked too: a contradicted one is no rival
