@@ -262,7 +262,8 @@ def _best_refined(
 ) -> list[Scored]:
     """``cands`` with the best scored strictly: while the best (net) is one only pre-scored (its
     generous pre-score has no conflict term), it is refined and scored and takes its place, at
-    most ``max_refined`` of them. Once the refined candidates at the true place are set aside or
+    most ``max_refined`` of them (a candidate is refined once: over a verdict, at most the
+    search's unrefined peaks). Once the refined candidates at the true place are set aside or
     lose their conflicting length, an unrefined peak can lead; it used to decide the verdict
     unrefined — rejected as an ill-conditioned fit (no refinement, no sigma)."""
     for _ in range(cfg.max_refined):

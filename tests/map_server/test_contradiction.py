@@ -424,7 +424,7 @@ def test_a_best_only_prescored_is_scored_strictly_before_it_decides(refine_best)
     pre-score has no conflict term), leads the candidates. Refined and scored strictly it falls
     behind the truth, which is accepted; left pre-scored it decided the verdict (rejected as an
     ill-conditioned fit: a refinement's sigma is what a pre-score lacks). Searched again at the
-    end of 82 stored real-log runs in 3 pieces, 26 of 328 searches ended so (none refined)."""
+    end of 82 stored real-log runs in 3 pieces, 26 of 328 searches ended so."""
     import dataclasses
 
     from map_server import alignment
