@@ -25,7 +25,7 @@ from typing import Protocol
 import numpy as np
 import shapely
 
-from map_server import contradiction, policy
+from map_server import candidates, contradiction, policy
 from map_server.alignment import Alignment, estimate_alignment, query_reach, verify_join
 from map_server.config import FleetConfig
 from map_server.freespace import place_area
@@ -139,20 +139,37 @@ class Placer:
         if prior is None and (current is None or search):  # a search: a place contradicted by the
             # free space seen is set aside (and a current one undone)
             a = attempt(placed_map, veto=self.veto(r, placed_map))
-            if a.placed or r.alignment.placed or not any(x.bent is not None for x in self.fleet.placed()):
+            if r.alignment.placed or not any(x.bent is not None for x in self.fleet.placed()):
                 return a
-            # Not placed against the placed maps as their alignments put them: searched again
-            # against them as the fleet's graph bent them. Either can hide a true overlap — the
-            # bend pulls two placed maps toward each other where they disagree, away from a third
-            # that agrees with one as it was (Intel in 3 pieces); a placed map held rigidly by its
-            # overlap with the reference is off where it bends on its own, and the newcomer meets
-            # it there (MIT-CSAIL in 3 pieces: 50 m matched bent, 10 m rigid).
+            # Searched again against the placed maps as the fleet's graph bent them. Either can
+            # hide a true overlap — the bend pulls two placed maps toward each other where they
+            # disagree, away from a third that agrees with one as it was (Intel in 3 pieces); a
+            # placed map held rigidly by its overlap with the reference is off where it bends on
+            # its own, and the newcomer meets it there (MIT-CSAIL in 3 pieces: 50 m matched bent,
+            # 10 m rigid). The bent maps are the fleet's best account of the building: a place
+            # found against them is taken; one found against the rigid maps only where the bent
+            # maps' best place (placed or not) is the same place (FleetConfig.search_agree_m) —
+            # a bent piece placed rigidly misleads too (ACES's first piece, half-turned).
             bent_map = self.fleet.global_segments(r.robot)
             b = attempt(bent_map, veto=self.veto(r, bent_map))
-            if not b.placed:
+            if b.placed:
+                return dataclasses.replace(b, reason=f"{b.reason} (the placed maps as the graph bent them)")
+            apart = self._apart(r, a, b) if a.placed else None
+            if apart is None:
                 return a
-            return dataclasses.replace(b, reason=f"{b.reason} (the placed maps as the graph bent them)")
+            why = f"{a.reason}; but the best place against the maps as bent lies {apart:.1f} m away"
+            return Alignment("unaligned", a.transform, a.sigma, a.score_m, a.inlier_share, a.rival_ratio,
+                             f"rejected: ambiguous ({why})")  # fmt: skip
         return attempt(placed_map)
+
+    def _apart(self, r: RobotState, v: Alignment, other: Alignment) -> float | None:
+        """How far [m] (mean displacement of ``r``'s map) the other search's best place lies from
+        ``v``'s when it has one and it is farther than ``search_agree_m``; else None."""
+        if other.score_m <= 0.0:  # no place at all (no correspondences, a map too short)
+            return None
+        pts = self._samples[r.robot][1][1].points
+        d = candidates.mean_displacement(v.transform, other.transform, pts)
+        return d if d > self.cfg.search_agree_m else None
 
     def veto(self, r: RobotState, placed_map: np.ndarray) -> Callable[[np.ndarray, float], str | None] | None:
         """Why a place found for ``r`` is contradicted — its walls where the placed robots saw

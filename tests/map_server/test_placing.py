@@ -155,3 +155,43 @@ def test_a_young_map_is_attempted_at_most_every_young_retry_s_and_at_once_when_m
     young = [t for t in searched if t < mature_at]
     assert len(young) >= 3 and np.diff(young).min() >= cfg.young_retry_s, searched
     assert mature_at in searched, (mature_at, searched)  # the map unchanged since 20 s, and searched
+
+
+@pytest.mark.parametrize(
+    ("bent_off_m", "bent_score_m", "placed"), [(20.0, 25.0, False), (1.0, 25.0, True), (20.0, 0.0, True)]
+)
+def test_a_place_found_against_the_rigid_maps_only_is_taken_where_the_bent_maps_agree(
+    monkeypatch, bent_off_m, bent_score_m, placed
+):
+    """Once the graph bends the placed maps, a search is made against them rigid and bent. A place
+    found against the rigid maps while the bent maps' best place (not a verdict: too little
+    overlap, say) lies more than ``search_agree_m`` from it is ambiguous, and nothing is placed:
+    ACES's first piece, bent, was placed half-turned by the rigid search where the bent maps put
+    its truth first. A bent best place near it, or none at all, leaves the rigid place standing."""
+    import dataclasses
+
+    from map_server import placing
+
+    f, truth = _fleet_of_two()
+    f.robots["robot0"].bent = f.robots["robot0"].layer  # the graph bent it (here: where it was)
+    real, calls = placing.estimate_alignment, []
+
+    def bent_best_elsewhere(*args, **kwargs):
+        a = real(*args, **kwargs)
+        calls.append(a)
+        if len(calls) == 1:  # against the rigid maps: as found
+            return a
+        moved = compose(a.transform, np.array([bent_off_m, 0.0, 0.0]))
+        return dataclasses.replace(
+            a, status="unaligned", transform=moved, score_m=bent_score_m, reason="rejected"
+        )
+
+    monkeypatch.setattr(placing, "estimate_alignment", bent_best_elsewhere)
+    a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
+    assert len(calls) == 2 and calls[0].status == "aligned"
+    if placed:
+        assert a is calls[0]
+        err_m, err_rad = transform_error(a.transform, truth)
+        assert err_m < 0.05 and err_rad < np.radians(0.5)
+    else:
+        assert a.status == "unaligned" and "ambiguous" in a.reason and f"{bent_off_m:.1f} m away" in a.reason
