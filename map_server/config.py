@@ -311,9 +311,9 @@ class FleetConfig:
     # crop reaches this much beyond the robot map's box at its starting pose (plus the gates)
     refine_margin_m: float = 2.0
     # a search is made against the placed maps as placed (rigidly) and, once the fleet's graph bends
-    # them, as it bent them (placing.Placer.estimate): a place found against the bent maps is taken;
-    # one found against the rigid maps only if the bent maps' best place lies within this (mean
-    # displacement of the robot map) of it. ACES's first piece (of 3), bent, was placed half-turned
+    # them, as it bent them (placing.Placer.estimate): a place found against the rigid maps stands
+    # if the bent maps' best place lies within this (mean displacement of the robot map) of it;
+    # else the bent maps' place is taken, or none. ACES's first piece (of 3), bent, was placed half-turned
     # by the rigid search in 3 of 10 live runs (51.4 / 51.6 m matched, 1.58 / 1.65x the best rival;
     # 23.6 m off across the pieces) where the bent maps put its truth first (1.10x) or placed it
     # there. A bent piece's rigid and bent places of its truth lie within 1-4 m of each other, its

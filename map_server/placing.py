@@ -146,15 +146,18 @@ class Placer:
             # disagree, away from a third that agrees with one as it was (Intel in 3 pieces); a
             # placed map held rigidly by its overlap with the reference is off where it bends on
             # its own, and the newcomer meets it there (MIT-CSAIL in 3 pieces: 50 m matched bent,
-            # 10 m rigid). The bent maps are the fleet's best account of the building: a place
-            # found against them is taken; one found against the rigid maps only where the bent
-            # maps' best place (placed or not) is the same place (FleetConfig.search_agree_m) —
-            # a bent piece placed rigidly misleads too (ACES's first piece, half-turned).
+            # 10 m rigid). A bent piece placed rigidly misleads too (ACES's first piece, half-turned):
+            # a place found against the rigid maps stands where the bent maps' best place (placed
+            # or not) is the same place (FleetConfig.search_agree_m). Where it is not, the bent maps
+            # — the fleet's best account of the building — decide: their place if they place,
+            # else none (the search is ambiguous).
             bent_map = self.fleet.global_segments(r.robot)
             b = attempt(bent_map, veto=self.veto(r, bent_map))
+            apart = self._apart(r, a, b) if a.placed else None
+            if a.placed and apart is None:
+                return a
             if b.placed:
                 return dataclasses.replace(b, reason=f"{b.reason} (the placed maps as the graph bent them)")
-            apart = self._apart(r, a, b) if a.placed else None
             if apart is None:
                 return a
             why = f"{a.reason}; but the best place against the maps as bent lies {apart:.1f} m away"

@@ -158,16 +158,23 @@ def test_a_young_map_is_attempted_at_most_every_young_retry_s_and_at_once_when_m
 
 
 @pytest.mark.parametrize(
-    ("bent_off_m", "bent_score_m", "placed"), [(20.0, 25.0, False), (1.0, 25.0, True), (20.0, 0.0, True)]
+    ("bent_off_m", "bent_score_m", "bent_status", "outcome"),
+    [
+        (20.0, 25.0, "unaligned", "ambiguous"),
+        (1.0, 25.0, "unaligned", "rigid"),
+        (20.0, 0.0, "unaligned", "rigid"),
+        (20.0, 60.0, "aligned", "bent"),
+        (1.0, 60.0, "aligned", "rigid"),
+    ],
 )
-def test_a_place_found_against_the_rigid_maps_only_is_taken_where_the_bent_maps_agree(
-    monkeypatch, bent_off_m, bent_score_m, placed
+def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
+    monkeypatch, bent_off_m, bent_score_m, bent_status, outcome
 ):
     """Once the graph bends the placed maps, a search is made against them rigid and bent. A place
-    found against the rigid maps while the bent maps' best place (not a verdict: too little
-    overlap, say) lies more than ``search_agree_m`` from it is ambiguous, and nothing is placed:
-    ACES's first piece, bent, was placed half-turned by the rigid search where the bent maps put
-    its truth first. A bent best place near it, or none at all, leaves the rigid place standing."""
+    found against the rigid maps stands where the bent maps' best place lies within
+    ``search_agree_m`` of it (or they have none); where it lies farther, the bent maps decide —
+    their place if they place, else nothing (ambiguous): ACES's first piece, bent, was placed
+    half-turned by the rigid search where the bent maps put its truth first, or placed it there."""
     import dataclasses
 
     from map_server import placing
@@ -182,16 +189,17 @@ def test_a_place_found_against_the_rigid_maps_only_is_taken_where_the_bent_maps_
         if len(calls) == 1:  # against the rigid maps: as found
             return a
         moved = compose(a.transform, np.array([bent_off_m, 0.0, 0.0]))
-        return dataclasses.replace(
-            a, status="unaligned", transform=moved, score_m=bent_score_m, reason="rejected"
-        )
+        return dataclasses.replace(a, status=bent_status, transform=moved, score_m=bent_score_m, reason="b")
 
     monkeypatch.setattr(placing, "estimate_alignment", bent_best_elsewhere)
     a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
     assert len(calls) == 2 and calls[0].status == "aligned"
-    if placed:
+    if outcome == "rigid":
         assert a is calls[0]
         err_m, err_rad = transform_error(a.transform, truth)
         assert err_m < 0.05 and err_rad < np.radians(0.5)
+    elif outcome == "bent":
+        assert a.status == "aligned" and "as the graph bent them" in a.reason
+        assert np.allclose(a.transform, compose(calls[0].transform, np.array([bent_off_m, 0.0, 0.0])))
     else:
         assert a.status == "unaligned" and "ambiguous" in a.reason and f"{bent_off_m:.1f} m away" in a.reason
