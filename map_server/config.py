@@ -312,14 +312,14 @@ class FleetConfig:
     refine_margin_m: float = 2.0
     # a search is made against the placed maps as placed (rigidly) and, once the fleet's graph bends
     # them, as it bent them (placing.Placer.estimate): a place found against the rigid maps stands
-    # if the bent maps' best place lies within this (mean displacement of the robot map) of it;
-    # else the bent maps' place is taken, or none. ACES's first piece (of 3), bent, was placed half-turned
-    # by the rigid search in 3 of 10 live runs (51.4 / 51.6 m matched, 1.58 / 1.65x the best rival;
-    # 23.6 m off across the pieces) where the bent maps put its truth first (1.10x) or placed it
-    # there. A bent piece's rigid and bent places of its truth lie within 1-4 m of each other, its
-    # wrong places 20-60 m away. Searched again at the end of 82 stored real-log runs: 152 of 157
-    # true places kept, the same 2 wrong (old wrong merges found again), 5 refused (a rigid truth
-    # whose bent search led to a wrong place)
+    # unless the bent maps' best place (placed or not, on min_overlap_m of wall at least) lies
+    # farther than this (mean displacement of the robot map) from it; then the bent maps' place is
+    # taken, or none. ACES's first piece (of 3), bent, was placed half-turned by the rigid search in
+    # 3 of 10 live runs (36.1 / 51.4 / 51.6 m matched, 1.30 / 1.58 / 1.65x the best rival; 23.6 m
+    # off across the pieces) where the bent maps put its truth first (51-52 m; placed in one). A
+    # bent piece's rigid and bent places of its truth lie 1-4 m apart, its wrong places 20-60 m
+    # away. Searched again at the end of 82 stored real-log runs, 3 true places of that piece are
+    # refused (its bent search led to a wrong place on 43-51 m)
     search_agree_m: float = 5.0
     # refinements of placed robots (not urgent) are spread over the fusions: a fusion refines
     # due robots, the first in arrival order whose turn it is, until they add up to this many

@@ -167,8 +167,10 @@ class Placer:
 
     def _apart(self, r: RobotState, v: Alignment, other: Alignment) -> float | None:
         """How far [m] (mean displacement of ``r``'s map) the other search's best place lies from
-        ``v``'s when it has one and it is farther than ``search_agree_m``; else None."""
-        if other.score_m <= 0.0:  # no place at all (no correspondences, a map too short)
+        ``v``'s when it is farther than ``search_agree_m`` and stands on as much wall as a merge
+        needs (``min_overlap_m``: a best place of a few metres is no rival — MIT-CSAIL's middle
+        piece against the bent maps, 7 m); else None."""
+        if other.score_m < self.cfg.alignment.min_overlap_m:
             return None
         pts = self._samples[r.robot][1][1].points
         d = candidates.mean_displacement(v.transform, other.transform, pts)

@@ -160,9 +160,9 @@ def test_a_young_map_is_attempted_at_most_every_young_retry_s_and_at_once_when_m
 @pytest.mark.parametrize(
     ("bent_off_m", "bent_score_m", "bent_status", "outcome"),
     [
-        (20.0, 25.0, "unaligned", "ambiguous"),
-        (1.0, 25.0, "unaligned", "rigid"),
-        (20.0, 0.0, "unaligned", "rigid"),
+        (20.0, 40.0, "unaligned", "ambiguous"),
+        (1.0, 40.0, "unaligned", "rigid"),
+        (20.0, 10.0, "unaligned", "rigid"),  # a best place on too little wall is no rival
         (20.0, 60.0, "aligned", "bent"),
         (1.0, 60.0, "aligned", "rigid"),
     ],
@@ -172,7 +172,8 @@ def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
 ):
     """Once the graph bends the placed maps, a search is made against them rigid and bent. A place
     found against the rigid maps stands where the bent maps' best place lies within
-    ``search_agree_m`` of it (or they have none); where it lies farther, the bent maps decide —
+    ``search_agree_m`` of it (or stands on less wall than a merge needs); where it lies farther,
+    the bent maps decide —
     their place if they place, else nothing (ambiguous): ACES's first piece, bent, was placed
     half-turned by the rigid search where the bent maps put its truth first, or placed it there."""
     import dataclasses
