@@ -161,8 +161,7 @@ class Placer:
             if apart is None:
                 return a
             why = f"{a.reason}; but the best place against the maps as bent lies {apart:.1f} m away"
-            return Alignment("unaligned", a.transform, a.sigma, a.score_m, a.inlier_share, a.rival_ratio,
-                             f"rejected: ambiguous ({why})")  # fmt: skip
+            return dataclasses.replace(a, status="unaligned", reason=f"rejected: ambiguous ({why})")
         return attempt(placed_map)
 
     def _apart(self, r: RobotState, v: Alignment, other: Alignment) -> float | None:

@@ -394,20 +394,28 @@ def test_a_close_call_between_two_places_is_decided_by_the_free_space_seen():
     assert aside == [] and asked == [] and places == 0
 
 
-def test_a_close_rival_only_prescored_is_scored_as_strictly_as_the_best():
-    """Exact office maps: a half turn in place pre-scored as high as the truth (a pre-score has no
-    conflict term) is refined and scored strictly before it counts as the truth's rival."""
-    from map_server import alignment
+def _truth_and_half_turn(cfg: AlignmentConfig = CFG) -> tuple:
+    """Exact office maps (robot 2 against robot 0, 70 s): the robot map, the placed map's index,
+    the robot's fine and coarse samples, the truth refined and scored strictly, and the pose a
+    half turn in place from the truth."""
     from map_server import candidates as cand
-    from map_server.candidates import Scored
     from map_server.registration import MapIndex, Samples
 
     args, truth = exact_pair("office", 0, 2, 70.0)
     seg, placed = args[0], args[2]
-    index = MapIndex(placed, CFG.sample_step_m, compiled=CFG.compiled)
-    robot, coarse = Samples.of(seg, CFG.sample_step_m), Samples.of(seg, CFG.coarse_step_m)
-    best = cand.refine_and_score(index, robot, coarse, truth, CFG)
-    turned = compose(truth, np.array([0.0, 0.0, np.pi]))
+    index = MapIndex(placed, cfg.sample_step_m, compiled=cfg.compiled)
+    robot, coarse = Samples.of(seg, cfg.sample_step_m), Samples.of(seg, cfg.coarse_step_m)
+    best = cand.refine_and_score(index, robot, coarse, truth, cfg)
+    return seg, index, robot, coarse, best, compose(truth, np.array([0.0, 0.0, np.pi]))
+
+
+def test_a_close_rival_only_prescored_is_scored_as_strictly_as_the_best():
+    """Exact office maps: a half turn in place pre-scored as high as the truth (a pre-score has no
+    conflict term) is refined and scored strictly before it counts as the truth's rival."""
+    from map_server import alignment
+    from map_server.candidates import Scored
+
+    _, index, robot, coarse, best, turned = _truth_and_half_turn()
     generous = Scored(turned, best.net, 0.0, best.net, None)
     left = alignment._rivals_refined(best, [best, generous], index, robot, coarse, CFG, CFG.min_rival_ratio)
     assert left[0] is best and left[1].refined is not None and best.net >= CFG.min_rival_ratio * left[1].net
@@ -425,20 +433,11 @@ def test_a_best_only_prescored_is_scored_strictly_before_it_decides(refine_best)
     behind the truth, which is accepted; left pre-scored it decided the verdict (rejected as an
     ill-conditioned fit: a refinement's sigma is what a pre-score lacks). Searched again at the
     end of 82 stored real-log runs in 3 pieces, 26 of 328 searches ended so."""
-    import dataclasses
-
     from map_server import alignment
-    from map_server import candidates as cand
     from map_server.candidates import Scored
-    from map_server.registration import MapIndex, Samples
 
     cfg = dataclasses.replace(CFG, refine_best=refine_best)
-    args, truth = exact_pair("office", 0, 2, 70.0)
-    seg, placed = args[0], args[2]
-    index = MapIndex(placed, cfg.sample_step_m, compiled=cfg.compiled)
-    robot, coarse = Samples.of(seg, cfg.sample_step_m), Samples.of(seg, cfg.coarse_step_m)
-    best = cand.refine_and_score(index, robot, coarse, truth, cfg)
-    turned = compose(truth, np.array([0.0, 0.0, np.pi]))
+    seg, index, robot, coarse, best, turned = _truth_and_half_turn(cfg)
     generous = Scored(turned, 2.0 * best.net, 0.0, 2.0 * best.net, None)
     total = float(robot.length.sum())
     a = alignment._accept_best([best, generous], seg, index, robot, total, cfg, coarse=coarse)
