@@ -137,6 +137,13 @@ class GraphConfig:
     # the one run that placed ACES's first piece wrongly made it 3 m off. Off by default: no run
     # of it merged wrongly (9 runs)
     rebuild_on_arrival: bool = False
+    # a robot new to the graph starts where the bend moved the others around it rather than at its
+    # placement (FleetGraph._carry_in): placed against the unbent maps, its keyframes were matched
+    # from there against the others' bent keyframes, metres apart where the bend moved them (Intel in
+    # 3 pieces, 1 run of 4: the last piece placed 9 s after the second, which the bend had moved
+    # 2.4 m; scans matched none of its keyframes, 8 submaps tied it 2 m off, it ended 2.7 m from
+    # the reference piece's relations)
+    carry_arrivals: bool = True
     min_submap_m: float = 4.0  # a submap with less wall than this is not matched
     min_matched_m: float = 2.0  # a constraint rests on this much matched wall ...
     min_matched_share: float = 0.4  # ... and this share of the submap

@@ -223,6 +223,9 @@ class FleetGraph:
     # the one restored after a restart: the constraints are not persisted) ...
     rebuilding: bool = False  # ... kept out while every keyframe is matched anew (:meth:`rebuilt`)
     _from_bend: bool = False  # ... matched from the held bend rather than the placements (_bent_far)
+    # robot -> (graph, placement, X (K,3)): where a robot new to the graph starts, until it is solved
+    # (:meth:`_carry_in`)
+    _start: dict = field(default_factory=dict)
 
     def sync(self, placed: list[Placed]) -> list[str]:
         """Forget what the graph holds of a robot that is no longer placed, or whose placement
@@ -267,8 +270,53 @@ class FleetGraph:
             self.stats["rebuilds_on_arrival"] = self.stats.get("rebuilds_on_arrival", 0) + 1
         else:
             for p in new:
-                self._arrived(p, [o for o in placed if o.robot != p.robot])
+                others = [o for o in placed if o.robot != p.robot]
+                if self.cfg.carry_arrivals:
+                    self._carry_in(p, others)
+                self._arrived(p, others)
         return out
+
+    def _carry_in(self, p: Placed, others: list[Placed]) -> None:
+        """Where a robot new to the graph starts (matched from, and solved from): each of its
+        keyframes moved as the bend moved the others' nearest keyframe from their placement, when
+        that agrees with more of the others' walls where the bend put them than its placement does.
+        A robot placed by a search against the unbent maps (Placer.estimate) meets the others'
+        walls there; matched from its placement against their bend, the keyframes the bend moved
+        beyond a first match's reach are met by nothing, or by the wrong walls (Intel in 3 pieces:
+        the last piece tied by 8 submaps, 2 m off, where the bend had moved the second 2.4 m). One
+        placed against the bent maps (or refined against them since) agrees with them as it is."""
+        self._start.pop(p.robot, None)
+        if p.graph.rigid:
+            return
+        rigid, correction, walls = [], [], []
+        for o in others:
+            sol, at = self.solution.get(o.robot), self._placed_at.get(o.robot)
+            if sol is None or at is None or sol[0] is not o.graph or o.graph.rigid:
+                continue
+            r = compose(at, o.graph.pose)
+            rigid.append(r)
+            correction.append(compose(sol[1], inverse(r)))
+            walls.append(self.rows(o, sol[1]))
+        if not rigid:
+            return
+        rigid, correction = np.concatenate(rigid), np.concatenate(correction)
+        y = compose(p.transform, p.graph.pose)
+        _, near = cKDTree(rigid[:, :2]).query(y[:, :2])
+        x = compose(correction[near], y)
+        step = np.hypot(*(x[:, :2] - y[:, :2]).T)
+        if np.median(step) < self.cfg.stages[-1][0]:  # (within the narrowest match's gate: as it is)
+            return
+        index = MapIndex(np.concatenate(walls).reshape(-1, 2, 2), self.cfg.sample_step_m)
+        gate, angle = self.cfg.stages[-1]
+
+        def met_m(xs: np.ndarray) -> float:
+            s = Samples.of(self.rows(p, xs), self.cfg.sample_step_m)
+            ok, _, perp = index.match(np.zeros(3), s, gate, angle)
+            return float(s.length[ok & (np.abs(perp) <= gate)].sum())
+
+        if met_m(x) > met_m(y):
+            self._start[p.robot] = (p.graph, np.array(p.transform, float), x)
+            self.stats["carried_arrivals"] = self.stats.get("carried_arrivals", 0) + 1
 
     def _arrived(self, p: Placed, others: list[Placed]) -> None:
         """A robot new to the graph (placed, or placed again elsewhere): the others' keyframes
@@ -302,7 +350,7 @@ class FleetGraph:
     def forget(self, robot: str) -> None:
         """Drop the robot's solution, its constraints and the others' constraints on it (their
         keyframes are matched again)."""
-        for held in (self.solution, self.constraints, self._matched, self._placed_at, self.held):
+        for held in (self.solution, self.constraints, self._matched, self._placed_at, self.held, self._start):
             held.pop(robot, None)
         for other, cons in self.constraints.items():
             gone = [k for k, c in cons.items() if c.other == robot]
@@ -325,6 +373,7 @@ class FleetGraph:
         self.solution = {}
         self.constraints.clear()
         self._matched.clear()
+        self._start.clear()
 
     def _bent_far(self, solution: dict) -> bool:
         """Whether ``solution`` put more than ``rebuild_from_bend_share`` of some robot's keyframes
@@ -396,6 +445,9 @@ class FleetGraph:
         old = (self.solution if solution is None else solution).get(p.robot)
         g = p.graph
         if old is None:
+            start = self._start.get(p.robot)  # (a robot new to the graph: _carry_in)
+            if start is not None and start[0] is g and np.array_equal(start[1], p.transform):
+                return start[2]
             return compose(p.transform, g.pose)
         og, ox = old
         if og is g:
@@ -798,4 +850,5 @@ class FleetGraph:
             out[p.robot] = x[s : s + len(p.graph)]
             self.solution[p.robot] = (p.graph, out[p.robot])
             self._placed_at[p.robot] = np.array(p.transform, float)
+            self._start.pop(p.robot, None)
         return out

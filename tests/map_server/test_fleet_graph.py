@@ -657,6 +657,36 @@ def test_a_robot_placed_while_the_bend_is_beyond_reach_joins_without_a_rebuild()
     assert any(o == "r2" for _, o in fleet.graph.constraints.get("r0", {}))  # (r0 near r2: matched again)
 
 
+@pytest.mark.parametrize("carry", [True, False])
+def test_a_robot_placed_against_the_unbent_maps_starts_where_the_bend_moved_the_others(carry):
+    """A robot placed against the unbent maps meets the others' walls at its placement; the bend
+    may have moved them beyond a first match's reach (Intel in 3 pieces: the second piece bent
+    2.4 m from its placement, the third placed 9 s later, tied 2 m off by 8 submaps and no scan).
+    Its keyframes start where the bend moved the others' nearest keyframes from their placements
+    (``carry_arrivals``) — unless it was placed against the bent maps: then as it is."""
+    from map_server.fleet import _graph_item
+
+    runs = {"r0": bent_run(0, 0.0), "r1": bent_run(1, BEND), "r2": bent_run(2, 0.0)}
+    shift = np.array([2.0, 0.0, 0.0])  # the bend moved r0 and r1 2 m (a wide first match: 1.5 m)
+    for against_bend in (False, True):
+        fleet, _ = fleet_of(True, runs={k: runs[k] for k in ("r0", "r1")}, carry_arrivals=carry)
+        for robot in ("r0", "r1"):
+            g, x = fleet.graph.solution[robot]
+            fleet.graph.solution[robot] = (g, compose(shift, x))
+        prior = compose(shift, runs["r2"][3][0]) if against_bend else runs["r2"][3][0]
+        fleet.put_map(graph_message("r2", runs["r2"], prior), 200.0)
+        fleet.fuse(200.0, bend=False)  # (placed, not yet in the graph)
+        items = {r.robot: _graph_item(r) for r in fleet._bend_placed()}
+        fleet.graph.sync(list(items.values()))
+        p = items["r2"]
+        moved = np.hypot(*(fleet.graph.poses(p)[:, :2] - compose(p.transform, p.graph.pose)[:, :2]).T)
+        carried = carry and not against_bend
+        assert np.median(moved) == pytest.approx(2.0, abs=0.2) if carried else np.all(moved == 0.0)
+        fleet.fuse(201.0)  # (one fusion's share of keyframes matched)
+        tied = sum(o == "r1" for _, o in fleet.graph.constraints.get("r2", {}))
+        assert tied >= 3 if carry or against_bend else tied == 0  # measured 5; not carried: 0
+
+
 @pytest.mark.parametrize("share", [True, False])
 def test_constraints_on_one_pair_of_keyframes_share_its_information(monkeypatch, share):
     """Neighbouring keyframes' submaps overlap, and tied to the keyframe their matched rows move
