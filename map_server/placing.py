@@ -148,19 +148,24 @@ class Placer:
             # its own, and the newcomer meets it there (MIT-CSAIL in 3 pieces: 50 m matched bent,
             # 10 m rigid). A bent piece placed rigidly misleads too (ACES's first piece, half-turned):
             # a place found against the rigid maps stands where the bent maps' best place (placed
-            # or not) is the same place (FleetConfig.search_agree_m). Where it is not, the bent maps
-            # — the fleet's best account of the building — decide: their place if they place,
-            # else none (the search is ambiguous).
+            # or not) is the same place (FleetConfig.search_agree_m). Where it is not, neither
+            # stands (the search is ambiguous): each search has placed a piece wrongly where the
+            # other found its truth — ACES's first piece half-turned against the rigid maps (1.57x)
+            # where the bent maps put its truth first (1.10x); its third piece 18.8 m off against
+            # the bent maps (1.59x) where the rigid maps placed its truth (1.18x). The bent maps
+            # place alone only where the rigid maps place nothing.
             bent_map = self.fleet.global_segments(r.robot)
             b = attempt(bent_map, veto=self.veto(r, bent_map))
             apart = self._apart(r, a, b) if a.placed else None
             if a.placed and apart is None:
                 return a
-            if b.placed:
+            if b.placed and not a.placed:
                 return dataclasses.replace(b, reason=f"{b.reason} (the placed maps as the graph bent them)")
             if apart is None:
                 return a
             why = f"{a.reason}; but the best place against the maps as bent lies {apart:.1f} m away"
+            if b.placed:
+                why += f" and is placed there ({b.reason})"
             return dataclasses.replace(a, status="unaligned", reason=f"rejected: ambiguous ({why})")
         return attempt(placed_map)
 

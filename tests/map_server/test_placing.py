@@ -158,24 +158,24 @@ def test_a_young_map_is_attempted_at_most_every_young_retry_s_and_at_once_when_m
 
 
 @pytest.mark.parametrize(
-    ("bent_off_m", "bent_score_m", "bent_status", "outcome"),
+    ("rigid_placed", "bent_off_m", "bent_score_m", "bent_status", "outcome"),
     [
-        (20.0, 40.0, "unaligned", "ambiguous"),
-        (1.0, 40.0, "unaligned", "rigid"),
-        (20.0, 10.0, "unaligned", "rigid"),  # a best place on too little wall is no rival
-        (20.0, 60.0, "aligned", "bent"),
-        (1.0, 60.0, "aligned", "rigid"),
+        (True, 20.0, 40.0, "unaligned", "ambiguous"),
+        (True, 1.0, 40.0, "unaligned", "rigid"),
+        (True, 20.0, 10.0, "unaligned", "rigid"),  # a best place on too little wall is no rival
+        (True, 20.0, 60.0, "aligned", "ambiguous"),  # both place, apart: neither stands
+        (True, 1.0, 60.0, "aligned", "rigid"),
+        (False, 20.0, 60.0, "aligned", "bent"),  # the rigid maps place nothing
     ],
 )
 def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
-    monkeypatch, bent_off_m, bent_score_m, bent_status, outcome
+    monkeypatch, rigid_placed, bent_off_m, bent_score_m, bent_status, outcome
 ):
     """Once the graph bends the placed maps, a search is made against them rigid and bent. A place
     found against the rigid maps stands where the bent maps' best place lies within
     ``search_agree_m`` of it (or stands on less wall than a merge needs); where it lies farther,
-    the bent maps decide —
-    their place if they place, else nothing (ambiguous): ACES's first piece, bent, was placed
-    half-turned by the rigid search where the bent maps put its truth first, or placed it there."""
+    neither stands (ambiguous), placed or not: each search has placed a piece of ACES wrongly
+    where the other found its truth. The bent maps place alone where the rigid maps place nothing."""
     import dataclasses
 
     from map_server import placing
@@ -187,8 +187,8 @@ def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
     def bent_best_elsewhere(*args, **kwargs):
         a = real(*args, **kwargs)
         calls.append(a)
-        if len(calls) == 1:  # against the rigid maps: as found
-            return a
+        if len(calls) == 1:  # against the rigid maps: as found (or refused)
+            return a if rigid_placed else dataclasses.replace(a, status="unaligned", reason="r")
         moved = compose(a.transform, np.array([bent_off_m, 0.0, 0.0]))
         return dataclasses.replace(a, status=bent_status, transform=moved, score_m=bent_score_m, reason="b")
 
