@@ -160,7 +160,18 @@ def estimate_alignment(
         return _revise(current, cur, cands, robot_seg, index, robot, total, cfg, veto)
     if not cands:
         return Alignment("unaligned", np.zeros(3), np.zeros(3), reason="no corner correspondences")
-    return _accept_best(cands, robot_seg, index, robot, total, cfg, veto, coarse)
+    a = _accept_best(cands, robot_seg, index, robot, total, cfg, veto, coarse)
+    if a.placed or a.score_m >= cfg.min_overlap_m or cfg.deep_peaks <= cfg.max_peaks:
+        return a
+    # no place stands on as much wall as a merge needs among the densest vote peaks: deeper (a
+    # piece that overlaps the others little has few corners in common with them)
+    deep = cand.search(
+        robot_seg, placed_seg, index, robot, coarse, dataclasses.replace(cfg, max_peaks=cfg.deep_peaks)
+    )
+    d = _accept_best(deep, robot_seg, index, robot, total, cfg, veto, coarse)
+    if not d.placed:
+        return a
+    return dataclasses.replace(d, reason=f"{d.reason} (among the {cfg.deep_peaks} densest vote peaks)")
 
 
 MAX_VETOED = 20  # distinct places checked for contradiction, best first, before the search gives up

@@ -31,6 +31,12 @@ class AlignmentConfig:
     # is the 66th-90th densest (the others' corners agree among themselves); 0.05 s a search at 40,
     # 0.08 s at 100
     max_peaks: int = 100
+    # ... and this many when no place among them stands on min_overlap_m of wall: MIT-CSAIL's middle
+    # piece, searched against the other two placed in the third's frame, had its true place beyond
+    # the 100 densest (best found 4.9 m; at 200: its truth, 45.9 m, 2.05x). Not the first search's
+    # depth: at 200 peaks ACES's third piece, placed at its truth at 100 (1.18x), is placed 18.9 m
+    # off (1.29x) on the same maps
+    deep_peaks: int = 200
     max_refined: int = 12  # best pre-scored peaks refined and scored strictly
     refine_best: bool = True  # a best only pre-scored is refined before it decides (_best_refined)
     sample_step_m: float = 0.10  # maps are sampled this densely for the strict scores ...

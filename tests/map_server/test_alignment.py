@@ -6,6 +6,7 @@ from the start by the filter's own first-pose error; its true transform is taken
 fit of the estimated trajectory to the true one (``shared.metrics.ate``).
 """
 
+import dataclasses
 from collections import Counter
 
 import numpy as np
@@ -260,3 +261,26 @@ def test_vote_peaks_do_not_depend_on_where_the_placed_frame_lies():
         d = compose(inverse(move), moved) - peaks
         d[:, 2] = (d[:, 2] + np.pi) % (2 * np.pi) - np.pi
         assert np.abs(d).max() < 1e-9
+
+
+def test_a_search_with_no_place_on_enough_wall_among_the_densest_peaks_looks_deeper(monkeypatch):
+    """A piece that overlaps the others little shares few corners with them: its true place may
+    lie beyond the ``max_peaks`` densest vote peaks (MIT-CSAIL's middle piece against the other two,
+    best found 4.9 m). When no place among them stands on ``min_overlap_m`` of wall, the search
+    looks among ``deep_peaks``; a place found there is verified as any other."""
+    placed, seg, truth = pair(150.0)
+    real = candidates.vote_peaks
+
+    def nothing_among_the_densest(hyp, cell_m, cell_rad, max_peaks):
+        peaks, votes = real(hyp, cell_m, cell_rad, max_peaks)
+        if max_peaks >= CFG.deep_peaks:
+            return peaks, votes
+        return peaks[-5:], votes[-5:]  # (as if the densest held no place on the others' walls)
+
+    monkeypatch.setattr(candidates, "vote_peaks", nothing_among_the_densest)
+    shallow = estimate_alignment(seg, placed, dataclasses.replace(CFG, deep_peaks=CFG.max_peaks))
+    assert shallow.status == "unaligned" and shallow.score_m < CFG.min_overlap_m, shallow.reason
+    a = estimate_alignment(seg, placed, CFG)
+    assert a.status == "aligned" and f"among the {CFG.deep_peaks} densest" in a.reason, a.reason
+    err_m, err_deg = transform_error(a.transform, truth)
+    assert err_m < 0.01 and err_deg < 0.05
