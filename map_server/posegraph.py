@@ -289,14 +289,14 @@ class FleetGraph:
         if p.graph.rigid:
             return
         rigid, correction, walls = [], [], []
-        for o in others:
-            sol, at = self.solution.get(o.robot), self._placed_at.get(o.robot)
-            if sol is None or at is None or sol[0] is not o.graph or o.graph.rigid:
+        for o in others:  # where the graph has their keyframes (solved, held while rebuilt from
+            # the bend, or carried) against where their placements put them
+            if o.graph.rigid or o.robot not in self._placed_at:
                 continue
-            r = compose(at, o.graph.pose)
+            x, r = self.poses(o), compose(o.transform, o.graph.pose)
             rigid.append(r)
-            correction.append(compose(sol[1], inverse(r)))
-            walls.append(self.rows(o, sol[1]))
+            correction.append(compose(x, inverse(r)))
+            walls.append(self.rows(o, x))
         if not rigid:
             return
         rigid, correction = np.concatenate(rigid), np.concatenate(correction)
