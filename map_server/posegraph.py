@@ -241,7 +241,8 @@ class FleetGraph:
         (:meth:`_arrived`), and so does one that arrives while the bend is beyond a wide search's
         reach of the placements (:meth:`_bent_far`): it was placed against the unbent maps, the
         others would be matched from their bend (ACES in 3 pieces, the reference bent by 2.3 m at
-        the median: the new piece ended 3 m off its place)."""
+        the median: the new piece ended 3 m off its place); its keyframes start where the bend
+        moved the others' around it (:meth:`_carry_in`)."""
         now = {p.robot: p for p in placed}
 
         def kept(robot: str) -> bool:
