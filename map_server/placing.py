@@ -156,11 +156,13 @@ class Placer:
             # place alone only where the rigid maps place nothing.
             bent_map = self.fleet.global_segments(r.robot)
             b = attempt(bent_map, veto=self.veto(r, bent_map))
-            apart = self._apart(r, a, b) if a.placed else None
-            if a.placed and apart is None:
+            if not a.placed:
+                if b.placed:
+                    return dataclasses.replace(
+                        b, reason=f"{b.reason} (the placed maps as the graph bent them)"
+                    )
                 return a
-            if b.placed and not a.placed:
-                return dataclasses.replace(b, reason=f"{b.reason} (the placed maps as the graph bent them)")
+            apart = self._apart(r, a, b)
             if apart is None:
                 return a
             why = f"{a.reason}; but the best place against the maps as bent lies {apart:.1f} m away"

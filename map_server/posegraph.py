@@ -308,12 +308,11 @@ class FleetGraph:
         if np.median(step) < self.cfg.stages[-1][0]:  # (within the narrowest match's gate: as it is)
             return
         index = MapIndex(np.concatenate(walls).reshape(-1, 2, 2), self.cfg.sample_step_m)
-        gate, angle = self.cfg.stages[-1]
 
-        def met_m(xs: np.ndarray) -> float:
-            s = Samples.of(self.rows(p, xs), self.cfg.sample_step_m)
-            ok, _, perp = index.match(np.zeros(3), s, gate, angle)
-            return float(s.length[ok & (np.abs(perp) <= gate)].sum())
+        def met_m(xs: np.ndarray) -> float:  # (its walls, moved with its keyframes, on theirs)
+            return index.overlap(
+                np.zeros(3), Samples.of(self.rows(p, xs), self.cfg.sample_step_m), *self.cfg.stages[-1]
+            )
 
         if met_m(x) > met_m(y):
             self._start[p.robot] = (p.graph, np.array(p.transform, float), x)
