@@ -610,6 +610,15 @@ class Fleet:
         self.version += 1
         return self._keep(built, now_s)
 
+    def republish(self, now_s: float) -> FusedMap | None:
+        """The latest fused map as the next version, stamped ``now_s`` (its maps unchanged: the
+        server's figures in it are what changed), or None before the first."""
+        if self._latest is None:
+            return None
+        self.version += 1
+        self._latest = dataclasses.replace(self._latest, version=self.version, stamp_s=max(0.0, now_s))
+        return self._latest
+
     def _keep(self, built: tuple, stamp_s: float) -> FusedMap:
         """Make ``built`` (from :meth:`_build`) the latest fused map, at the current version."""
         table, (seg, support, off, prov), info = built

@@ -58,6 +58,9 @@ class ServerConfig:
     pull_timeout_s: float = 3.0  # waiting for agents' latest maps at start-up
     log_rejections_every_s: float = 10.0  # rejected messages are counted; a summary is logged this often
     status_every_s: float = 10.0  # a status line (queue depth, fusion time, memory) is logged this often
+    # messages refused after the last fusion (nothing else changed) go out with the fused map
+    # again, as a new version, at most this often: its figures are what a subscriber sees of them
+    refusals_every_s: float = 2.0
     timing_window: int = 200  # fusion times kept for the status percentiles
     free: FreeFusionConfig = field(default_factory=FreeFusionConfig)  # the fleet's free space
 
@@ -108,6 +111,8 @@ class MapServer:
         self._paths: list[RobotPath] = []  # where the fleet's graph put each placed robot (on query)
         self._stored: dict[str, tuple[tuple[str, int], bytes]] = {}  # robot -> ((session, seq), blob)
         self.fusions = 0
+        self._published_rejected = 0  # the refusals counted in the last fused map put
+        self._published_s = -np.inf  # time.monotonic() of that put
         self.session = uuid.uuid4().hex[:16]  # this process: receivers see a restart, not stale versions
         self._robot_ids: set[str] = set()  # every robot id admitted (fleet's and queued)
         self._last_log_s = 0.0
@@ -314,14 +319,18 @@ class MapServer:
         if gaps:  # a message missed: the agents' queryables answer with the whole free space
             self._pull_maps(gaps, maps=False)
         self.free.keep_only(self._free_sessions())
+        again = fused is None and (fused := self._refusals_due(now)) is not None
         if fused is None:
             self._tick_free(now)
             self._bend()
             return None
-        self.fusions += 1
+        if not again:  # (the fused map put again for its figures is no fusion)
+            self.fusions += 1
         fused = dataclasses.replace(fused, extra={**fused.extra, **self._stats_extra()})
+        self._published_rejected, self._published_s = int(fused.extra["server_rejected"]), time.monotonic()
         self._persist()  # before publishing: what anyone has seen survives a crash
-        self.fuse_ms.append((time.perf_counter() - t0) * 1e3)
+        if not again:
+            self.fuse_ms.append((time.perf_counter() - t0) * 1e3)
         payloads = self._payloads(fused)
         paths = self.fleet.paths(fused.version, self.session)
         with self._lock:
@@ -331,6 +340,18 @@ class MapServer:
         self._tick_free(now)
         self._bend()
         return fused
+
+    def _refusals_due(self, now_s: float) -> FusedMap | None:
+        """The fused map again as a new version when messages were refused since the last one put
+        and ``refusals_every_s`` passed: a subscriber sees the server's figures in the fused map,
+        and a flood that ends after the last fusion (the agents done) would never be counted there."""
+        with self._lock:
+            rejected = sum(self.rejected.values())
+        if rejected == self._published_rejected or self.fleet.latest() is None:
+            return None
+        if time.monotonic() - self._published_s < self.cfg.refusals_every_s:
+            return None  # (looked at again at the next tick: idle_period_s)
+        return self.fleet.republish(now_s)
 
     def _bend(self) -> None:
         """The fleet's graph matched and solved once the fused map is out (Fleet.fuse), if it has

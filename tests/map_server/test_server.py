@@ -3,7 +3,7 @@ before publication, resume from the state directory."""
 
 import numpy as np
 
-from map_server.server import MapServer
+from map_server.server import MapServer, ServerConfig
 from map_server.store import Store
 from shared import codec
 from shared.keys import Keys
@@ -89,6 +89,31 @@ def test_rejections_are_counted_by_reason_and_status_reports_the_queue():
     assert st["queue"]["maps"] == 1 and st["queue"]["waiting_maps"] == 0
     assert st["fusions"] == 1 and st["fuse_ms"]["max"] > 0
     assert fused.extra["server_rejected"] == 3.0 and fused.extra["server_queue_maps"] == 1.0
+
+
+def test_messages_refused_after_the_last_fusion_go_out_with_the_fused_map_again():
+    bus = FakeBus()
+    server = MapServer(bus, KEYS, ServerConfig(refusals_every_s=0.0))
+    for chunk in robot_map():
+        server.on_map(KEYS.robot_map("robot1"), codec.encode(chunk))
+    first = server.tick()
+    assert first is not None and first.extra["server_rejected"] == 0.0
+    assert server.tick() is None  # nothing changed, nothing refused: nothing put
+    server.on_map(KEYS.robot_map("robot1"), b"\xc1garbage")
+    server.on_map(KEYS.robot_map("robot1"), b"\xc1garbage")
+    again = server.tick()  # the maps unchanged, the figures not: the fused map put as a new version
+    assert again is not None and again.version == first.version + 1
+    assert again.extra["server_rejected"] == 2.0
+    np.testing.assert_array_equal(again.seg, first.seg)
+    assert codec.decode(bus.puts[-1][1]).version == again.version
+    assert server.status()["fusions"] == 1  # (no fusion)
+    assert server.tick() is None  # counted once
+    held = MapServer(FakeBus(), KEYS, ServerConfig(refusals_every_s=3600.0))
+    for chunk in robot_map():
+        held.on_map(KEYS.robot_map("robot1"), codec.encode(chunk))
+    held.tick()
+    held.on_map(KEYS.robot_map("robot1"), b"\xc1garbage")
+    assert held.tick() is None  # within refusals_every_s of the last put: not yet
 
 
 def test_published_maps_carry_the_server_process_session():
