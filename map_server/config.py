@@ -334,6 +334,15 @@ class FleetConfig:
     # away. Searched again at the end of 82 stored real-log runs, 3 true places of that piece are
     # refused (its bent search led to a wrong place on 43-51 m)
     search_agree_m: float = 5.0
+    # ... where the two searches place apart, the fleet's graph tries the robot at each place
+    # (Fleet.trial: a copy of the graph, the robot's keyframes matched and solved, at most
+    # ``trial_keyframes`` matched) and a place whose walls then meet the others' ``trial_ratio``
+    # times as much as at the other place stands, if its own search placed it (the other is not
+    # taken on the trial alone). ACES in 3 pieces, the first piece on two runs' final maps: 81 m
+    # at its truth against 44 m at the bent maps' best (25 m away), and 65 m against 23 m at the
+    # rigid maps' (16.6 m away); a search over the same maps said 1.18-1.32x in each
+    trial_ratio: float = 1.5
+    trial_keyframes: int = 4000
     # refinements of placed robots (not urgent) are spread over the fusions: a fusion refines
     # due robots, the first in arrival order whose turn it is, until they add up to this many
     # layer segments (the first one always: its cost grows with its map); the others wait for the

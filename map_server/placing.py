@@ -56,6 +56,8 @@ class FleetView(Protocol):
         self, exclude: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None, rigid: bool = False
     ) -> np.ndarray: ...
 
+    def trial(self, r: RobotState, places: list[np.ndarray]) -> list[float]: ...
+
 
 class Placer:
     def __init__(self, fleet: FleetView):
@@ -168,6 +170,15 @@ class Placer:
             why = f"{a.reason}; but the best place against the maps as bent lies {apart:.1f} m away"
             if b.placed:
                 why += f" and is placed there ({b.reason})"
+            met = self.fleet.trial(r, [a.transform, b.transform])  # the graph tries it at each
+            tried = f"a trial bend puts {met[0]:.1f} m of its walls on the others' there, {met[1]:.1f} m"
+            ratio = self.cfg.trial_ratio
+            for v, mine, other in ((a, met[0], met[1]), (b, met[1], met[0])):
+                if v.placed and mine >= ratio * other and mine > 0.0:
+                    log.info("%s: the two searches placed %.1f m apart; %s", r.robot, apart, tried)
+                    why = f"{v.reason} (settled by {tried} at the other place)"
+                    return dataclasses.replace(v, reason=why)
+            why += f"; {tried} at the other"
             return dataclasses.replace(a, status="unaligned", reason=f"rejected: ambiguous ({why})")
         return attempt(placed_map)
 

@@ -158,24 +158,31 @@ def test_a_young_map_is_attempted_at_most_every_young_retry_s_and_at_once_when_m
 
 
 @pytest.mark.parametrize(
-    ("rigid_placed", "bent_off_m", "bent_score_m", "bent_status", "outcome"),
+    ("rigid_placed", "bent_off_m", "bent_score_m", "bent_status", "trial", "outcome"),
     [
-        (True, 20.0, 40.0, "unaligned", "ambiguous"),
-        (True, 1.0, 40.0, "unaligned", "rigid"),
-        (True, 20.0, 10.0, "unaligned", "rigid"),  # a best place on too little wall is no rival
-        (True, 20.0, 60.0, "aligned", "ambiguous"),  # both place, apart: neither stands
-        (True, 1.0, 60.0, "aligned", "rigid"),
-        (False, 20.0, 60.0, "aligned", "bent"),  # the rigid maps place nothing
+        (True, 20.0, 40.0, "unaligned", (50.0, 45.0), "ambiguous"),
+        (True, 1.0, 40.0, "unaligned", None, "rigid"),
+        (True, 20.0, 10.0, "unaligned", None, "rigid"),  # a best place on too little wall is no rival
+        (True, 20.0, 60.0, "aligned", (50.0, 45.0), "ambiguous"),  # both place, apart: neither stands
+        (True, 1.0, 60.0, "aligned", None, "rigid"),
+        (False, 20.0, 60.0, "aligned", None, "bent"),  # the rigid maps place nothing
+        # apart, the graph tries both: a place meeting the others' walls 1.5x as much stands ...
+        (True, 20.0, 40.0, "unaligned", (69.0, 30.0), "rigid, settled"),
+        (True, 20.0, 60.0, "aligned", (29.0, 61.0), "bent, settled"),
+        # ... if its own search placed it
+        (True, 20.0, 40.0, "unaligned", (29.0, 61.0), "ambiguous"),
     ],
 )
 def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
-    monkeypatch, rigid_placed, bent_off_m, bent_score_m, bent_status, outcome
+    monkeypatch, rigid_placed, bent_off_m, bent_score_m, bent_status, trial, outcome
 ):
     """Once the graph bends the placed maps, a search is made against them rigid and bent. A place
     found against the rigid maps stands where the bent maps' best place lies within
     ``search_agree_m`` of it (or stands on less wall than a merge needs); where it lies farther,
-    neither stands (ambiguous), placed or not: each search has placed a piece of ACES wrongly
-    where the other found its truth. The bent maps place alone where the rigid maps place nothing."""
+    the fleet's graph tries the robot at both (Fleet.trial) and a place whose walls then meet the
+    others' ``trial_ratio`` times as much as at the other stands, if its search placed it; else
+    neither stands (ambiguous): each search has placed a piece of ACES wrongly where the other
+    found its truth. The bent maps place alone where the rigid maps place nothing."""
     import dataclasses
 
     from map_server import placing
@@ -193,14 +200,32 @@ def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
         return dataclasses.replace(a, status=bent_status, transform=moved, score_m=bent_score_m, reason="b")
 
     monkeypatch.setattr(placing, "estimate_alignment", bent_best_elsewhere)
+    tried = []
+
+    def trial_of(r, places):
+        tried.append([np.array(p) for p in places])
+        return list(trial)
+
+    monkeypatch.setattr(f, "trial", trial_of)
     a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
     assert len(calls) == 2 and calls[0].status == "aligned"
-    if outcome == "rigid":
-        assert a is calls[0]
+    assert len(tried) == (trial is not None)  # tried only where the two places lie apart
+    bent_place = compose(calls[1].transform, np.array([bent_off_m, 0.0, 0.0]))  # (as returned)
+    if tried:
+        rigid_at, bent_at = tried[0]
+        assert np.allclose(rigid_at, calls[0].transform) and np.allclose(bent_at, bent_place)
+    if outcome.startswith("rigid"):
+        assert a.status == "aligned" and np.allclose(a.transform, calls[0].transform)
         err_m, err_rad = transform_error(a.transform, truth)
         assert err_m < 0.05 and err_rad < np.radians(0.5)
-    elif outcome == "bent":
-        assert a.status == "aligned" and "as the graph bent them" in a.reason
-        assert np.allclose(a.transform, compose(calls[0].transform, np.array([bent_off_m, 0.0, 0.0])))
+    elif outcome.startswith("bent"):
+        assert a.status == "aligned" and np.allclose(a.transform, bent_place)
     else:
         assert a.status == "unaligned" and "ambiguous" in a.reason and f"{bent_off_m:.1f} m away" in a.reason
+        assert "a trial bend puts" in a.reason
+    if outcome.endswith("settled"):
+        assert "settled by a trial bend" in a.reason
+    elif outcome == "rigid":
+        assert a is calls[0]
+    elif outcome == "bent":
+        assert "as the graph bent them" in a.reason
