@@ -67,6 +67,7 @@ class Alignment:
     reason: str = ""
     contradicted_m: float | None = None
     seen_m2: float = 0.0
+    rival: np.ndarray | None = None  # a search's best distinct rival place (None: none, or no search)
 
     def __post_init__(self) -> None:
         if self.status not in ALIGNMENT_STATUSES:
@@ -356,7 +357,8 @@ def _accept_best(
             best, cands, veto, robot.points, cfg, MAX_VETOED - distinct, strict
         )
     cands = strict(best, cands, cfg.min_rival_ratio)
-    ratio = best.net / max(cand.rival(best, cands, robot.points, cfg.distinct_m), 1e-9)
+    rival = cand.best_rival(best, cands, robot.points, cfg.distinct_m)
+    ratio = best.net / max(0.0 if rival is None else rival.net, 1e-9)
     problems = _problems(best, total, index, robot, robot_seg, cfg)
     if ratio < cfg.min_rival_ratio:
         problems.append(f"rival ratio {ratio:.3f} < {cfg.min_rival_ratio:g}")
@@ -371,6 +373,8 @@ def _accept_best(
         f"overlap {best.matched_m:.1f} m ({best.matched_m / total:.0%}), {ratio:.2f}x the best rival" + aside
     )
     a = _verdict("aligned", best, total, ratio, "matched: " + why)
+    if rival is not None:
+        a = dataclasses.replace(a, rival=np.array(rival.pose, float))
     if isinstance(veto, Check):  # what the free space seen says of the place (policy.quiet)
         a = dataclasses.replace(
             a, contradicted_m=veto.contradicted_m(best.pose), seen_m2=veto.seen_m2(best.pose)

@@ -343,6 +343,9 @@ class FleetConfig:
     # rigid maps' (16.6 m away); a search over the same maps said 1.18-1.32x in each
     trial_ratio: float = 1.5
     trial_keyframes: int = 4000
+    # ... and a search's place for a robot whose map contradicts itself, with a distinct rival
+    # within this ratio, is tried against that rival (placing.Placer._rival_trial)
+    trial_rival_ratio: float = 2.0
     # refinements of placed robots (not urgent) are spread over the fusions: a fusion refines
     # due robots, the first in arrival order whose turn it is, until they add up to this many
     # layer segments (the first one always: its cost grows with its map); the others wait for the

@@ -140,47 +140,81 @@ class Placer:
         placed_map = self.fleet.global_segments(r.robot, rigid=not r.alignment.placed)
         if prior is None and (current is None or search):  # a search: a place contradicted by the
             # free space seen is set aside (and a current one undone)
-            a = attempt(placed_map, veto=self.veto(r, placed_map))
-            if r.alignment.placed or not any(x.bent is not None for x in self.fleet.placed()):
-                return a
-            # Searched again against the placed maps as the fleet's graph bent them. Either can
-            # hide a true overlap — the bend pulls two placed maps toward each other where they
-            # disagree, away from a third that agrees with one as it was (Intel in 3 pieces); a
-            # placed map held rigidly by its overlap with the reference is off where it bends on
-            # its own, and the newcomer meets it there (MIT-CSAIL in 3 pieces: 50 m matched bent,
-            # 10 m rigid). A bent piece placed rigidly misleads too (ACES's first piece, half-turned):
-            # a place found against the rigid maps stands where the bent maps' best place (placed
-            # or not) is the same place (FleetConfig.search_agree_m). Where it is not, neither
-            # stands (the search is ambiguous): each search has placed a piece wrongly where the
-            # other found its truth — ACES's first piece half-turned against the rigid maps (1.57x)
-            # where the bent maps put its truth first (1.10x); its third piece 18.8 m off against
-            # the bent maps (1.59x) where the rigid maps placed its truth (1.18x). The bent maps
-            # place alone only where the rigid maps place nothing.
-            bent_map = self.fleet.global_segments(r.robot)
-            b = attempt(bent_map, veto=self.veto(r, bent_map))
-            if not a.placed:
-                if b.placed:
-                    return dataclasses.replace(
-                        b, reason=f"{b.reason} (the placed maps as the graph bent them)"
-                    )
-                return a
-            apart = self._apart(r, a, b)
-            if apart is None:
-                return a
-            why = f"{a.reason}; but the best place against the maps as bent lies {apart:.1f} m away"
-            if b.placed:
-                why += f" and is placed there ({b.reason})"
-            met = self.fleet.trial(r, [a.transform, b.transform])  # the graph tries it at each
-            tried = f"a trial bend puts {met[0]:.1f} m of its walls on the others' there, {met[1]:.1f} m"
-            ratio = self.cfg.trial_ratio
-            for v, mine, other in ((a, met[0], met[1]), (b, met[1], met[0])):
-                if v.placed and mine >= ratio * other and mine > 0.0:
-                    log.info("%s: the two searches placed %.1f m apart; %s", r.robot, apart, tried)
-                    why = f"{v.reason} (settled by {tried} at the other place)"
-                    return dataclasses.replace(v, reason=why)
-            why += f"; {tried} at the other"
-            return dataclasses.replace(a, status="unaligned", reason=f"rejected: ambiguous ({why})")
+            v, tried = self._search(r, placed_map, attempt)
+            if v.placed and not r.alignment.placed and not tried:
+                v = self._rival_trial(r, v)
+            return v
         return attempt(placed_map)
+
+    def _search(self, r: RobotState, placed_map: np.ndarray, attempt) -> tuple[Alignment, bool]:
+        """A search of ``r`` (``attempt``: Placer.estimate's) against the placed maps, rigid and,
+        for a robot not placed while the graph bends them, bent; and whether the fleet's graph
+        tried it (Fleet.trial) to settle between the two."""
+        a = attempt(placed_map, veto=self.veto(r, placed_map))
+        if r.alignment.placed or not any(x.bent is not None for x in self.fleet.placed()):
+            return a, False
+        # Searched again against the placed maps as the fleet's graph bent them. Either can
+        # hide a true overlap — the bend pulls two placed maps toward each other where they
+        # disagree, away from a third that agrees with one as it was (Intel in 3 pieces); a
+        # placed map held rigidly by its overlap with the reference is off where it bends on
+        # its own, and the newcomer meets it there (MIT-CSAIL in 3 pieces: 50 m matched bent,
+        # 10 m rigid). A bent piece placed rigidly misleads too (ACES's first piece, half-turned):
+        # a place found against the rigid maps stands where the bent maps' best place (placed
+        # or not) is the same place (FleetConfig.search_agree_m). Where it is not, neither
+        # stands (the search is ambiguous): each search has placed a piece wrongly where the
+        # other found its truth — ACES's first piece half-turned against the rigid maps (1.57x)
+        # where the bent maps put its truth first (1.10x); its third piece 18.8 m off against
+        # the bent maps (1.59x) where the rigid maps placed its truth (1.18x). The bent maps
+        # place alone only where the rigid maps place nothing; where both place apart, the graph
+        # tries the robot at each (FleetConfig.trial_ratio).
+        bent_map = self.fleet.global_segments(r.robot)
+        b = attempt(bent_map, veto=self.veto(r, bent_map))
+        if not a.placed:
+            if b.placed:
+                return dataclasses.replace(
+                    b, reason=f"{b.reason} (the placed maps as the graph bent them)"
+                ), False
+            return a, False
+        apart = self._apart(r, a, b)
+        if apart is None:
+            return a, False
+        why = f"{a.reason}; but the best place against the maps as bent lies {apart:.1f} m away"
+        if b.placed:
+            why += f" and is placed there ({b.reason})"
+        met = self.fleet.trial(r, [a.transform, b.transform])  # the graph tries it at each
+        tried = f"a trial bend puts {met[0]:.1f} m of its walls on the others' there, {met[1]:.1f} m"
+        ratio = self.cfg.trial_ratio
+        for v, mine, other in ((a, met[0], met[1]), (b, met[1], met[0])):
+            if v.placed and mine >= ratio * other and mine > 0.0:
+                log.info("%s: the two searches placed %.1f m apart; %s", r.robot, apart, tried)
+                return dataclasses.replace(
+                    v, reason=f"{v.reason} (settled by {tried} at the other place)"
+                ), True
+        why += f"; {tried} at the other"
+        return dataclasses.replace(a, status="unaligned", reason=f"rejected: ambiguous ({why})"), True
+
+    def _rival_trial(self, r: RobotState, v: Alignment) -> Alignment:
+        """A search's place for a robot whose map contradicts itself (its walls stand in its own
+        free space by more than ``graph.consistent_self_m``: a real log's piece, its path bent)
+        and whose best distinct rival is within ``trial_rival_ratio``: the fleet's graph tries it
+        at both (Fleet.trial) and the place stands only if its walls then meet the others' more
+        than at the rival. A bent piece's rigid scores mislead both ways: ACES's last piece (of 3)
+        was merged half-turned at 1.18x the rival, 72.6 m matched — its truth; tried, 70.5 m at
+        the place and 98.2 m at the truth."""
+        if v.rival is None or v.rival_ratio >= self.cfg.trial_rival_ratio:
+            return v
+        noise = self.own_noise_m(r)
+        if noise is None or noise <= self.cfg.graph.consistent_self_m:
+            return v
+        here, there = self.fleet.trial(r, [v.transform, v.rival])
+        if here > there:
+            return v
+        why = (
+            f"rejected: a trial bend puts {there:.1f} m of its walls on the others' at the best rival"
+            f" place, {here:.1f} m at the best ({v.reason.removeprefix('matched: ')})"
+        )
+        log.info("%s: %s", r.robot, why)
+        return dataclasses.replace(v, status="unaligned", reason=why)
 
     def _apart(self, r: RobotState, v: Alignment, other: Alignment) -> float | None:
         """How far [m] (mean displacement of ``r``'s map) the other search's best place lies from

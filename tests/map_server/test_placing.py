@@ -229,3 +229,46 @@ def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
         assert a is calls[0]
     elif outcome == "bent":
         assert "as the graph bent them" in a.reason
+
+
+@pytest.mark.parametrize(
+    ("noise_m", "ratio_below", "trial", "outcome"),
+    [
+        (5.0, 1e9, (50.0, 70.0), "refused"),  # the rival meets more once tried: no place
+        (5.0, 1e9, (70.0, 50.0), "placed"),
+        (0.5, 1e9, (50.0, 70.0), "untried"),  # a map that agrees with itself: its scores hold
+        (5.0, 1.0, (50.0, 70.0), "untried"),  # a rival far enough behind
+    ],
+)
+def test_a_bent_robots_place_stands_only_if_a_trial_bend_meets_more_there_than_at_its_rival(
+    monkeypatch, noise_m, ratio_below, trial, outcome
+):
+    """A robot whose map contradicts itself (its path bent: a real log's piece) misleads a rigid
+    search's scores both ways (ACES's last piece merged half-turned at 1.18x its truth); where its
+    best distinct rival is within ``trial_rival_ratio`` the fleet's graph tries it at both places
+    (Fleet.trial) and the place stands only if its walls then meet the others' more there."""
+    import dataclasses
+
+    f, truth = _fleet_of_two()
+    f.cfg = dataclasses.replace(f.cfg, trial_rival_ratio=ratio_below)
+    tried = []
+
+    def trial_of(r, places):
+        tried.append([np.array(p) for p in places])
+        return list(trial)
+
+    monkeypatch.setattr(f, "trial", trial_of)
+    monkeypatch.setattr(f.placer, "own_noise_m", lambda r: noise_m)
+    a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
+    assert a.rival is not None and a.rival_ratio < 1e9
+    if outcome == "untried":
+        assert not tried and a.status == "aligned"
+        return
+    assert len(tried) == 1
+    place, rival = tried[0]
+    err_m, _ = transform_error(place, truth)
+    assert err_m < 0.05 and np.allclose(rival, a.rival)
+    if outcome == "placed":
+        assert a.status == "aligned" and np.allclose(a.transform, place)
+    else:
+        assert a.status == "unaligned" and "a trial bend puts 70.0 m" in a.reason and "best rival" in a.reason
