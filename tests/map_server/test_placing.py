@@ -236,6 +236,8 @@ def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
     [
         (5.0, 1e9, (50.0, 70.0), "refused"),  # the rival meets more once tried: no place
         (5.0, 1e9, (70.0, 50.0), "placed"),
+        (5.0, 1e9, (69.9, 69.9), "placed"),  # bent to the same place: the trial says nothing
+        (5.0, 1e9, (65.0, 70.0), "placed"),  # ... nor by less than a search's margin (1.1x)
         (0.5, 1e9, (50.0, 70.0), "untried"),  # a map that agrees with itself: its scores hold
         (5.0, 1.0, (50.0, 70.0), "untried"),  # a rival far enough behind
     ],
@@ -246,7 +248,8 @@ def test_a_bent_robots_place_stands_only_if_a_trial_bend_meets_more_there_than_a
     """A robot whose map contradicts itself (its path bent: a real log's piece) misleads a rigid
     search's scores both ways (ACES's last piece merged half-turned at 1.18x its truth); where its
     best distinct rival is within ``trial_rival_ratio`` the fleet's graph tries it at both places
-    (Fleet.trial) and the place stands only if its walls then meet the others' more there."""
+    (Fleet.trial) and the place stands unless its walls then meet the others' at the rival by the
+    margin a search places by (``alignment.min_rival_ratio``)."""
     import dataclasses
 
     f, truth = _fleet_of_two()
