@@ -190,8 +190,47 @@ class Placer:
                 return dataclasses.replace(
                     v, reason=f"{v.reason} (settled by {tried} at the other place)"
                 ), True
+        settled = self._settle_unplaced(r, b, bent_map, met[1], met[0])
+        if settled is not None:
+            log.info("%s: the two searches placed %.1f m apart; %s", r.robot, apart, tried)
+            return settled, True
         why += f"; {tried} at the other"
         return dataclasses.replace(a, status="unaligned", reason=f"rejected: ambiguous ({why})"), True
+
+    def _settle_unplaced(
+        self, r: RobotState, v: Alignment, placed_map: np.ndarray, mine: float, other: float
+    ) -> Alignment | None:
+        """The bent maps' best place ``v``, refused by its search, where a trial bend puts
+        ``trial_ratio`` times as much of the robot's walls on the others' there (``mine``) as at the
+        rigid maps' place (``other``), and as much as a merge needs (``min_overlap_m`` and
+        ``min_share`` of its map): verified again where it is against the maps as bent (every check
+        of a search's best but the share, which a bent piece placed whole cannot reach — the trial
+        is its fit; and the free space seen), ahead of its best distinct rival by
+        ``min_rival_ratio``. None if not. ACES's first piece (of 3), live at edd65b8: 12 % of its
+        map on the bent maps whole (2.0 m from its truth), 69.4 m once tried against 36.1 m at the
+        rigid maps' place (16.6 m off)."""
+        c = self.cfg.alignment
+        total = float(self._samples[r.robot][1][0].length.sum())
+        if (
+            v.placed
+            or v.rival_ratio < c.min_rival_ratio
+            or mine < self.cfg.trial_ratio * other
+            or mine < max(c.min_overlap_m, c.min_share * total)
+        ):
+            return None
+        whole = dataclasses.replace(c, join_min_overlap_m=c.min_overlap_m, join_min_share=0.0)
+        w = verify_join(
+            r.layer.seg, placed_map, whole, v.transform, v.sigma, veto=self.veto(r, placed_map),
+            robot_samples=self._samples[r.robot][1],
+        )  # fmt: skip
+        if not w.placed:
+            return None
+        why = (
+            f"matched against the maps as the graph bent them: a trial bend puts {mine:.1f} m of its walls"
+            f" on the others' there ({mine / max(total, 1e-9):.0%}), {other:.1f} m at the rigid maps' place;"
+            f" whole {v.score_m:.1f} m ({v.inlier_share:.0%}), {v.rival_ratio:.2f}x the best rival"
+        )
+        return dataclasses.replace(w, rival_ratio=v.rival_ratio, reason=why)
 
     def _rival_trial(self, r: RobotState, v: Alignment) -> Alignment:
         """A search's place for a robot whose map contradicts itself (its walls stand in its own

@@ -275,3 +275,43 @@ def test_a_bent_robots_place_stands_only_if_a_trial_bend_meets_more_there_than_a
         assert a.status == "aligned" and np.allclose(a.transform, place)
     else:
         assert a.status == "unaligned" and "a trial bend puts 70.0 m" in a.reason and "best rival" in a.reason
+
+
+@pytest.mark.parametrize(
+    ("trial", "outcome"), [((30.0, 70.0), "bent"), ((30.0, 40.0), "ambiguous"), ((30.0, 20.0), "rigid")]
+)
+def test_the_bent_maps_place_refused_for_its_share_stands_where_a_trial_bend_settles_it(
+    monkeypatch, trial, outcome
+):
+    """A bent piece placed whole reaches little of its map's length on the others' (ACES's first
+    piece: 12 %, under ``min_share``); where the rigid maps place it elsewhere and a trial bend puts
+    ``trial_ratio`` times as much of its walls on the others' at the bent maps' place, and a merge's
+    worth, that place is verified again there (every check but the share) and stands."""
+    import dataclasses
+
+    from map_server import placing
+
+    f, truth = _fleet_of_two()
+    f.robots["robot0"].bent = f.robots["robot0"].layer  # the graph bent it (here: where it was)
+    real, calls = placing.estimate_alignment, []
+
+    def rigid_elsewhere_bent_refused(*args, **kwargs):
+        a = real(*args, **kwargs)
+        calls.append(a)
+        if len(calls) == 1:  # the rigid maps: a place 20 m off
+            return dataclasses.replace(a, transform=compose(a.transform, np.array([20.0, 0.0, 0.0])))
+        return dataclasses.replace(a, status="unaligned", reason="rejected: share 0.12 < 0.15")
+
+    monkeypatch.setattr(placing, "estimate_alignment", rigid_elsewhere_bent_refused)
+    monkeypatch.setattr(f, "trial", lambda r, places: list(trial))
+    a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
+    assert len(calls) == 2
+    if outcome == "bent":
+        assert a.status == "aligned" and "a trial bend puts 70.0 m" in a.reason
+        err_m, err_rad = transform_error(a.transform, truth)
+        assert err_m < 0.05 and err_rad < np.radians(0.5)
+    elif outcome == "rigid":  # (the trial settles for the rigid maps' place: its search placed it)
+        assert a.status == "aligned" and "settled by a trial bend" in a.reason
+        assert transform_error(a.transform, truth)[0] > 19.0
+    else:
+        assert a.status == "unaligned" and "ambiguous" in a.reason
