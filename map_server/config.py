@@ -338,9 +338,10 @@ class FleetConfig:
     # (Fleet.trial: a copy of the graph, the robot's keyframes matched and solved, at most
     # ``trial_keyframes`` matched) and a place whose walls then meet the others' ``trial_ratio``
     # times as much as at the other place stands, if its own search placed it (the other is not
-    # taken on the trial alone). ACES in 3 pieces, the first piece on two runs' final maps: 81 m
-    # at its truth against 44 m at the bent maps' best (25 m away), and 65 m against 23 m at the
-    # rigid maps' (16.6 m away); a search over the same maps said 1.18-1.32x in each
+    # taken on the trial alone; one refused may be verified again: Placer._settle_unplaced). ACES
+    # in 3 pieces, the first piece on two runs' final maps: 68.9 m at its truth against 29.6 m at
+    # the bent maps' best (25 m away), and 61.4 m against 28.6 m at the rigid maps' (16.6 m away);
+    # the searches over the same maps said 1.18-1.32x
     trial_ratio: float = 1.5
     trial_keyframes: int = 4000
     # ... and a search's place for a robot whose map contradicts itself, with a distinct rival

@@ -375,7 +375,7 @@ class Fleet:
         placed there, its keyframes matched (and the others' near it) and solved. A piece whose own
         path bent meets only part of the others' walls as a whole; at its true place the graph
         bends it into them, at a wrong one its keyframes meet nothing that holds (ACES in 3 pieces,
-        final maps: 65-81 m at the truth against 23-44 m at the place the other search chose). The
+        final maps: 61-69 m at the truth against 29-30 m at the place the other search chose). The
         live graph is left as it is. Each trial matches every keyframe it has due (at most
         ``trial_keyframes`` in all); 0 for a place where nothing bends (no other robot bent)."""
         cfg = self.cfg.graph

@@ -183,19 +183,16 @@ class Placer:
             why += f" and is placed there ({b.reason})"
         met = self.fleet.trial(r, [a.transform, b.transform])  # the graph tries it at each
         tried = f"a trial bend puts {met[0]:.1f} m of its walls on the others' there, {met[1]:.1f} m"
-        ratio = self.cfg.trial_ratio
+        ratio, settled = self.cfg.trial_ratio, None
         for v, mine, other in ((a, met[0], met[1]), (b, met[1], met[0])):
             if v.placed and mine >= ratio * other and mine > 0.0:
-                log.info("%s: the two searches placed %.1f m apart; %s", r.robot, apart, tried)
-                return dataclasses.replace(
-                    v, reason=f"{v.reason} (settled by {tried} at the other place)"
-                ), True
-        settled = self._settle_unplaced(r, b, bent_map, met[1], met[0])
-        if settled is not None:
-            log.info("%s: the two searches placed %.1f m apart; %s", r.robot, apart, tried)
-            return settled, True
-        why += f"; {tried} at the other"
-        return dataclasses.replace(a, status="unaligned", reason=f"rejected: ambiguous ({why})"), True
+                settled = dataclasses.replace(v, reason=f"{v.reason} (settled by {tried} at the other place)")
+        settled = settled or self._settle_unplaced(r, b, bent_map, met[1], met[0])
+        if settled is None:
+            why += f"; {tried} at the other"
+            return dataclasses.replace(a, status="unaligned", reason=f"rejected: ambiguous ({why})"), True
+        log.info("%s: the two searches placed %.1f m apart; %s", r.robot, apart, tried)
+        return settled, True
 
     def _settle_unplaced(
         self, r: RobotState, v: Alignment, placed_map: np.ndarray, mine: float, other: float
