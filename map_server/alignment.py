@@ -367,14 +367,14 @@ def _accept_best(
         aside += f"; {len(outshone)} better-scored place(s) outshone ({outshone[0][1]})"
     if rivals_aside:
         aside += f"; {len(rivals_aside)} rival place(s) contradicted ({rivals_aside[0][1]})"
+    rival_at = None if rival is None else np.array(rival.pose, float)
     if problems:
-        return _verdict("unaligned", best, total, ratio, "rejected: " + "; ".join(problems) + aside)
+        a = _verdict("unaligned", best, total, ratio, "rejected: " + "; ".join(problems) + aside)
+        return dataclasses.replace(a, rival=rival_at)
     why = (
         f"overlap {best.matched_m:.1f} m ({best.matched_m / total:.0%}), {ratio:.2f}x the best rival" + aside
     )
-    a = _verdict("aligned", best, total, ratio, "matched: " + why)
-    if rival is not None:
-        a = dataclasses.replace(a, rival=np.array(rival.pose, float))
+    a = dataclasses.replace(_verdict("aligned", best, total, ratio, "matched: " + why), rival=rival_at)
     if isinstance(veto, Check):  # what the free space seen says of the place (policy.quiet)
         a = dataclasses.replace(
             a, contradicted_m=veto.contradicted_m(best.pose), seen_m2=veto.seen_m2(best.pose)

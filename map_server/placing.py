@@ -141,8 +141,8 @@ class Placer:
         if prior is None and (current is None or search):  # a search: a place contradicted by the
             # free space seen is set aside (and a current one undone)
             v, tried = self._search(r, placed_map, attempt)
-            if v.placed and not r.alignment.placed and not tried:
-                v = self._rival_trial(r, v)
+            if not r.alignment.placed and not tried:
+                v = self._rival_trial(r, v) if v.placed else self._share_trial(r, v, placed_map)
             return v
         return attempt(placed_map)
 
@@ -195,7 +195,13 @@ class Placer:
         return settled, True
 
     def _settle_unplaced(
-        self, r: RobotState, v: Alignment, placed_map: np.ndarray, mine: float, other: float
+        self,
+        r: RobotState,
+        v: Alignment,
+        placed_map: np.ndarray,
+        mine: float,
+        other: float,
+        rival_tried: bool = False,
     ) -> Alignment | None:
         """The bent maps' best place ``v``, refused by its search, where a trial bend puts
         ``trial_ratio`` times as much of the robot's walls on the others' there (``mine``) as at the
@@ -203,14 +209,15 @@ class Placer:
         ``min_share`` of its map): verified again where it is against the maps as bent (every check
         of a search's best but the share, which a bent piece placed whole cannot reach — the trial
         is its fit; and the free space seen), ahead of its best distinct rival by
-        ``min_rival_ratio``. None if not. ACES's first piece (of 3), live at edd65b8: 12 % of its
-        map on the bent maps whole (2.0 m from its truth), 69.4 m once tried against 36.1 m at the
-        rigid maps' place (16.6 m off)."""
+        ``min_rival_ratio`` (unless ``rival_tried``: ``other`` is that rival's trial). None if
+        not. ACES's first piece (of 3), live at edd65b8: 12 % of its map on the bent maps whole
+        (2.0 m from its truth), 69.4 m once tried against 36.1 m at the rigid maps' place (16.6 m
+        off)."""
         c = self.cfg.alignment
         total = float(self._samples[r.robot][1][0].length.sum())
         if (
             v.placed
-            or v.rival_ratio < c.min_rival_ratio
+            or (v.rival_ratio < c.min_rival_ratio and not rival_tried)
             or mine < self.cfg.trial_ratio * other
             or mine < max(c.min_overlap_m, c.min_share * total)
         ):
@@ -222,12 +229,37 @@ class Placer:
         )  # fmt: skip
         if not w.placed:
             return None
+        against = "its best rival's" if rival_tried else "the rigid maps'"
         why = (
-            f"matched against the maps as the graph bent them: a trial bend puts {mine:.1f} m of its walls"
-            f" on the others' there ({mine / max(total, 1e-9):.0%}), {other:.1f} m at the rigid maps' place;"
-            f" whole {v.score_m:.1f} m ({v.inlier_share:.0%}), {v.rival_ratio:.2f}x the best rival"
+            f"matched once tried: a trial bend puts {mine:.1f} m of its walls on the others' there"
+            f" ({mine / max(total, 1e-9):.0%}), {other:.1f} m at {against} place; whole {v.score_m:.1f} m"
+            f" ({v.inlier_share:.0%}), {v.rival_ratio:.2f}x the best rival"
         )
         return dataclasses.replace(w, rival_ratio=v.rival_ratio, reason=why)
+
+    def _share_trial(self, r: RobotState, v: Alignment, placed_map: np.ndarray) -> Alignment:
+        """A search's best place refused for a robot whose map contradicts itself, on as much wall
+        as a merge needs (``min_overlap_m``) but not on ``min_share`` of its map — a bent piece
+        placed whole (ACES's first piece: 10-14 %, in 3 of 8 live runs at 2447fbe): the fleet's
+        graph tries it there and at the best distinct rival (Fleet.trial), and the place stands
+        where the trial puts ``trial_ratio`` times as much of its walls on the others' as at the
+        rival, and a merge's worth (Placer._settle_unplaced: verified again, every check but the
+        share; the trial stands for the rival ratio, the rival tried itself). Else ``v``."""
+        c = self.cfg.alignment
+        if v.rival is None or v.score_m < c.min_overlap_m or not self._contradicts_self(r):
+            return v
+        mine, other = self.fleet.trial(r, [v.transform, v.rival])
+        settled = self._settle_unplaced(r, v, placed_map, mine, other, rival_tried=True)
+        if settled is None:
+            return v
+        log.info("%s: %s", r.robot, settled.reason)
+        return settled
+
+    def _contradicts_self(self, r: RobotState) -> bool:
+        """Whether ``r``'s walls stand in its own free space by more than
+        ``graph.consistent_self_m`` (a real log's piece: its path bent; not known: False)."""
+        noise = self.own_noise_m(r)
+        return noise is not None and noise > self.cfg.graph.consistent_self_m
 
     def _rival_trial(self, r: RobotState, v: Alignment) -> Alignment:
         """A search's place for a robot whose map contradicts itself (its walls stand in its own
@@ -240,10 +272,7 @@ class Placer:
         at 1.18x the rival (its truth), 72.6 m matched; tried, 70.5 m there and 98.2 m at the
         truth. Over 13 true best places of pieces on 8 runs' final maps the rival met 0.14-0.95 times
         as much."""
-        if v.rival is None or v.rival_ratio >= self.cfg.trial_rival_ratio:
-            return v
-        noise = self.own_noise_m(r)
-        if noise is None or noise <= self.cfg.graph.consistent_self_m:
+        if v.rival is None or v.rival_ratio >= self.cfg.trial_rival_ratio or not self._contradicts_self(r):
             return v
         here, there = self.fleet.trial(r, [v.transform, v.rival])
         if there < self.cfg.alignment.min_rival_ratio * here or there == 0.0:

@@ -315,3 +315,55 @@ def test_the_bent_maps_place_refused_for_its_share_stands_where_a_trial_bend_set
         assert transform_error(a.transform, truth)[0] > 19.0
     else:
         assert a.status == "unaligned" and "ambiguous" in a.reason
+
+
+@pytest.mark.parametrize(
+    ("noise_m", "score_m", "trial", "outcome"),
+    [
+        (5.0, 40.0, (70.0, 30.0), "placed"),
+        (5.0, 40.0, (40.0, 30.0), "refused"),  # not trial_ratio times its rival's
+        (5.0, 20.0, (70.0, 30.0), "untried"),  # less wall whole than a merge needs
+        (0.5, 40.0, (70.0, 30.0), "untried"),  # a map that agrees with itself: its share holds
+    ],
+)
+def test_a_bent_robots_place_refused_for_its_share_stands_where_a_trial_bend_beats_its_rival(
+    monkeypatch, noise_m, score_m, trial, outcome
+):
+    """A bent piece placed whole stands on too little of its map (ACES's first piece: 10-14 % in
+    3 of 8 live runs, neither search placing it); where its map contradicts itself and its best
+    place stands on a merge's worth of wall, the fleet's graph tries it there and at the best
+    distinct rival, and the place stands where the trial puts ``trial_ratio`` times as much of its
+    walls on the others' — verified again there, every check but the share."""
+    import dataclasses
+
+    from map_server import placing
+
+    f, truth = _fleet_of_two()
+    real, tried = placing.estimate_alignment, []
+
+    def refused_for_share(*args, **kwargs):
+        a = real(*args, **kwargs)
+        rival = compose(a.transform, np.array([15.0, 0.0, np.pi]))
+        return dataclasses.replace(
+            a, status="unaligned", score_m=score_m, reason="rejected: share", rival=rival
+        )
+
+    def trial_of(r, places):
+        tried.append([np.array(p) for p in places])
+        return list(trial)
+
+    monkeypatch.setattr(placing, "estimate_alignment", refused_for_share)
+    monkeypatch.setattr(f, "trial", trial_of)
+    monkeypatch.setattr(f.placer, "own_noise_m", lambda r: noise_m)
+    a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
+    assert len(tried) == (outcome != "untried")
+    if outcome == "placed":
+        assert (
+            a.status == "aligned"
+            and "a trial bend puts 70.0 m" in a.reason
+            and "best rival's place" in a.reason
+        )
+        err_m, err_rad = transform_error(a.transform, truth)
+        assert err_m < 0.05 and err_rad < np.radians(0.5)
+    else:
+        assert a.status == "unaligned" and a.reason == "rejected: share"
