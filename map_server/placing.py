@@ -246,7 +246,7 @@ class Placer:
         rival, and a merge's worth (Placer._settle_unplaced: verified again, every check but the
         share; the trial stands for the rival ratio, the rival tried itself). Else ``v``."""
         c = self.cfg.alignment
-        if v.rival is None or v.score_m < c.min_overlap_m or not self._contradicts_self(r):
+        if not self._far_rival(r, v) or v.score_m < c.min_overlap_m or not self._contradicts_self(r):
             return v
         mine, other = self.fleet.trial(r, [v.transform, v.rival])
         settled = self._settle_unplaced(r, v, placed_map, mine, other, rival_tried=True)
@@ -254,6 +254,16 @@ class Placer:
             return v
         log.info("%s: %s", r.robot, settled.reason)
         return settled
+
+    def _far_rival(self, r: RobotState, v: Alignment) -> bool:
+        """Whether the search's best distinct rival lies farther than ``search_agree_m`` from its
+        place: nearer, it is the same place where the robot's bent map fits otherwise (ACES's first
+        piece: its place 0.2 m from its truth and its rival 2.0 m, the rival meeting 1.11x as much
+        once tried) — no contest for a trial."""
+        if v.rival is None:
+            return False
+        pts = self._samples[r.robot][1][1].points
+        return candidates.mean_displacement(v.transform, v.rival, pts) > self.cfg.search_agree_m
 
     def _contradicts_self(self, r: RobotState) -> bool:
         """Whether ``r``'s walls stand in its own free space by more than
@@ -272,7 +282,11 @@ class Placer:
         at 1.18x the rival (its truth), 72.6 m matched; tried, 70.5 m there and 98.2 m at the
         truth. Over 13 true best places of pieces on 8 runs' final maps the rival met 0.14-0.95 times
         as much."""
-        if v.rival is None or v.rival_ratio >= self.cfg.trial_rival_ratio or not self._contradicts_self(r):
+        if (
+            v.rival_ratio >= self.cfg.trial_rival_ratio
+            or not self._far_rival(r, v)
+            or not self._contradicts_self(r)
+        ):
             return v
         here, there = self.fleet.trial(r, [v.transform, v.rival])
         if there < self.cfg.alignment.min_rival_ratio * here or there == 0.0:

@@ -318,16 +318,17 @@ def test_the_bent_maps_place_refused_for_its_share_stands_where_a_trial_bend_set
 
 
 @pytest.mark.parametrize(
-    ("noise_m", "score_m", "trial", "outcome"),
+    ("noise_m", "score_m", "rival_off_m", "trial", "outcome"),
     [
-        (5.0, 40.0, (70.0, 30.0), "placed"),
-        (5.0, 40.0, (40.0, 30.0), "refused"),  # not trial_ratio times its rival's
-        (5.0, 20.0, (70.0, 30.0), "untried"),  # less wall whole than a merge needs
-        (0.5, 40.0, (70.0, 30.0), "untried"),  # a map that agrees with itself: its share holds
+        (5.0, 40.0, 15.0, (70.0, 30.0), "placed"),
+        (5.0, 40.0, 15.0, (40.0, 30.0), "refused"),  # not trial_ratio times its rival's
+        (5.0, 20.0, 15.0, (70.0, 30.0), "untried"),  # less wall whole than a merge needs
+        (0.5, 40.0, 15.0, (70.0, 30.0), "untried"),  # a map that agrees with itself: its share holds
+        (5.0, 40.0, 2.0, (70.0, 30.0), "untried"),  # a rival within search_agree_m: the same place
     ],
 )
 def test_a_bent_robots_place_refused_for_its_share_stands_where_a_trial_bend_beats_its_rival(
-    monkeypatch, noise_m, score_m, trial, outcome
+    monkeypatch, noise_m, score_m, rival_off_m, trial, outcome
 ):
     """A bent piece placed whole stands on too little of its map (ACES's first piece: 10-14 % in
     3 of 8 live runs, neither search placing it); where its map contradicts itself and its best
@@ -343,7 +344,7 @@ def test_a_bent_robots_place_refused_for_its_share_stands_where_a_trial_bend_bea
 
     def refused_for_share(*args, **kwargs):
         a = real(*args, **kwargs)
-        rival = compose(a.transform, np.array([15.0, 0.0, np.pi]))
+        rival = compose(a.transform, np.array([rival_off_m, 0.0, 0.0]))
         return dataclasses.replace(
             a, status="unaligned", score_m=score_m, reason="rejected: share", rival=rival
         )
