@@ -290,6 +290,8 @@ class Placer:
             return v
         here, there = self.fleet.trial(r, [v.transform, v.rival])
         if there < self.cfg.alignment.min_rival_ratio * here or there == 0.0:
+            log.info("%s: a trial bend puts %.1f m of its walls on the others' at its place, %.1f m at its"
+                     " best rival's: it stands", r.robot, here, there)  # fmt: skip
             return v
         why = (
             f"rejected: a trial bend puts {there:.1f} m of its walls on the others' at the best rival"
