@@ -387,14 +387,11 @@ class Fleet:
         for p in self.pieces():
             keep[id(p.layer)] = p.layer
         fixed = [apply_segments(p.alignment.transform, p.layer.seg) for p in self.pieces()]
+        item = _graph_item(r, self._consistent(r), self._contradicts(r))
         out = []
         for place in places:
             g = copy.deepcopy(self.graph, dict(keep))  # (the robots' graphs shared, not copied)
-            mine = dataclasses.replace(
-                _graph_item(r, self._consistent(r), self._contradicts(r)),
-                transform=np.asarray(place, float),
-                status="aligned",
-            )
+            mine = dataclasses.replace(item, transform=np.asarray(place, float), status="aligned")
             now = [*items, mine]
             g.sync(now)
             tried = 0

@@ -260,10 +260,12 @@ class Placer:
         place: nearer, it is the same place where the robot's bent map fits otherwise (ACES's first
         piece: its place 0.2 m from its truth and its rival 2.0 m, the rival meeting 1.11x as much
         once tried) — no contest for a trial."""
-        if v.rival is None:
-            return False
-        pts = self._samples[r.robot][1][1].points
-        return candidates.mean_displacement(v.transform, v.rival, pts) > self.cfg.search_agree_m
+        return v.rival is not None and self._moved_m(r, v.transform, v.rival) > self.cfg.search_agree_m
+
+    def _moved_m(self, r: RobotState, a: np.ndarray, b: np.ndarray) -> float:
+        """How far [m] ``r``'s map lies at place ``b`` from place ``a`` (mean displacement of its
+        coarse samples)."""
+        return candidates.mean_displacement(a, b, self._samples[r.robot][1][1].points)
 
     def _contradicts_self(self, r: RobotState) -> bool:
         """Whether ``r``'s walls stand in its own free space by more than
@@ -307,8 +309,7 @@ class Placer:
         piece against the bent maps, 7 m); else None."""
         if other.score_m < self.cfg.alignment.min_overlap_m:
             return None
-        pts = self._samples[r.robot][1][1].points
-        d = candidates.mean_displacement(v.transform, other.transform, pts)
+        d = self._moved_m(r, v.transform, other.transform)
         return d if d > self.cfg.search_agree_m else None
 
     def veto(self, r: RobotState, placed_map: np.ndarray) -> Callable[[np.ndarray, float], str | None] | None:

@@ -23,6 +23,38 @@ def _fleet_of_two() -> tuple[Fleet, np.ndarray]:
     return f, compose(inverse(start0), start1)
 
 
+def _two_searches(monkeypatch, rigid, bent) -> tuple[Fleet, np.ndarray, list]:
+    """:func:`_fleet_of_two` with robot 0 bent by the graph (here: where it was), and a search of
+    robot 1 against the rigid maps answered by ``rigid(a)``, against the bent ones by ``bent(a)``
+    (``a``: what the real search found). Returns the fleet, robot 1's true place and the real
+    searches' verdicts, in order."""
+    from map_server import placing
+
+    f, truth = _fleet_of_two()
+    f.robots["robot0"].bent = f.robots["robot0"].layer
+    real, calls = placing.estimate_alignment, []
+
+    def answered(*args, **kwargs):
+        a = real(*args, **kwargs)
+        calls.append(a)
+        return (rigid if len(calls) == 1 else bent)(a)
+
+    monkeypatch.setattr(placing, "estimate_alignment", answered)
+    return f, truth, calls
+
+
+def _trials(monkeypatch, f: Fleet, figures) -> list:
+    """Fleet.trial answered with ``figures``; returns the places it was asked about, per call."""
+    tried = []
+
+    def trial_of(r, places):
+        tried.append([np.array(p) for p in places])
+        return list(figures)
+
+    monkeypatch.setattr(f, "trial", trial_of)
+    return tried
+
+
 def test_a_robot_not_placed_against_the_rigid_maps_is_searched_against_the_bent_ones(monkeypatch):
     """A search that finds no place against the placed maps as their alignments put them is made
     again against them as the fleet's graph bent them (MIT-CSAIL in 3 pieces: the rigid placed
@@ -185,28 +217,15 @@ def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
     found its truth. The bent maps place alone where the rigid maps place nothing."""
     import dataclasses
 
-    from map_server import placing
+    def rigid(a):  # as found (or refused)
+        return a if rigid_placed else dataclasses.replace(a, status="unaligned", reason="r")
 
-    f, truth = _fleet_of_two()
-    f.robots["robot0"].bent = f.robots["robot0"].layer  # the graph bent it (here: where it was)
-    real, calls = placing.estimate_alignment, []
-
-    def bent_best_elsewhere(*args, **kwargs):
-        a = real(*args, **kwargs)
-        calls.append(a)
-        if len(calls) == 1:  # against the rigid maps: as found (or refused)
-            return a if rigid_placed else dataclasses.replace(a, status="unaligned", reason="r")
+    def bent(a):  # the bent maps' best place elsewhere
         moved = compose(a.transform, np.array([bent_off_m, 0.0, 0.0]))
         return dataclasses.replace(a, status=bent_status, transform=moved, score_m=bent_score_m, reason="b")
 
-    monkeypatch.setattr(placing, "estimate_alignment", bent_best_elsewhere)
-    tried = []
-
-    def trial_of(r, places):
-        tried.append([np.array(p) for p in places])
-        return list(trial)
-
-    monkeypatch.setattr(f, "trial", trial_of)
+    f, truth, calls = _two_searches(monkeypatch, rigid, bent)
+    tried = _trials(monkeypatch, f, trial)
     a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
     assert len(calls) == 2 and calls[0].status == "aligned"
     assert len(tried) == (trial is not None)  # tried only where the two places lie apart
@@ -254,13 +273,7 @@ def test_a_bent_robots_place_stands_only_if_a_trial_bend_meets_more_there_than_a
 
     f, truth = _fleet_of_two()
     f.cfg = dataclasses.replace(f.cfg, trial_rival_ratio=ratio_below)
-    tried = []
-
-    def trial_of(r, places):
-        tried.append([np.array(p) for p in places])
-        return list(trial)
-
-    monkeypatch.setattr(f, "trial", trial_of)
+    tried = _trials(monkeypatch, f, trial)
     monkeypatch.setattr(f.placer, "own_noise_m", lambda r: noise_m)
     a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
     assert a.rival is not None and a.rival_ratio < 1e9
@@ -289,21 +302,14 @@ def test_the_bent_maps_place_refused_for_its_share_stands_where_a_trial_bend_set
     worth, that place is verified again there (every check but the share) and stands."""
     import dataclasses
 
-    from map_server import placing
+    def rigid(a):  # a place 20 m off
+        return dataclasses.replace(a, transform=compose(a.transform, np.array([20.0, 0.0, 0.0])))
 
-    f, truth = _fleet_of_two()
-    f.robots["robot0"].bent = f.robots["robot0"].layer  # the graph bent it (here: where it was)
-    real, calls = placing.estimate_alignment, []
-
-    def rigid_elsewhere_bent_refused(*args, **kwargs):
-        a = real(*args, **kwargs)
-        calls.append(a)
-        if len(calls) == 1:  # the rigid maps: a place 20 m off
-            return dataclasses.replace(a, transform=compose(a.transform, np.array([20.0, 0.0, 0.0])))
+    def bent(a):  # its truth, refused for its share
         return dataclasses.replace(a, status="unaligned", reason="rejected: share 0.12 < 0.15")
 
-    monkeypatch.setattr(placing, "estimate_alignment", rigid_elsewhere_bent_refused)
-    monkeypatch.setattr(f, "trial", lambda r, places: list(trial))
+    f, truth, calls = _two_searches(monkeypatch, rigid, bent)
+    _trials(monkeypatch, f, trial)
     a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
     assert len(calls) == 2
     if outcome == "bent":
@@ -340,7 +346,7 @@ def test_a_bent_robots_place_refused_for_its_share_stands_where_a_trial_bend_bea
     from map_server import placing
 
     f, truth = _fleet_of_two()
-    real, tried = placing.estimate_alignment, []
+    real = placing.estimate_alignment
 
     def refused_for_share(*args, **kwargs):
         a = real(*args, **kwargs)
@@ -349,12 +355,8 @@ def test_a_bent_robots_place_refused_for_its_share_stands_where_a_trial_bend_bea
             a, status="unaligned", score_m=score_m, reason="rejected: share", rival=rival
         )
 
-    def trial_of(r, places):
-        tried.append([np.array(p) for p in places])
-        return list(trial)
-
     monkeypatch.setattr(placing, "estimate_alignment", refused_for_share)
-    monkeypatch.setattr(f, "trial", trial_of)
+    tried = _trials(monkeypatch, f, trial)
     monkeypatch.setattr(f.placer, "own_noise_m", lambda r: noise_m)
     a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
     assert len(tried) == (outcome != "untried")
