@@ -49,6 +49,7 @@ class Job:
     hints: list
     final: bool = False
     keep: tuple | None = None  # (scans, first): what the caller will still ask corrections of
+    late_jumps: tuple = ()  # (scan, pose before, pose at): jumps between keyframes already made
 
 
 def run_job(backend: OnlineBackend, job: Job) -> tuple[Correction, dict]:
@@ -56,7 +57,8 @@ def run_job(backend: OnlineBackend, job: Job) -> tuple[Correction, dict]:
         return np.asarray(job.points[i], dtype=float)
 
     how = backend.finish if job.final else backend.update
-    corr = how(job.track, points_of, kf_poses=job.kf_poses, hints=job.hints, keep=job.keep)
+    late = list(job.late_jumps)
+    corr = how(job.track, points_of, kf_poses=job.kf_poses, hints=job.hints, keep=job.keep, late_jumps=late)
     return corr, dict(backend.stats)
 
 
@@ -382,7 +384,27 @@ class LiveCorrector:
         traj = slam.trajectory
         if traj.first_scan > 0:  # a run without end: what the map and the kept path refer to
             keep = (traj.scan_of_step(np.maximum(slam.referenced_steps(), 1)), traj.first_scan)
-        return Job(track, {r.index: r.points for r in recs}, kf_poses, list(hints), final, keep)
+        late = self._late_jumps(best)
+        return Job(track, {r.index: r.points for r in recs}, kf_poses, list(hints), final, keep, late)
+
+    def _late_jumps(self, particle: int) -> tuple:
+        """The relocalization jumps on ``particle``'s lineage between the back end's first and
+        last keyframes (``(scan, pose before, pose at)``, in the filter's own frame): a lineage
+        that became the best after its keyframes were made brings its jumps only here (the
+        track holds the scans since the last keyframe). Of the scans the filter still keeps."""
+        if len(self._kf_scan) < 2:
+            return ()
+        lo = max(int(self._kf_scan[0]), self.slam.trajectory.first_scan)
+        hi = int(self._kf_scan[-1])
+        if hi <= lo:
+            return ()
+        scans = np.arange(lo, hi + 1)
+        poses, jumps = self.slam.trajectory.lineage_at(particle, scans)
+        at = np.flatnonzero(jumps[1:]) + 1
+        if not len(at):
+            return ()
+        poses = self.frame.raw(self.slam, scans, poses)
+        return tuple((int(scans[i]), poses[i - 1], poses[i]) for i in at)
 
     def _filter_poses(self, particle: int, scans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The filter's poses ``(N,3)`` and jump flags ``(N,)`` of scans ``scans (N,)`` along

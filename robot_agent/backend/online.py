@@ -207,6 +207,7 @@ class OnlineBackend:
         hints: list[tuple[int, np.ndarray]] | None = None,
         requeries: int | None = None,
         keep: tuple[np.ndarray, int] | None = None,
+        late_jumps: list[tuple[int, np.ndarray, np.ndarray]] | None = None,
     ) -> Correction:
         """One step over the filter's best path as it is now. ``track``: that path over the scans
         from the last keyframe on (or the whole path); ``points_of(i)`` scan ``i``'s points in
@@ -217,7 +218,10 @@ class OnlineBackend:
         ``cfg.online_requeries``; ``-1``: all). ``keep``: ``(scans, first)``, the only scans
         the caller will still ask corrections of — ``scans`` (its map's elements were made
         from them) and every scan from ``first`` on; a retired keyframe that none of them
-        follows is forgotten (default: every retired keyframe is kept)."""
+        follows is forgotten (default: every retired keyframe is kept). ``late_jumps``: the
+        filter's relocalization jumps on the path between keyframes made before it had them
+        (``(scan, pose before, pose at)``, the filter's poses at the scan before and at it):
+        :meth:`_late_jumps`."""
         t0 = time.perf_counter()
         cfg = self.cfg
         if len(track.scan) == 0:
@@ -226,6 +230,7 @@ class OnlineBackend:
         old = kf_poses if kf_poses is not None else track.at(np.asarray(self.kf_scan, int))
         if len(old) != k_prev:
             raise ValueError(f"kf_poses: {len(old)} poses for {k_prev} keyframes")
+        self._late_jumps(old.reshape(-1, 3), late_jumps or [])
         f = np.vstack([old.reshape(-1, 3), self._extend(track, points_of)])
         kf = np.asarray(self.kf_scan, int)
         est = self._carry(f, k_prev)
@@ -590,6 +595,25 @@ class OnlineBackend:
                 added.append(track.poses[t])
                 last_t = t
         return np.array(added).reshape(-1, 3)
+
+    def _late_jumps(self, f: np.ndarray, late: list[tuple[int, np.ndarray, np.ndarray]]) -> None:
+        """Jumps on the filter's path between keyframes already made (``f (K,3)``: the path's
+        poses at them now): the lineage they were made on had none there, and the filter's best
+        lineage changed since to one that relocalized (Intel's last third, one live run: a 3 m
+        jump the chain edge took as motion, holding the 190 scans before it 2-3 m off for good).
+        The chain edge over each is the path up to the scan before it and from the scan at it
+        on, held as loosely as a jump found when its keyframe was made (:meth:`_extend`); the
+        motion across the jump itself is taken as none (one scan's, centimetres: within the jump
+        edge's sigma — the odometry of scans already sent is not kept). One already held stays."""
+        if not late or len(self.kf_scan) < 2:
+            return
+        kf = np.asarray(self.kf_scan, int)
+        for scan, before, at in late:
+            n = int(np.searchsorted(kf, int(scan)))  # the first keyframe at or after the jump
+            if n == 0 or n >= len(kf) or self.kf_id[n] in self._jump_edges:
+                continue
+            self._jump_edges[self.kf_id[n]] = compose(relative(f[n - 1], before), relative(at, f[n]))
+            self.stats["late_jumps"] = self.stats.get("late_jumps", 0) + 1
 
     def _add(self, track: Track, t: int, points_of, arc_m: float) -> None:
         i = int(track.scan[t])

@@ -356,3 +356,30 @@ def test_the_published_maps_carry_each_keyframes_scan_and_the_whole_every_one(of
         u = np.clip(np.sum((q - a) * ab, axis=2) / np.maximum(np.sum(ab * ab, axis=1), 1e-12), 0.0, 1.0)
         d[lo : lo + 2000] = np.hypot(*np.moveaxis(a + u[..., None] * ab - q, 2, 0)).min(axis=1)
     assert np.median(d) < 0.02 and np.mean(d < 0.1) > 0.95  # measured 0.007 m, 0.98
+
+
+def test_a_jump_that_the_best_lineage_brings_between_keyframes_goes_to_the_back_end(office_run, monkeypatch):
+    """The keyframes were made on the lineage that was the best then; one that became the best
+    since may have relocalized between two of them, where the track (the scans from the last
+    keyframe on) does not reach. Each job names such jumps — the scan, the filter's own poses at
+    the scan before and at it — for the back end to bridge (OnlineBackend._late_jumps)."""
+    core, *_ = office_run
+    c, slam = core.corrector, core.slam
+    traj = slam.trajectory
+    best = slam.particles.best()
+    kf = c._kf_scan
+    jump = int(kf[len(kf) // 2]) + 1  # between two keyframes
+    real = traj.lineage_at
+    assert not real(best, np.arange(traj.first_scan, int(kf[-1]) + 1))[1].any()  # (none in this run)
+
+    def lineage_at(particle, scans):  # the best lineage now: relocalized at ``jump``
+        poses, jumps = real(particle, scans)
+        return poses, jumps | (np.asarray(scans) == jump)
+
+    monkeypatch.setattr(traj, "lineage_at", lineage_at)
+    late = c._late_jumps(best)
+    assert [scan for scan, _, _ in late] == [jump]
+    own = c.frame.raw(slam, np.array([jump - 1, jump]), real(best, np.array([jump - 1, jump]))[0])
+    np.testing.assert_allclose(np.array(late[0][1:]), own, atol=1e-12)
+    monkeypatch.setattr(traj, "lineage_at", lambda particle, scans: real(particle, scans))
+    assert c._late_jumps(best) == ()

@@ -82,6 +82,38 @@ def test_a_jump_is_bridged_by_odometry_when_it_arrives():
     np.testing.assert_allclose(relative(out[39], out[40]), relative(odo[39], odo[40]), atol=1e-6)
 
 
+@pytest.mark.parametrize("told", [True, False])
+def test_a_jump_that_a_later_lineage_brings_between_keyframes_is_bridged_too(told):
+    """The keyframes were made on a lineage without a jump; the filter's best lineage since
+    relocalized between two of them (Intel's last third, one live run: the 3 m jump taken as
+    motion held 190 scans 2-3 m off). Told of it (``late_jumps``), the chain edge over it is held
+    loosely, as a jump that came with its keyframe; not told, the chain takes the jump as motion."""
+    odo = np.column_stack([np.arange(60) * 0.05, np.zeros(60), np.zeros(60)])
+    smooth, jumped = odo.copy(), odo.copy()
+    jumped[43:, 1] += 1.0  # the best lineage now: relocalized 1 m at scan 43
+    none = lambda i: np.zeros((0, 2))  # noqa: E731 — no scan: no loop can be found
+    online = OnlineBackend(be.BackendConfig())
+    online.update(Track.whole(np.arange(60.0), smooth, odo), none)
+    kf = np.asarray(online.kf_scan)
+    assert kf[0] < 43 < kf[-1] and 43 not in kf
+    last = int(kf[-1])
+    rest = np.arange(last, 60)
+    tail = Track(rest, rest.astype(float), jumped[last:], odo[last:], np.zeros(len(rest), bool))
+    late = [(43, jumped[42], jumped[43])] if told else None
+    out = online.update(tail, none, kf_poses=jumped[kf], late_jumps=late).apply(jumped)
+    after = int(kf[np.searchsorted(kf, 43)])  # the keyframe after the jump: the scans from it on
+    # (those between the jump and it hang from the keyframe before, as any scan does)
+    if told:
+        assert online.stats["jumps"] == online.stats["late_jumps"] == 1
+        # bridged, the motion across taken as none (odometry: 0.05 m)
+        np.testing.assert_allclose(out[after:], odo[after:] - [0.05, 0.0, 0.0], atol=1e-6)
+        online.update(tail, none, kf_poses=jumped[kf], late_jumps=late)  # (told again: held once)
+        assert online.stats["late_jumps"] == 1
+    else:
+        assert online.stats.get("jumps", 0) == 0
+        np.testing.assert_allclose(out[after:], jumped[after:], atol=1e-6)  # the jump taken as motion
+
+
 def test_the_moved_keyframes_searched_again_per_update_are_bounded(drifted_office):
     _, log, drifted, points = drifted_office
     cfg = be.BackendConfig(online_requeries=3)
