@@ -75,6 +75,7 @@ from map_server.config import FleetConfig
 from map_server.fusion import fuse_particles
 from map_server.incremental import MergedMap, Source
 from map_server.placing import Placer
+from map_server.policy import agrees, contradicts_self
 from map_server.posegraph import FleetGraph, Placed, RobotGraph
 from map_server.registration import MapIndex, Samples
 from map_server.state import RetiredPiece, RobotState
@@ -268,17 +269,17 @@ class Fleet:
         g, session = self.cfg.graph, r.map.session
         hit = self._stiff.get(r.robot)  # (session, map length measured at, own noise or None)
         stale = hit is None or hit[0] != session
-        if not stale and not _contradicts_self(hit[2], g.consistent_self_m):  # (else: for good)
+        if not stale and not contradicts_self(hit[2], g.consistent_self_m):  # (else: for good)
             stale = abs(r.layer.length_m - hit[1]) >= self.cfg.retry_growth_m
         if stale:
             if len(self._stiff) > 2 * len(self.robots) + 8:  # (robots forgotten)
                 self._stiff = {k: v for k, v in self._stiff.items() if k in self.robots}
-            was = hit is not None and hit[0] == session and _agrees(hit[2], g.consistent_self_m)
+            was = hit is not None and hit[0] == session and agrees(hit[2], g.consistent_self_m)
             hit = self._stiff[r.robot] = (session, r.layer.length_m, self.placer.own_noise_m(r))
-            if hit[2] is not None and _agrees(hit[2], g.consistent_self_m) != was:
+            if hit[2] is not None and agrees(hit[2], g.consistent_self_m) != was:
                 how = "bent as the others' walls say" if was else "held to its shape, wide submaps"
                 log.info("%s: its walls stand %.1f m in its own free space: %s", r.robot, hit[2], how)
-        return _agrees(hit[2], g.consistent_self_m)
+        return agrees(hit[2], g.consistent_self_m)
 
     def _contradicts(self, r: RobotState) -> bool:
         """Whether a placed robot's walls were found standing in its own free space by more than
@@ -287,7 +288,7 @@ class Fleet:
         return (
             hit is not None
             and hit[0] == r.map.session
-            and _contradicts_self(hit[2], self.cfg.graph.consistent_self_m)
+            and contradicts_self(hit[2], self.cfg.graph.consistent_self_m)
         )
 
     def _carry(self) -> None:
@@ -751,16 +752,6 @@ class Fleet:
         if built[0] and meta["stamp_s"] is not None:
             f._keep(built, meta["stamp_s"])
         return f
-
-
-def _contradicts_self(noise_m: float | None, limit_m: float) -> bool:
-    """Whether a map's own contradiction is known and beyond ``limit_m``."""
-    return noise_m is not None and noise_m > limit_m
-
-
-def _agrees(noise_m: float | None, limit_m: float) -> bool:
-    """Whether a map's own contradiction (None: not known) is within ``limit_m``."""
-    return noise_m is not None and noise_m <= limit_m
 
 
 def _graph_item(r: RobotState, consistent: bool = False, contradicts: bool = False) -> Placed:

@@ -269,9 +269,8 @@ class Placer:
 
     def _contradicts_self(self, r: RobotState) -> bool:
         """Whether ``r``'s walls stand in its own free space by more than
-        ``graph.consistent_self_m`` (a real log's piece: its path bent; not known: False)."""
-        noise = self.own_noise_m(r)
-        return noise is not None and noise > self.cfg.graph.consistent_self_m
+        ``graph.consistent_self_m`` (policy.contradicts_self; not known: False)."""
+        return policy.contradicts_self(self.own_noise_m(r), self.cfg.graph.consistent_self_m)
 
     def _rival_trial(self, r: RobotState, v: Alignment) -> Alignment:
         """A search's place for a robot whose map contradicts itself (its walls stand in its own

@@ -19,6 +19,17 @@ if TYPE_CHECKING:
     from map_server.state import RobotState
 
 
+def contradicts_self(noise_m: float | None, limit_m: float) -> bool:
+    """Whether a map's own contradiction (its walls in its own free space, m) is known and beyond
+    ``limit_m`` (``graph.consistent_self_m``: a real log's piece, its path bent)."""
+    return noise_m is not None and noise_m > limit_m
+
+
+def agrees(noise_m: float | None, limit_m: float) -> bool:
+    """Whether a map's own contradiction (None: not known) is within ``limit_m``."""
+    return noise_m is not None and noise_m <= limit_m
+
+
 def waiting(cfg: FleetConfig) -> str:
     """The reason an unplaced robot without a prior shows while the maps are not mature."""
     return f"waiting for mature maps (grown by at most {cfg.mature_growth:.0%} in {cfg.mature_window_s:g} s)"
