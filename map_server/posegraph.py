@@ -637,6 +637,9 @@ class FleetGraph:
                         break
                 else:
                     self._count("scan_unmatched")
+        recentred = refused.pop("recentred", 0)
+        if recentred:
+            self.stats["scan_recentred"] = self.stats.get("scan_recentred", 0) + recentred
         for why, n in refused.items():
             self.stats[f"refused_scan_{why}"] = self.stats.get(f"refused_scan_{why}", 0) + n
         return out

@@ -58,6 +58,13 @@ class MatchConfig:
     sigma_xy_m: float = 0.05  # added to the window's resolution in the covariance's floor
     sigma_theta_rad: float = float(np.radians(1.0))
     compiled: bool = True  # the window's sums by the compiled kernels when built
+    # a best pose whose likelihood reaches the window's edge (more than ``surface.edge_mass``) away
+    # from its centre: the window centred on it and searched again, at most this many times — a
+    # guess off by about the window's half width leaves the true place on the edge, and the match
+    # would say nothing along that axis though the place is well determined (a fleet's keyframes
+    # where the graph put them ~0.9 m apart: ``map_server/posegraph.py``). A corridor stays
+    # unbounded: its likelihood reaches the edge of every window
+    recentre: int = 0
 
 
 @dataclass(frozen=True)
@@ -230,8 +237,7 @@ def match_covariance(
     the match is ambiguous). Mass beyond ``cfg.edge_mass`` on poses at the window's edge ``(K,)``:
     the likelihood goes on past what was searched, so along the weak axis the match says
     nothing (std ``cfg.unbounded_sigma_m``)."""
-    p = np.exp(-cfg.sharpness * (1.0 - scores / best_score))
-    w = p / p.sum()
+    w = _weights(scores, best_score, cfg)
     cov = np.einsum("k,ki,kj->ij", w, offsets, offsets) + np.diag(floor)
     if cov[2, 2] > cfg.max_theta_sigma_rad**2:
         return None
@@ -242,6 +248,13 @@ def match_covariance(
         weak = vectors[:, 1]
         cov[:2, :2] += (cfg.unbounded_sigma_m**2 - values[1]) * np.outer(weak, weak)
     return cov
+
+
+def _weights(scores: np.ndarray, best_score: float, cfg: SurfaceConfig) -> np.ndarray:
+    """Each pose's share of the likelihood, a pose scoring ``s`` ``exp(-sharpness (1 - s / best))``
+    as likely as the best."""
+    p = np.exp(-cfg.sharpness * (1.0 - scores / best_score))
+    return p / p.sum()
 
 
 def window_surface(
@@ -320,15 +333,24 @@ def window_match(
     ``stats``: too low a score, ambiguous, too little overlap after ICP). ``wide``: a wide
     search's near-best poses, scores and edge flags (:func:`branch_and_bound`), which join the
     window's surface in the covariance."""
-    scores, angles, offs = window_scores(
-        fld, query, guess, cfg.search_xy_m, cfg.search_theta_rad, cfg.search_step_m, cfg.search_step_rad,
-        compiled=cfg.compiled,
-    )  # fmt: skip
-    best = float(scores.max())
-    if best < cfg.min_score:
-        return None
-    rel, d_local, edge_local = window_surface(scores, angles, offs, cfg.search_xy_m, cfg.search_theta_rad)
-    pose0 = np.array([guess[0] + rel[0], guess[1] + rel[1], rel[2]])
+    for left in range(cfg.recentre, -1, -1):
+        scores, angles, offs = window_scores(
+            fld, query, guess, cfg.search_xy_m, cfg.search_theta_rad, cfg.search_step_m, cfg.search_step_rad,
+            compiled=cfg.compiled,
+        )  # fmt: skip
+        best = float(scores.max())
+        if best < cfg.min_score:
+            return None
+        rel, d_local, edge_local = window_surface(scores, angles, offs, cfg.search_xy_m, cfg.search_theta_rad)
+        pose0 = np.array([guess[0] + rel[0], guess[1] + rel[1], rel[2]])
+        if (
+            not left
+            or np.hypot(rel[0], rel[1]) < cfg.search_step_m
+            or _weights(scores.ravel(), best, cfg.surface)[edge_local].sum() <= cfg.surface.edge_mass
+        ):
+            break
+        guess = pose0  # (the window centred on its best)
+        stats["recentred"] = stats.get("recentred", 0) + 1
     # the score surface: the window around the best, and the wide search's near-best poses (which
     # went beyond the small window's edge)
     d, s, edge = d_local, scores.ravel(), edge_local

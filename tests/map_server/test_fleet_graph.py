@@ -747,22 +747,10 @@ def keyframe_scans(robot_index: int, duration_s: float = 120.0, every: int = 5) 
     return tuple(out)
 
 
-def test_robots_that_send_keyframe_scans_are_tied_by_matching_them(monkeypatch):
-    """Both robots send their keyframes' scans (schema 7) and are tied by them (``scans_always``;
-    by default a pair of which one map contradicts its own free space — a real log's piece): the
-    constraints come from matching the scans (the agents' loop matcher), not the segment submaps,
-    and bend the bent robot back at least as closely; a pair the scans do not tie (they never
-    passed near each other's keyframes) is tied by submaps (``scan_fallback``). With a robot that
-    sends none, or maps not known to contradict themselves (no free space here), the submaps tie
-    them."""
-    runs = {"r0": bent_run(0, 0.0), "r1": bent_run(1, BEND)}
-    submaps = []
-    original_match, original_put = posegraph.FleetGraph._match_segments, Fleet.put_map
-    senders = {"r0", "r1"}
-
-    def counted(self, p, ks, first, others, where):
-        submaps.append(p.robot)
-        return original_match(self, p, ks, first, others, where)
+def send_scans(monkeypatch, senders: set) -> set:
+    """Robots ``senders`` (r0, r1) send their keyframes' scans with their maps (Fleet.put_map
+    patched); the set, which the test may change."""
+    original_put = Fleet.put_map
 
     def put(self, m, now_s):
         if m.robot in senders:
@@ -773,8 +761,28 @@ def test_robots_that_send_keyframe_scans_are_tied_by_matching_them(monkeypatch):
             )  # fmt: skip
         return original_put(self, m, now_s)
 
-    monkeypatch.setattr(posegraph.FleetGraph, "_match_segments", counted)
     monkeypatch.setattr(Fleet, "put_map", put)
+    return senders
+
+
+def test_robots_that_send_keyframe_scans_are_tied_by_matching_them(monkeypatch):
+    """Both robots send their keyframes' scans (schema 7) and are tied by them (``scans_always``;
+    by default a pair of which one map contradicts its own free space — a real log's piece): the
+    constraints come from matching the scans (the agents' loop matcher), not the segment submaps,
+    and bend the bent robot back at least as closely; a pair the scans do not tie (they never
+    passed near each other's keyframes) is tied by submaps (``scan_fallback``). With a robot that
+    sends none, or maps not known to contradict themselves (no free space here), the submaps tie
+    them."""
+    runs = {"r0": bent_run(0, 0.0), "r1": bent_run(1, BEND)}
+    submaps = []
+    original_match = posegraph.FleetGraph._match_segments
+    senders = send_scans(monkeypatch, {"r0", "r1"})
+
+    def counted(self, p, ks, first, others, where):
+        submaps.append(p.robot)
+        return original_match(self, p, ks, first, others, where)
+
+    monkeypatch.setattr(posegraph.FleetGraph, "_match_segments", counted)
     fleet, _ = fleet_of(True, runs=runs, scans_always=True)
     assert not submaps  # every constraint from the scans
     assert fleet.graph.stats["constraints_kept"] >= 20  # measured 33 (by submaps: 79)
@@ -793,6 +801,26 @@ def test_robots_that_send_keyframe_scans_are_tied_by_matching_them(monkeypatch):
     senders.discard("r0")
     fleet, _ = fleet_of(True, runs=runs, scans_always=True)
     assert set(submaps) == {"r0", "r1"} and fleet.graph.stats["constraints_kept"] >= 50
+
+
+@pytest.mark.parametrize("recentre", [True, False])
+def test_a_scan_match_whose_best_lies_on_the_windows_edge_is_searched_again_around_it(monkeypatch, recentre):
+    """A robot bent 0.25°/m (15° over its path), tied by scans: where the graph first puts its
+    keyframes, the others' lie about a window's half width (0.8 m) from them, the true places on
+    the window's edge. ICP brings each match there, but the score surface said nothing along the
+    edge's axis (std 5 m) and the graph left the robot metres off; the window centred on its best
+    and searched again (the default, ``scan_match.recentre``) says how well the place is known."""
+    runs = {"r0": bent_run(0, 0.0), "r1": bent_run(1, np.radians(0.25))}
+    send_scans(monkeypatch, {"r0", "r1"})
+    over = {} if recentre else {"scan_match": dataclasses.replace(GraphConfig().scan_match, recentre=0)}
+    fleet, _ = fleet_of(True, runs=runs, scans_always=True, **over)
+    errors = keyframe_errors(fleet, runs, "r1")
+    if recentre:
+        assert fleet.graph.stats["scan_recentred"] >= 5  # measured 14
+        assert np.median(errors) < 0.15 and np.percentile(errors, 90) < 0.25  # measured 0.089, 0.162 m
+    else:
+        assert "scan_recentred" not in fleet.graph.stats
+        assert np.median(errors) > 0.5  # measured 1.02 m (90th percentile 3.2 m)
 
 
 def test_the_keyframe_scans_that_came_map_by_map_are_kept_whole_and_survive_a_restart():
