@@ -202,6 +202,7 @@ class Placer:
         mine: float,
         other: float,
         rival_tried: bool = False,
+        at_rival: bool = False,
     ) -> Alignment | None:
         """The bent maps' best place ``v``, refused by its search, where a trial bend puts
         ``trial_ratio`` times as much of the robot's walls on the others' there (``mine``) as at the
@@ -210,9 +211,10 @@ class Placer:
         of a search's best but the share, which a bent piece placed whole cannot reach — the trial
         is its fit; and the free space seen), ahead of its best distinct rival by
         ``min_rival_ratio`` (unless ``rival_tried``: ``other`` is that rival's trial). None if
-        not. ACES's first piece (of 3), live at edd65b8: 12 % of its map on the bent maps whole
-        (2.0 m from its truth), 69.4 m once tried against 36.1 m at the rigid maps' place (16.6 m
-        off)."""
+        not. ``at_rival``: ``v`` is the search's best distinct rival, ``other`` its best place's
+        trial (Placer._share_trial). ACES's first piece (of 3), live at edd65b8: 12 % of its map on
+        the bent maps whole (2.0 m from its truth), 69.4 m once tried against 36.1 m at the rigid
+        maps' place (16.6 m off)."""
         c = self.cfg.alignment
         total = float(self._samples[r.robot][1][0].length.sum())
         if (
@@ -230,10 +232,13 @@ class Placer:
         if not w.placed:
             return None
         against = "its best rival's" if rival_tried else "the rigid maps'"
+        whole = f"whole {v.score_m:.1f} m ({v.inlier_share:.0%}), {v.rival_ratio:.2f}x the best rival"
+        if at_rival:
+            against = "the search's best"
+            whole = f"the search's best rival place; the best whole {v.score_m:.1f} m ({v.inlier_share:.0%})"
         why = (
             f"matched once tried: a trial bend puts {mine:.1f} m of its walls on the others' there"
-            f" ({mine / max(total, 1e-9):.0%}), {other:.1f} m at {against} place; whole {v.score_m:.1f} m"
-            f" ({v.inlier_share:.0%}), {v.rival_ratio:.2f}x the best rival"
+            f" ({mine / max(total, 1e-9):.0%}), {other:.1f} m at {against} place; {whole}"
         )
         return dataclasses.replace(w, rival_ratio=v.rival_ratio, reason=why)
 
@@ -244,12 +249,25 @@ class Placer:
         graph tries it there and at the best distinct rival (Fleet.trial), and the place stands
         where the trial puts ``trial_ratio`` times as much of its walls on the others' as at the
         rival, and a merge's worth (Placer._settle_unplaced: verified again, every check but the
-        share; the trial stands for the rival ratio, the rival tried itself). Else ``v``."""
+        share; the trial stands for the rival ratio, the rival tried itself) — or the rival stands,
+        where the trial puts ``trial_ratio`` times as much there (verified again there). Else
+        ``v``."""
         c = self.cfg.alignment
         if not self._far_rival(r, v) or v.score_m < c.min_overlap_m or not self._contradicts_self(r):
             return v
         mine, other = self.fleet.trial(r, [v.transform, v.rival])
         settled = self._settle_unplaced(r, v, placed_map, mine, other, rival_tried=True)
+        if settled is None:  # the rival, where the trial puts trial_ratio times as much there:
+            # the rigid scores of a bent piece mislead both ways (ACES's first piece, live at
+            # 80d0893: its best place 36 m off, 1.07x its rival 1.9 m from its truth; tried,
+            # 39.3 m against 64.7 m)
+            rival = dataclasses.replace(
+                v, transform=np.array(v.rival, float), rival=np.array(v.transform, float),
+                rival_ratio=1.0 / max(v.rival_ratio, 1e-9),
+            )  # fmt: skip
+            settled = self._settle_unplaced(
+                r, rival, placed_map, other, mine, rival_tried=True, at_rival=True
+            )
         if settled is None:
             return v
         log.info("%s: %s", r.robot, settled.reason)
