@@ -27,8 +27,11 @@ with (``shared/messages.py``, RobotMap). The server joins them:
   a keyframe's scan with the two before it (the query) matched against the cloud of the other
   robot's nearest keyframe and its four neighbours each side, where the graph puts them, by
   correlative search over the cloud's likelihood field, its score surface's covariance and ICP
-  (``shared/scanmatch.window_match``; ``scan_match``: the agents' defaults); the nearest of up to
-  three keyframes that matches is tied, the keyframe to it, with the match's information. The
+  (``shared/scanmatch.window_match``; ``scan_match``: the agents' defaults, but a best pose on
+  the window's edge is searched again around it — keyframes the graph put a window's half width
+  from their true places were tied with nothing known along one axis, and stayed there); the
+  nearest of up to three keyframes that matches is tied, the keyframe to it, with the match's
+  information. The
   segment maps summarize the scans (an Intel piece's submap constraints, fitted where a single
   robot's run put both keyframes, 0.067 m off that run at the median; the scans 0.038 m). Only
   a pair of which one map was found contradicting its own free space (a real log's piece, within
