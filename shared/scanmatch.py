@@ -332,7 +332,9 @@ def window_match(
     (3,)``: ``(pose (3,), best score, information (3,3), inlier share)``, or None (counted in
     ``stats``: too low a score, ambiguous, too little overlap after ICP). ``wide``: a wide
     search's near-best poses, scores and edge flags (:func:`branch_and_bound`), which join the
-    window's surface in the covariance."""
+    window's surface in the covariance. A best pose off the window's centre with more than
+    ``surface.edge_mass`` of the likelihood on the window's edge: the window centred on it and
+    searched again, at most ``cfg.recentre`` times (counted ``recentred`` in ``stats``)."""
     for left in range(cfg.recentre, -1, -1):
         scores, angles, offs = window_scores(
             fld, query, guess, cfg.search_xy_m, cfg.search_theta_rad, cfg.search_step_m, cfg.search_step_rad,
