@@ -256,22 +256,21 @@ class Placer:
         if not self._far_rival(r, v) or v.score_m < c.min_overlap_m or not self._contradicts_self(r):
             return v
         mine, other = self.fleet.trial(r, [v.transform, v.rival])
-        settled = self._settle_unplaced(r, v, placed_map, mine, other, rival_tried=True)
-        if settled is None:  # the rival, where the trial puts trial_ratio times as much there:
-            # the rigid scores of a bent piece mislead both ways (ACES's first piece, live at
-            # 80d0893: its best place 36 m off, 1.07x its rival 1.9 m from its truth; tried,
-            # 39.3 m against 64.7 m)
-            rival = dataclasses.replace(
-                v, transform=np.array(v.rival, float), rival=np.array(v.transform, float),
-                rival_ratio=1.0 / max(v.rival_ratio, 1e-9),
-            )  # fmt: skip
+        # the place, else its rival: the rigid scores of a bent piece mislead both ways (ACES's
+        # first piece, live at 80d0893: its best place 36 m off, 1.07x its rival 1.9 m from its
+        # truth; tried, 39.3 m against 64.7 m)
+        rival = dataclasses.replace(
+            v, transform=np.array(v.rival, float), rival=np.array(v.transform, float),
+            rival_ratio=1.0 / max(v.rival_ratio, 1e-9),
+        )  # fmt: skip
+        for place, here, there, at_rival in ((v, mine, other, False), (rival, other, mine, True)):
             settled = self._settle_unplaced(
-                r, rival, placed_map, other, mine, rival_tried=True, at_rival=True
+                r, place, placed_map, here, there, rival_tried=True, at_rival=at_rival
             )
-        if settled is None:
-            return v
-        log.info("%s: %s", r.robot, settled.reason)
-        return settled
+            if settled is not None:
+                log.info("%s: %s", r.robot, settled.reason)
+                return settled
+        return v
 
     def _far_rival(self, r: RobotState, v: Alignment) -> bool:
         """Whether the search's best distinct rival lies farther than ``search_agree_m`` from its

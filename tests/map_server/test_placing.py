@@ -323,6 +323,31 @@ def test_the_bent_maps_place_refused_for_its_share_stands_where_a_trial_bend_set
         assert a.status == "unaligned" and "ambiguous" in a.reason
 
 
+def _refused_for_share(monkeypatch, trial, noise_m=5.0, score_m=40.0, best_off_m=0.0, rival_off_m=15.0):
+    """Robot 1 of :func:`_fleet_of_two` searched, its search's best place (the true one moved
+    ``best_off_m`` along x) refused for its share with its best distinct rival the true one moved
+    ``rival_off_m``, the robot's map contradicting itself by ``noise_m`` and Fleet.trial answered
+    by ``trial``. Returns the verdict, the places tried per trial and robot 1's true place."""
+    import dataclasses
+
+    from map_server import placing
+
+    f, truth = _fleet_of_two()
+    real = placing.estimate_alignment
+
+    def refused(*args, **kwargs):
+        a = real(*args, **kwargs)  # (the true place)
+        best, rival = (compose(a.transform, np.array([off, 0.0, 0.0])) for off in (best_off_m, rival_off_m))
+        return dataclasses.replace(
+            a, status="unaligned", transform=best, score_m=score_m, reason="rejected: share", rival=rival
+        )
+
+    monkeypatch.setattr(placing, "estimate_alignment", refused)
+    tried = _trials(monkeypatch, f, trial)
+    monkeypatch.setattr(f.placer, "own_noise_m", lambda r: noise_m)
+    return f.placer.estimate(f.robots["robot1"], None, None, None, search=True), tried, truth
+
+
 @pytest.mark.parametrize(
     ("noise_m", "score_m", "rival_off_m", "trial", "outcome"),
     [
@@ -341,24 +366,7 @@ def test_a_bent_robots_place_refused_for_its_share_stands_where_a_trial_bend_bea
     place stands on a merge's worth of wall, the fleet's graph tries it there and at the best
     distinct rival, and the place stands where the trial puts ``trial_ratio`` times as much of its
     walls on the others' — verified again there, every check but the share."""
-    import dataclasses
-
-    from map_server import placing
-
-    f, truth = _fleet_of_two()
-    real = placing.estimate_alignment
-
-    def refused_for_share(*args, **kwargs):
-        a = real(*args, **kwargs)
-        rival = compose(a.transform, np.array([rival_off_m, 0.0, 0.0]))
-        return dataclasses.replace(
-            a, status="unaligned", score_m=score_m, reason="rejected: share", rival=rival
-        )
-
-    monkeypatch.setattr(placing, "estimate_alignment", refused_for_share)
-    tried = _trials(monkeypatch, f, trial)
-    monkeypatch.setattr(f.placer, "own_noise_m", lambda r: noise_m)
-    a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
+    a, tried, truth = _refused_for_share(monkeypatch, trial, noise_m, score_m, rival_off_m=rival_off_m)
     assert len(tried) == (outcome != "untried")
     if outcome == "placed":
         assert (
@@ -386,25 +394,7 @@ def test_where_a_trial_bend_puts_far_more_at_the_best_rival_the_rival_stands(mon
     the best 36 m off at 1.07x its rival, the rival 1.9 m from its truth; a trial bend 39.3 m there,
     64.7 m at the rival). The rival stands where the trial puts ``trial_ratio`` times as much of
     the robot's walls on the others' there — verified again there, every check but the share."""
-    import dataclasses
-
-    from map_server import placing
-
-    f, truth = _fleet_of_two()
-    real = placing.estimate_alignment
-
-    def wrong_best(*args, **kwargs):
-        a = real(*args, **kwargs)  # (the true place: made the rival, a place 15 m off the best)
-        best = compose(a.transform, np.array([15.0, 0.0, 0.0]))
-        return dataclasses.replace(
-            a, status="unaligned", transform=best, score_m=40.0, rival_ratio=1.07, reason="rejected: share",
-            rival=a.transform,
-        )  # fmt: skip
-
-    monkeypatch.setattr(placing, "estimate_alignment", wrong_best)
-    tried = _trials(monkeypatch, f, trial)
-    monkeypatch.setattr(f.placer, "own_noise_m", lambda r: 5.0)
-    a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
+    a, tried, truth = _refused_for_share(monkeypatch, trial, best_off_m=15.0, rival_off_m=0.0)
     assert len(tried) == 1
     if outcome == "rival":
         assert a.status == "aligned" and "the search's best rival place" in a.reason
