@@ -349,11 +349,6 @@ class FleetConfig:
     # the searches over the same maps said 1.18-1.32x
     trial_ratio: float = 1.5
     trial_keyframes: int = 4000
-    # ... a bent robot whose search's best place and rival both failed their trial is tried at its
-    # search's best this many distinct places, the winner by trial_ratio over every other placed
-    # (placing.Placer._places_trial); again once its map has grown by this share (<2: never)
-    trial_places: int = 8
-    trial_places_growth: float = 0.2
     # ... and a search's place for a robot whose map contradicts itself, with a distinct rival
     # within this ratio, is tried against that rival (placing.Placer._rival_trial)
     trial_rival_ratio: float = 2.0

@@ -71,7 +71,6 @@ class Placer:
         # regroup(): per pair of unplaced robots (names), what its last attempt was made of (the
         # two maps' seqs), when, and the place awaiting confirmation with its count and first time
         self._pairs: dict[tuple[str, str], tuple] = {}
-        self._places_tried: dict[str, tuple] = {}  # Placer._places_trial: robot -> (session, length)
 
     @property
     def cfg(self) -> FleetConfig:
@@ -271,70 +270,7 @@ class Placer:
             if settled is not None:
                 log.info("%s: %s", r.robot, settled.reason)
                 return settled
-        return self._places_trial(r, v, placed_map)
-
-    def _places_trial(self, r: RobotState, v: Alignment, placed_map: np.ndarray) -> Alignment:
-        """A bent robot whose search's best place and rival both failed their trial: the fleet's
-        graph tries it at its search's best ``trial_places`` distinct places (more than
-        ``search_agree_m`` apart, by net score), and the place stands where the trial puts
-        ``trial_ratio`` times as much of its walls on the others' as at every other, a merge's
-        worth of it (``min_overlap_m`` and ``min_share`` of its map), and the free space seen does
-        not contradict it there. Searched and tried again only once its map has grown by
-        ``trial_places_growth`` (a trial of a place costs a copy of the graph and its matches:
-        ~2.5 s on ACES's first piece); until then the winner and the runner-up are tried again,
-        the next attempt's confirmation of the place (FleetConfig.confirmations). ACES's first
-        piece (of 3), live at 610156e, 2 of 4 runs unplaced: on one run's final maps its truth was
-        the 6th distinct place (net 29.2 against 33.8), 65.0 m once tried against 31.9 m at the
-        best of the 7 others; on the other its truth was not among the 8 best and no place won
-        (27.0 against 26.3 m). Else ``v``."""
-        c, cfg = self.cfg.alignment, self.cfg
-        fine, coarse = self._samples[r.robot][1]
-        total = float(fine.length.sum())
-        seen = self._places_tried.get(r.robot)
-        grown = seen is None or seen[0] != r.map.session or total >= (1.0 + cfg.trial_places_growth) * seen[1]
-        if cfg.trial_places < 2 or not self._contradicts_self(r) or (not grown and seen[2] is None):
-            return v
-        index = MapIndex(placed_map, c.sample_step_m, compiled=c.compiled)
-        if grown:
-            places: list[candidates.Scored] = []
-            found = candidates.search(r.layer.seg, placed_map, index, fine, coarse, c)
-            for s in sorted(found, key=lambda s: -s.net):
-                if all(self._moved_m(r, s.pose, p.pose) > cfg.search_agree_m for p in places):
-                    places.append(s)
-                if len(places) == cfg.trial_places:
-                    break
-            seen = (r.map.session, total, None)
-            what = f"its search's {len(places)} best distinct places"
-        else:  # the last trial's winner and runner-up tried again: its confirmation
-            places, what = list(seen[2]), "the last trial's winner and runner-up"
-        self._places_tried[r.robot] = (*seen[:2], None)
-        if len(places) < 2:
-            return v
-        met = np.asarray(self.fleet.trial(r, [p.pose for p in places]), float)
-        order = np.argsort(-met, kind="stable")
-        best, second = float(met[order[0]]), float(met[order[1]])
-        tried = ", ".join(f"{m:.1f}" for m in met)
-        why = f"tried at {what}: {tried} m on the others' walls"
-        if best < cfg.trial_ratio * second or best < max(c.min_overlap_m, c.min_share * total):
-            return dataclasses.replace(v, reason=f"{v.reason}; {why}")
-        s = places[int(order[0])]
-        veto = self.veto(r, placed_map)
-        contradicted = veto(s.pose, best) if veto is not None else None
-        if contradicted is not None:
-            return dataclasses.replace(v, reason=f"{v.reason}; {why}; the best contradicted ({contradicted})")
-        if s.refined is None:
-            s = candidates.refine_and_score(index, fine, coarse, s.pose, c)
-        self._places_tried[r.robot] = (*seen[:2], (s, places[int(order[1])]))
-        sigma = np.sqrt(np.diag(np.linalg.pinv(s.refined.info)))
-        reason = (
-            f"matched once {why} — {best:.1f} m ({best / max(total, 1e-9):.0%}) at the place"
-            f" {int(order[0]) + 1} tried, {best / max(second, 1e-9):.2f}x the next"
-        )
-        log.info("%s: %s", r.robot, reason)
-        return Alignment(
-            "aligned", s.pose, sigma, score_m=best, inlier_share=best / max(total, 1e-9),
-            rival_ratio=best / max(second, 1e-9), reason=reason, rival=places[int(order[1])].pose,
-        )  # fmt: skip
+        return v
 
     def _far_rival(self, r: RobotState, v: Alignment) -> bool:
         """Whether the search's best distinct rival lies farther than ``search_agree_m`` from its

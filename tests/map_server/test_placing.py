@@ -323,21 +323,16 @@ def test_the_bent_maps_place_refused_for_its_share_stands_where_a_trial_bend_set
         assert a.status == "unaligned" and "ambiguous" in a.reason
 
 
-def _refused_for_share(
-    monkeypatch, trial, noise_m=5.0, score_m=40.0, best_off_m=0.0, rival_off_m=15.0, places=0, fleet=None
-):
+def _refused_for_share(monkeypatch, trial, noise_m=5.0, score_m=40.0, best_off_m=0.0, rival_off_m=15.0):
     """Robot 1 of :func:`_fleet_of_two` searched, its search's best place (the true one moved
     ``best_off_m`` along x) refused for its share with its best distinct rival the true one moved
     ``rival_off_m``, the robot's map contradicting itself by ``noise_m`` and Fleet.trial answered
-    by ``trial`` (None: left as it is; ``places``: FleetConfig.trial_places; ``fleet``: that fleet
-    and robot 1's truth, already made). Returns the verdict, the places tried per trial and robot
-    1's true place."""
+    by ``trial``. Returns the verdict, the places tried per trial and robot 1's true place."""
     import dataclasses
 
     from map_server import placing
 
-    f, truth = fleet or _fleet_of_two()
-    f.cfg = dataclasses.replace(f.cfg, trial_places=places)
+    f, truth = _fleet_of_two()
     real = placing.estimate_alignment
 
     def refused(*args, **kwargs):
@@ -348,7 +343,7 @@ def _refused_for_share(
         )
 
     monkeypatch.setattr(placing, "estimate_alignment", refused)
-    tried = _trials(monkeypatch, f, trial) if trial is not None else None  # (None: as it is)
+    tried = _trials(monkeypatch, f, trial)
     monkeypatch.setattr(f.placer, "own_noise_m", lambda r: noise_m)
     return f.placer.estimate(f.robots["robot1"], None, None, None, search=True), tried, truth
 
@@ -408,52 +403,3 @@ def test_where_a_trial_bend_puts_far_more_at_the_best_rival_the_rival_stands(mon
         assert err_m < 0.05 and err_rad < np.radians(0.5)
     else:
         assert a.status == "unaligned" and a.reason == "rejected: share"
-
-
-def _per_place(monkeypatch, f: Fleet, truth: np.ndarray, at_truth: float, elsewhere: float) -> list:
-    """Fleet.trial answering ``at_truth`` [m] for a place within 1 m of ``truth``, ``elsewhere`` for
-    any other; returns the places it was asked about, per call."""
-    tried = []
-
-    def trial_of(r, places):
-        tried.append([np.array(p) for p in places])
-        return [at_truth if transform_error(p, truth)[0] < 1.0 else elsewhere for p in places]
-
-    monkeypatch.setattr(f, "trial", trial_of)
-    return tried
-
-
-@pytest.mark.parametrize(("at_truth", "outcome"), [(70.0, "placed"), (40.0, "refused")])
-def test_a_bent_robot_whose_place_and_rival_fail_their_trial_is_tried_at_its_searchs_best_places(
-    monkeypatch, at_truth, outcome
-):
-    """ACES's first piece (of 3), live: its search's best place and rival both wrong, its truth
-    the 6th distinct place by net score — where a trial bend put 65.0 m of its walls on the
-    others' against 31.9 m at the best of the 7 others. The fleet's graph tries it at its search's
-    best ``trial_places`` distinct places; the winner by ``trial_ratio`` over every other stands,
-    confirmed by the next attempt's trial of the winner and the runner-up; no winner, none — and
-    no new search of places until its map has grown."""
-    from map_server import candidates, placing
-
-    f, truth = _fleet_of_two()
-    offsets = [15.0, 30.0, 45.0, 0.0, 60.0]  # the truth 4th by net score
-    scored = [
-        candidates.Scored(compose(truth, np.array([off, 0.0, 0.0])), 40.0 - k, 0.0, 40.0 - k, None)
-        for k, off in enumerate(offsets)
-    ]
-    monkeypatch.setattr(placing.candidates, "search", lambda *a, **k: list(scored))
-    tried = _per_place(monkeypatch, f, truth, at_truth, 30.0)
-    a, _, _ = _refused_for_share(
-        monkeypatch, None, best_off_m=15.0, rival_off_m=30.0, places=8, fleet=(f, truth)
-    )
-    assert [len(t) for t in tried] == [2, 5]  # the place and its rival, then the five places
-    if outcome == "placed":
-        assert a.status == "aligned" and "once tried at its search's 5 best distinct places" in a.reason
-        err_m, err_rad = transform_error(a.transform, truth)
-        assert err_m < 0.05 and err_rad < np.radians(0.5)
-        f.placer.estimate(f.robots["robot1"], None, None, None, search=True)  # the next attempt
-        assert len(tried[-1]) == 2 and transform_error(tried[-1][0], truth)[0] < 0.05  # winner, runner-up
-    else:
-        assert a.status == "unaligned" and "tried at its search's 5 best distinct places" in a.reason
-        again = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
-        assert again.status == "unaligned" and len(tried) == 3  # (the place and its rival only)
