@@ -231,11 +231,12 @@ class Placer:
         )  # fmt: skip
         if not w.placed:
             return None
-        against = "its best rival's" if rival_tried else "the rigid maps'"
-        whole = f"whole {v.score_m:.1f} m ({v.inlier_share:.0%}), {v.rival_ratio:.2f}x the best rival"
+        whole = f"{v.score_m:.1f} m ({v.inlier_share:.0%})"
         if at_rival:
-            against = "the search's best"
-            whole = f"the search's best rival place; the best whole {v.score_m:.1f} m ({v.inlier_share:.0%})"
+            against, whole = "the search's best", f"the search's best rival place; the best whole {whole}"
+        else:
+            against = "its best rival's" if rival_tried else "the rigid maps'"
+            whole = f"whole {whole}, {v.rival_ratio:.2f}x the best rival"
         why = (
             f"matched once tried: a trial bend puts {mine:.1f} m of its walls on the others' there"
             f" ({mine / max(total, 1e-9):.0%}), {other:.1f} m at {against} place; {whole}"

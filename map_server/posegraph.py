@@ -31,9 +31,9 @@ with (``shared/messages.py``, RobotMap). The server joins them:
   the window's edge is searched again around it — keyframes the graph put a window's half width
   from their true places were tied with nothing known along one axis, and stayed there); the
   nearest of up to three keyframes that matches is tied, the keyframe to it, with the match's
-  information. The
-  segment maps summarize the scans (an Intel piece's submap constraints, fitted where a single
-  robot's run put both keyframes, 0.067 m off that run at the median; the scans 0.038 m). Only
+  information. The segment maps summarize the scans (an Intel piece's submap constraints,
+  fitted where a single robot's run put both keyframes, 0.067 m off that run at the median; the
+  scans 0.038 m). Only
   a pair of which one map was found contradicting its own free space (a real log's piece, within
   seconds) is tied so; others are matched by submaps (``scans_always`` off: bench_merge's
   simulated robots tied by scans ended 15 of 39 over 0.05 m, by submaps 6 of 40).
