@@ -68,6 +68,10 @@ class Alignment:
     contradicted_m: float | None = None
     seen_m2: float = 0.0
     rival: np.ndarray | None = None  # a search's best distinct rival place (None: none, or no search)
+    # a search's other places, each distinct from the best and from each other, most matched wall
+    # first (K,4): x, y, theta, matched m — a bent map loses net score at its truth to walls near
+    # the others' but not on them, and its truth can stand behind nearer rivals by net score
+    others: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.status not in ALIGNMENT_STATUSES:
@@ -368,18 +372,36 @@ def _accept_best(
     if rivals_aside:
         aside += f"; {len(rivals_aside)} rival place(s) contradicted ({rivals_aside[0][1]})"
     rival_at = None if rival is None else np.array(rival.pose, float)
+    others = _most_matched(best, cands, robot.points, cfg.distinct_m)
     if problems:
         a = _verdict("unaligned", best, total, ratio, "rejected: " + "; ".join(problems) + aside)
-        return dataclasses.replace(a, rival=rival_at)
+        return dataclasses.replace(a, rival=rival_at, others=others)
     why = (
         f"overlap {best.matched_m:.1f} m ({best.matched_m / total:.0%}), {ratio:.2f}x the best rival" + aside
     )
-    a = dataclasses.replace(_verdict("aligned", best, total, ratio, "matched: " + why), rival=rival_at)
+    a = _verdict("aligned", best, total, ratio, "matched: " + why)
+    a = dataclasses.replace(a, rival=rival_at, others=others)
     if isinstance(veto, Check):  # what the free space seen says of the place (policy.quiet)
         a = dataclasses.replace(
             a, contradicted_m=veto.contradicted_m(best.pose), seen_m2=veto.seen_m2(best.pose)
         )
     return a
+
+
+MOST_MATCHED = 4  # places a search's verdict keeps in Alignment.others
+
+
+def _most_matched(best: Scored, cands: list[Scored], points: np.ndarray, distinct_m: float) -> np.ndarray:
+    """The candidates' places other than ``best``'s, most matched length first, each distinct
+    (``distinct_m``) from ``best`` and from those before it, at most MOST_MATCHED: rows x, y, theta,
+    matched m."""
+    out: list[Scored] = []
+    for c in sorted(cands, key=lambda c: -c.matched_m):
+        if len(out) == MOST_MATCHED:
+            break
+        if all(cand.mean_displacement(c.pose, o.pose, points) > distinct_m for o in (best, *out)):
+            out.append(c)
+    return np.array([[*c.pose, c.matched_m] for c in out], float).reshape(-1, 4)
 
 
 def _revise(

@@ -292,32 +292,71 @@ class Placer:
 
     def _rival_trial(self, r: RobotState, v: Alignment) -> Alignment:
         """A search's place for a robot whose map contradicts itself (its walls stand in its own
-        free space by more than ``graph.consistent_self_m``: a real log's piece, its path bent)
-        and whose best distinct rival is within ``trial_rival_ratio``: the fleet's graph tries it
-        at both (Fleet.trial) and the place stands unless its walls then meet the others' at the
-        rival ``alignment.min_rival_ratio`` times as much as there (the margin a search places
+        free space by more than ``graph.consistent_self_m``: a real log's piece, its path bent),
+        tried by the fleet's graph (Fleet.trial) at its place and at its rivals farther than
+        ``search_agree_m``: its best distinct rival when within ``trial_rival_ratio`` of its net
+        score, and the search's most matched place when within ``trial_rival_ratio`` of its matched
+        length (Placer._matched_rival). The place stands unless its walls then meet the others' at
+        a rival ``alignment.min_rival_ratio`` times as much as there (the margin a search places
         by; a rival a metre or two off is bent to the same place, and both meet the same). A bent
         piece's rigid scores mislead both ways: ACES's middle piece (of 3) was merged half-turned
         at 1.18x the rival (its truth), 72.6 m matched; tried, 70.5 m there and 98.2 m at the
-        truth. Over 13 true best places of pieces on 8 runs' final maps the rival met 0.14-0.95 times
-        as much."""
-        if (
-            v.rival_ratio >= self.cfg.trial_rival_ratio
-            or not self._far_rival(r, v)
-            or not self._contradicts_self(r)
-        ):
+        truth. Over 13 true best places of pieces on 8 runs' final maps the rival met 0.14-0.95
+        times as much. The net score's rival can be the same wrong place a metre and a half off
+        while the truth stands fourth by net score, first by matched length: ACES's third piece,
+        live at f7cdc54, merged half-turned at 1.83x (73.3 m matched; its truth 70.8 m, net 24.5
+        against 46.0 — its walls near the others' but not on them)."""
+        if not self._contradicts_self(r):
             return v
-        here, there = self.fleet.trial(r, [v.transform, v.rival])
+        rivals = []
+        if v.rival_ratio < self.cfg.trial_rival_ratio and self._far_rival(r, v):
+            rivals.append((np.array(v.rival, float), "its best rival's place"))
+        matched = self._matched_rival(r, v)
+        if matched is not None and all(
+            self._moved_m(r, matched, p) > self.cfg.alignment.distinct_m for p, _ in rivals
+        ):
+            rivals.append((matched, "its most matched rival's place"))
+        if not rivals:
+            return v
+        met = self.fleet.trial(r, [v.transform, *(p for p, _ in rivals)])
+        here = met[0]
+        k = int(np.argmax(met[1:]))
+        there, which = met[1 + k], rivals[k][1]
         if there < self.cfg.alignment.min_rival_ratio * here or there == 0.0:
-            log.info("%s: a trial bend puts %.1f m of its walls on the others' at its place, %.1f m at its"
-                     " best rival's: it stands", r.robot, here, there)  # fmt: skip
+            log.info("%s: a trial bend puts %.1f m of its walls on the others' at its place, %.1f m at"
+                     " %s: it stands", r.robot, here, there, which)  # fmt: skip
             return v
         why = (
-            f"rejected: a trial bend puts {there:.1f} m of its walls on the others' at the best rival"
-            f" place, {here:.1f} m at the best ({v.reason.removeprefix('matched: ')})"
+            f"rejected: a trial bend puts {there:.1f} m of its walls on the others' at {which},"
+            f" {here:.1f} m at the best ({v.reason.removeprefix('matched: ')})"
         )
         log.info("%s: %s", r.robot, why)
-        return dataclasses.replace(v, status="unaligned", reason=why)
+        refused = dataclasses.replace(v, status="unaligned", reason=why)
+        # the rival, where the trial put ``trial_ratio`` times as much there (verified again there,
+        # as Placer._share_trial's): ACES's middle piece against the two others, on the final maps
+        # of a run at f7cdc54, 128.7 m at its truth (its best rival) against 83.8 m at its best
+        rival = dataclasses.replace(
+            refused, transform=rivals[k][0], rival=np.array(v.transform, float),
+            rival_ratio=1.0 / max(v.rival_ratio, 1e-9),
+        )  # fmt: skip
+        bent_map = self.fleet.global_segments(r.robot)
+        settled = self._settle_unplaced(r, rival, bent_map, there, here, rival_tried=True, at_rival=True)
+        if settled is not None:
+            log.info("%s: %s", r.robot, settled.reason)
+            return settled
+        return refused
+
+    def _matched_rival(self, r: RobotState, v: Alignment) -> np.ndarray | None:
+        """The search's most matched place (Alignment.others) farther than ``search_agree_m`` from
+        its best, when it matched over 1 / ``trial_rival_ratio`` of the best's length; else None."""
+        if v.others is None:
+            return None
+        for row in v.others:
+            if row[3] * self.cfg.trial_rival_ratio < v.score_m:
+                return None  # (most matched first)
+            if self._moved_m(r, v.transform, row[:3]) > self.cfg.search_agree_m:
+                return np.array(row[:3], float)
+        return None
 
     def _apart(self, r: RobotState, v: Alignment, other: Alignment) -> float | None:
         """How far [m] (mean displacement of ``r``'s map) the other search's best place lies from
