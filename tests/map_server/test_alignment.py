@@ -100,6 +100,24 @@ def test_partial_maps_of_the_symmetric_office_match_their_mirror_image():
     assert a.status == "aligned"  # passes every pairwise check: ratio 1.4
 
 
+def test_a_search_keeps_its_other_distinct_places_most_matched_first():
+    """The mirror-image verdict above keeps the truth among its other places (Alignment.others:
+    what a trial of a bent robot's rivals looks at), each distinct from the best and from each
+    other, most matched wall first."""
+    from map_server.alignment import MOST_MATCHED
+
+    placed, seg, truth = pair(90.0)
+    a = estimate_alignment(seg, placed, CFG)
+    assert a.others is not None and 1 <= len(a.others) <= MOST_MATCHED
+    assert np.all(np.diff(a.others[:, 3]) <= 0) and a.others[0, 3] <= a.score_m
+    pts = Samples.of(seg, CFG.coarse_step_m).points
+    poses = [a.transform, *a.others[:, :3]]
+    for i, p in enumerate(poses):
+        for q in poses[i + 1 :]:
+            assert candidates.mean_displacement(p, q, pts) > CFG.distinct_m
+    assert min(transform_error(p, truth)[0] for p in a.others[:, :3]) < 0.05
+
+
 def test_too_little_overlap_is_not_merged():
     placed, seg, _ = pair(40.0)
     a = estimate_alignment(seg, placed, CFG)

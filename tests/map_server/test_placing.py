@@ -403,3 +403,60 @@ def test_where_a_trial_bend_puts_far_more_at_the_best_rival_the_rival_stands(mon
         assert err_m < 0.05 and err_rad < np.radians(0.5)
     else:
         assert a.status == "unaligned" and a.reason == "rejected: share"
+
+
+@pytest.mark.parametrize(
+    ("noise_m", "best_off_m", "other_off_m", "other_share", "trial", "outcome"),
+    [
+        (5.0, 0.0, 20.0, 0.9, (50.0, 70.0), "refused"),  # it meets more there once tried
+        (5.0, 0.0, 20.0, 0.9, (70.0, 50.0), "placed"),
+        (5.0, 20.0, 0.0, 0.9, (30.0, 70.0), "other"),  # trial_ratio times as much there: it stands
+        (5.0, 0.0, 20.0, 0.4, (50.0, 70.0), "untried"),  # under 1 / trial_rival_ratio of its length
+        (5.0, 0.0, 3.0, 0.9, (50.0, 70.0), "untried"),  # within search_agree_m: the same place bent
+        (0.5, 0.0, 20.0, 0.9, (50.0, 70.0), "untried"),  # a map that agrees with itself
+    ],
+)
+def test_a_bent_robots_place_is_tried_against_its_searchs_most_matched_far_place(
+    monkeypatch, noise_m, best_off_m, other_off_m, other_share, trial, outcome
+):
+    """A bent map loses net score at its truth to walls near the others' but not on them: ACES's
+    third piece was merged half-turned at 1.83x the best distinct rival by net score — the same
+    wrong place 1.5 m off — while its truth stood fourth by net score and matched 70.8 m against
+    73.3 m. A search keeps its distinct places by matched length (Alignment.others); for a robot
+    whose map contradicts itself, the most matched one beyond ``search_agree_m`` that matched over
+    1 / ``trial_rival_ratio`` of the best's length is tried by the fleet's graph too: the place
+    stands unless its walls meet the others' there ``min_rival_ratio`` times as much, and that
+    place stands where they meet ``trial_ratio`` times as much (verified again there)."""
+    import dataclasses
+
+    from map_server import placing
+
+    f, truth = _fleet_of_two()
+    real = placing.estimate_alignment
+
+    def found(*args, **kwargs):
+        a = real(*args, **kwargs)  # (the true place, decisively: its net rival is not tried)
+        best, other = (compose(a.transform, np.array([off, 0.0, 0.0])) for off in (best_off_m, other_off_m))
+        return dataclasses.replace(
+            a, transform=best, rival_ratio=5.0, others=np.array([[*other, other_share * a.score_m]])
+        )
+
+    monkeypatch.setattr(placing, "estimate_alignment", found)
+    tried = _trials(monkeypatch, f, trial)
+    monkeypatch.setattr(f.placer, "own_noise_m", lambda r: noise_m)
+    a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
+    assert len(tried) == (outcome != "untried")
+    if tried:
+        best_at, other_at = tried[0]
+        assert transform_error(best_at, truth)[0] == pytest.approx(best_off_m, abs=0.05)
+        assert transform_error(other_at, truth)[0] == pytest.approx(other_off_m, abs=0.05)
+    err_m, err_rad = transform_error(a.transform, truth)
+    if outcome in ("placed", "untried"):
+        assert a.status == "aligned" and err_m < 0.05 and err_rad < np.radians(0.5)
+        assert "trial" not in a.reason
+    elif outcome == "other":
+        assert a.status == "aligned" and err_m < 0.05 and err_rad < np.radians(0.5)
+        assert "a trial bend puts 70.0 m" in a.reason and "30.0 m at the search's best place" in a.reason
+    else:
+        assert a.status == "unaligned" and "its most matched rival's place" in a.reason
+        assert "a trial bend puts 70.0 m" in a.reason and "50.0 m at the best" in a.reason
