@@ -35,6 +35,8 @@ from map_server.state import RetiredPiece, RobotState
 
 log = logging.getLogger("fleet_slam.fleet")
 
+SHARE_TRIAL_MATCHED = 2  # the search's most matched places a share trial tries besides its best and rival
+
 
 class FleetView(Protocol):
     """What the rounds read of the fleet (fleet.Fleet)."""
@@ -202,7 +204,8 @@ class Placer:
         mine: float,
         other: float,
         rival_tried: bool = False,
-        at_rival: bool = False,
+        at: str | None = None,
+        against: str | None = None,
     ) -> Alignment | None:
         """The bent maps' best place ``v``, refused by its search, where a trial bend puts
         ``trial_ratio`` times as much of the robot's walls on the others' there (``mine``) as at the
@@ -211,10 +214,11 @@ class Placer:
         of a search's best but the share, which a bent piece placed whole cannot reach — the trial
         is its fit; and the free space seen), ahead of its best distinct rival by
         ``min_rival_ratio`` (unless ``rival_tried``: ``other`` is that rival's trial). None if
-        not. ``at_rival``: ``v`` is the search's best distinct rival, ``other`` its best place's
-        trial (Placer._share_trial). ACES's first piece (of 3), live at edd65b8: 12 % of its map on
-        the bent maps whole (2.0 m from its truth), 69.4 m once tried against 36.1 m at the rigid
-        maps' place (16.6 m off)."""
+        not. ``at``: which of the search's places other than its best ``v`` is (its best distinct
+        rival, a most matched place: Placer._share_trial); ``against``: which place ``other`` was
+        met at, when not the rigid maps' (or, ``rival_tried``, its best rival's). ACES's first
+        piece (of 3), live at edd65b8: 12 % of its map on the bent maps whole (2.0 m from its
+        truth), 69.4 m once tried against 36.1 m at the rigid maps' place (16.6 m off)."""
         c = self.cfg.alignment
         total = float(self._samples[r.robot][1][0].length.sum())
         if (
@@ -232,10 +236,10 @@ class Placer:
         if not w.placed:
             return None
         whole = f"{v.score_m:.1f} m ({v.inlier_share:.0%})"
-        if at_rival:
-            against, whole = "the search's best", f"the search's best rival place; the best whole {whole}"
+        if at is not None:
+            against, whole = against or "the search's best", f"{at}; the best whole {whole}"
         else:
-            against = "its best rival's" if rival_tried else "the rigid maps'"
+            against = against or ("its best rival's" if rival_tried else "the rigid maps'")
             whole = f"whole {whole}, {v.rival_ratio:.2f}x the best rival"
         why = (
             f"matched once tried: a trial bend puts {mine:.1f} m of its walls on the others' there"
@@ -247,26 +251,42 @@ class Placer:
         """A search's best place refused for a robot whose map contradicts itself, on as much wall
         as a merge needs (``min_overlap_m``) but not on ``min_share`` of its map — a bent piece
         placed whole (ACES's first piece: 10-14 %, in 3 of 8 live runs at 2447fbe): the fleet's
-        graph tries it there and at the best distinct rival (Fleet.trial), and the place stands
-        where the trial puts ``trial_ratio`` times as much of its walls on the others' as at the
-        rival, and a merge's worth (Placer._settle_unplaced: verified again, every check but the
-        share; the trial stands for the rival ratio, the rival tried itself) — or the rival stands,
-        where the trial puts ``trial_ratio`` times as much there (verified again there). Else
-        ``v``."""
+        graph tries it there, at the best distinct rival and at the search's two most matched
+        places (Placer._matched_rivals), each farther than ``search_agree_m`` from the others
+        (Fleet.trial), and a place stands where the trial puts ``trial_ratio`` times as much of
+        its walls on the others' as at every other place tried, and a merge's worth
+        (Placer._settle_unplaced: verified again, every check but the share; the trial stands for
+        the rival ratio, the rivals tried themselves). Else ``v``. ACES's first piece, on a live
+        run's final maps at 610156e: its best place 34.7 m off and its best rival 22.7 m, its
+        truth the second most matched place (44.0 m, the best 43.2 m) and sixth by net score."""
         c = self.cfg.alignment
-        if not self._far_rival(r, v) or v.score_m < c.min_overlap_m or not self._contradicts_self(r):
+        if v.score_m < c.min_overlap_m or not self._contradicts_self(r):
             return v
-        mine, other = self.fleet.trial(r, [v.transform, v.rival])
-        # the place, else its rival: the rigid scores of a bent piece mislead both ways (ACES's
+        # the place, else a rival: the rigid scores of a bent piece mislead both ways (ACES's
         # first piece, live at 80d0893: its best place 36 m off, 1.07x its rival 1.9 m from its
         # truth; tried, 39.3 m against 64.7 m)
-        rival = dataclasses.replace(
-            v, transform=np.array(v.rival, float), rival=np.array(v.transform, float),
-            rival_ratio=1.0 / max(v.rival_ratio, 1e-9),
-        )  # fmt: skip
-        for place, here, there, at_rival in ((v, mine, other, False), (rival, other, mine, True)):
+        places = [(v.transform, None, "the search's best")]  # (where, what it is, what it is called)
+        if self._far_rival(r, v):
+            places.append((np.array(v.rival, float), "the search's best rival place", "its best rival's"))
+        for p in self._matched_rivals(r, v, SHARE_TRIAL_MATCHED):
+            if all(self._moved_m(r, p, q) > self.cfg.search_agree_m for q, _, _ in places):
+                places.append((p, "a place the search matched most", "a most matched"))
+        if len(places) < 2:
+            return v
+        met = self.fleet.trial(r, [q for q, _, _ in places])
+        for i, (q, at, _) in enumerate(places):
+            k = max((j for j in range(len(places)) if j != i), key=lambda j: met[j])  # the best other
+            place = v
+            if i:
+                place = dataclasses.replace(
+                    v,
+                    transform=q,
+                    rival=np.array(v.transform, float),
+                    rival_ratio=1.0 / max(v.rival_ratio, 1e-9),
+                )
+            against = None if i == 0 and k == 1 else places[k][2]
             settled = self._settle_unplaced(
-                r, place, placed_map, here, there, rival_tried=True, at_rival=at_rival
+                r, place, placed_map, met[i], met[k], rival_tried=True, at=at, against=against
             )
             if settled is not None:
                 log.info("%s: %s", r.robot, settled.reason)
@@ -296,7 +316,7 @@ class Placer:
         tried by the fleet's graph (Fleet.trial) at its place and at its rivals farther than
         ``search_agree_m``: its best distinct rival when within ``trial_rival_ratio`` of its net
         score, and the search's most matched place when within ``trial_rival_ratio`` of its matched
-        length (Placer._matched_rival). The place stands unless its walls then meet the others' at
+        length (Placer._matched_rivals). The place stands unless its walls then meet the others' at
         a rival ``alignment.min_rival_ratio`` times as much as there (the margin a search places
         by; a rival a metre or two off is bent to the same place, and both meet the same). A bent
         piece's rigid scores mislead both ways: ACES's middle piece (of 3) was merged half-turned
@@ -310,18 +330,20 @@ class Placer:
             return v
         rivals = []
         if v.rival_ratio < self.cfg.trial_rival_ratio and self._far_rival(r, v):
-            rivals.append((np.array(v.rival, float), "its best rival's place"))
-        matched = self._matched_rival(r, v)
+            rivals.append(
+                (np.array(v.rival, float), "its best rival's place", "the search's best rival place")
+            )
+        matched = next(iter(self._matched_rivals(r, v)), None)
         if matched is not None and all(
-            self._moved_m(r, matched, p) > self.cfg.alignment.distinct_m for p, _ in rivals
+            self._moved_m(r, matched, p) > self.cfg.alignment.distinct_m for p, _, _ in rivals
         ):
-            rivals.append((matched, "its most matched rival's place"))
+            rivals.append((matched, "its most matched rival's place", "the search's most matched place"))
         if not rivals:
             return v
-        met = self.fleet.trial(r, [v.transform, *(p for p, _ in rivals)])
+        met = self.fleet.trial(r, [v.transform, *(p for p, _, _ in rivals)])
         here = met[0]
         k = int(np.argmax(met[1:]))
-        there, which = met[1 + k], rivals[k][1]
+        there, which, at = met[1 + k], rivals[k][1], rivals[k][2]
         if there < self.cfg.alignment.min_rival_ratio * here or there == 0.0:
             log.info("%s: a trial bend puts %.1f m of its walls on the others' at its place, %.1f m at"
                      " %s: it stands", r.robot, here, there, which)  # fmt: skip
@@ -340,23 +362,23 @@ class Placer:
             rival_ratio=1.0 / max(v.rival_ratio, 1e-9),
         )  # fmt: skip
         bent_map = self.fleet.global_segments(r.robot)
-        settled = self._settle_unplaced(r, rival, bent_map, there, here, rival_tried=True, at_rival=True)
+        settled = self._settle_unplaced(r, rival, bent_map, there, here, rival_tried=True, at=at)
         if settled is not None:
             log.info("%s: %s", r.robot, settled.reason)
             return settled
         return refused
 
-    def _matched_rival(self, r: RobotState, v: Alignment) -> np.ndarray | None:
-        """The search's most matched place (Alignment.others) farther than ``search_agree_m`` from
-        its best, when it matched over 1 / ``trial_rival_ratio`` of the best's length; else None."""
-        if v.others is None:
-            return None
-        for row in v.others:
-            if row[3] * self.cfg.trial_rival_ratio < v.score_m:
-                return None  # (most matched first)
+    def _matched_rivals(self, r: RobotState, v: Alignment, limit: int = 1) -> list[np.ndarray]:
+        """The search's most matched places (Alignment.others) farther than ``search_agree_m`` from
+        its best that matched over 1 / ``trial_rival_ratio`` of the best's length, at most
+        ``limit``, most matched first."""
+        out: list[np.ndarray] = []
+        for row in [] if v.others is None else v.others:
+            if len(out) == limit or row[3] * self.cfg.trial_rival_ratio < v.score_m:
+                break  # (most matched first)
             if self._moved_m(r, v.transform, row[:3]) > self.cfg.search_agree_m:
-                return np.array(row[:3], float)
-        return None
+                out.append(np.array(row[:3], float))
+        return out
 
     def _apart(self, r: RobotState, v: Alignment, other: Alignment) -> float | None:
         """How far [m] (mean displacement of ``r``'s map) the other search's best place lies from

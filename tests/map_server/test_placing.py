@@ -323,11 +323,15 @@ def test_the_bent_maps_place_refused_for_its_share_stands_where_a_trial_bend_set
         assert a.status == "unaligned" and "ambiguous" in a.reason
 
 
-def _refused_for_share(monkeypatch, trial, noise_m=5.0, score_m=40.0, best_off_m=0.0, rival_off_m=15.0):
+def _refused_for_share(
+    monkeypatch, trial, noise_m=5.0, score_m=40.0, best_off_m=0.0, rival_off_m=15.0, others=()
+):
     """Robot 1 of :func:`_fleet_of_two` searched, its search's best place (the true one moved
     ``best_off_m`` along x) refused for its share with its best distinct rival the true one moved
-    ``rival_off_m``, the robot's map contradicting itself by ``noise_m`` and Fleet.trial answered
-    by ``trial``. Returns the verdict, the places tried per trial and robot 1's true place."""
+    ``rival_off_m``, its other places (Alignment.others) the true one moved ``off`` with ``matched``
+    m for each ``(off, matched)`` of ``others``, the robot's map contradicting itself by ``noise_m``
+    and Fleet.trial answered by ``trial``. Returns the verdict, the places tried per trial and
+    robot 1's true place."""
     import dataclasses
 
     from map_server import placing
@@ -338,9 +342,11 @@ def _refused_for_share(monkeypatch, trial, noise_m=5.0, score_m=40.0, best_off_m
     def refused(*args, **kwargs):
         a = real(*args, **kwargs)  # (the true place)
         best, rival = (compose(a.transform, np.array([off, 0.0, 0.0])) for off in (best_off_m, rival_off_m))
+        rows = [[*compose(a.transform, np.array([off, 0.0, 0.0])), m] for off, m in others]
         return dataclasses.replace(
-            a, status="unaligned", transform=best, score_m=score_m, reason="rejected: share", rival=rival
-        )
+            a, status="unaligned", transform=best, score_m=score_m, reason="rejected: share", rival=rival,
+            others=np.array(rows, float).reshape(-1, 4),
+        )  # fmt: skip
 
     monkeypatch.setattr(placing, "estimate_alignment", refused)
     tried = _trials(monkeypatch, f, trial)
@@ -460,3 +466,34 @@ def test_a_bent_robots_place_is_tried_against_its_searchs_most_matched_far_place
     else:
         assert a.status == "unaligned" and "its most matched rival's place" in a.reason
         assert "a trial bend puts 70.0 m" in a.reason and "50.0 m at the best" in a.reason
+
+
+@pytest.mark.parametrize(
+    ("others", "trial", "outcome"),
+    [
+        # its truth the search's second most matched place: tried with the first, it stands
+        (((45.0, 44.0), (0.0, 43.0)), (40.0, 5.0, 30.0, 70.0), "truth"),
+        (((45.0, 44.0), (0.0, 43.0)), (40.0, 5.0, 30.0, 50.0), "refused"),  # not 1.5x every other
+        (((0.0, 15.0),), (40.0, 5.0), "refused"),  # under 1 / trial_rival_ratio of the best's length
+        (((14.0, 44.0),), (40.0, 5.0), "refused"),  # within search_agree_m of the rival: not tried again
+    ],
+)
+def test_a_bent_robot_refused_for_its_share_is_tried_at_its_searchs_most_matched_places(
+    monkeypatch, others, trial, outcome
+):
+    """ACES's first piece, on a live run's final maps: its best place (refused for its share) 34.7 m
+    off and its best distinct rival 22.7 m, its truth sixth by net score but the second most
+    matched place (44.0 m, the best 43.2 m). The share trial tries the search's two most matched
+    places too (each farther than ``search_agree_m`` from the places tried), and the place meeting
+    ``trial_ratio`` times as much as every other once tried stands, verified again there."""
+    a, tried, truth = _refused_for_share(
+        monkeypatch, trial, best_off_m=30.0, rival_off_m=15.0, score_m=40.0, others=others
+    )
+    assert len(tried) == 1 and len(tried[0]) == len(trial)
+    if outcome == "truth":
+        assert a.status == "aligned" and "a place the search matched most" in a.reason
+        assert "a trial bend puts 70.0 m" in a.reason and "40.0 m at the search's best place" in a.reason
+        err_m, err_rad = transform_error(a.transform, truth)
+        assert err_m < 0.05 and err_rad < np.radians(0.5)
+    else:
+        assert a.status == "unaligned" and a.reason == "rejected: share"
