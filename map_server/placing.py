@@ -284,9 +284,8 @@ class Placer:
                     rival=np.array(v.transform, float),
                     rival_ratio=1.0 / max(v.rival_ratio, 1e-9),
                 )
-            against = None if i == 0 and k == 1 else places[k][2]
             settled = self._settle_unplaced(
-                r, place, placed_map, met[i], met[k], rival_tried=True, at=at, against=against
+                r, place, placed_map, met[i], met[k], rival_tried=True, at=at, against=places[k][2]
             )
             if settled is not None:
                 log.info("%s: %s", r.robot, settled.reason)
@@ -362,7 +361,11 @@ class Placer:
             rival_ratio=1.0 / max(v.rival_ratio, 1e-9),
         )  # fmt: skip
         bent_map = self.fleet.global_segments(r.robot)
-        settled = self._settle_unplaced(r, rival, bent_map, there, here, rival_tried=True, at=at)
+        j = max((j for j in range(len(met)) if j != 1 + k), key=lambda j: met[j])  # its place or the other
+        against = "the search's best" if j == 0 else rivals[j - 1][1].removesuffix(" place")
+        settled = self._settle_unplaced(
+            r, rival, bent_map, there, met[j], rival_tried=True, at=at, against=against
+        )
         if settled is not None:
             log.info("%s: %s", r.robot, settled.reason)
             return settled
