@@ -265,32 +265,56 @@ class Placer:
         # the place, else a rival: the rigid scores of a bent piece mislead both ways (ACES's
         # first piece, live at 80d0893: its best place 36 m off, 1.07x its rival 1.9 m from its
         # truth; tried, 39.3 m against 64.7 m)
-        places = [(v.transform, None, "the search's best")]  # (where, what it is, what it is called)
-        if self._far_rival(r, v):
-            places.append((np.array(v.rival, float), "the search's best rival place", "its best rival's"))
-        for p in self._matched_rivals(r, v, SHARE_TRIAL_MATCHED):
-            if all(self._moved_m(r, p, q) > self.cfg.search_agree_m for q, _, _ in places):
-                places.append((p, "a place the search matched most", "a most matched"))
+        places = self._trial_places(r, v, self._far_rival(r, v), SHARE_TRIAL_MATCHED, self.cfg.search_agree_m)
         if len(places) < 2:
             return v
         met = self.fleet.trial(r, [q for q, _, _ in places])
-        for i, (q, at, _) in enumerate(places):
+        return self._settle_by_trial(r, v, places, met, placed_map) or v
+
+    def _trial_places(
+        self, r: RobotState, v: Alignment, rival: bool, matched: int, apart_m: float
+    ) -> list[tuple[np.ndarray, str | None, str]]:
+        """The places a trial of ``r`` tries: its search's best, its best distinct rival (if
+        ``rival``) and up to ``matched`` of the search's most matched places (Placer._matched_rivals)
+        each farther than ``apart_m`` from those before it; each as (where, what it is — None for
+        the best —, what it is called)."""
+        places = [(np.asarray(v.transform, float), None, "the search's best")]
+        if rival:
+            places.append((np.array(v.rival, float), "the search's best rival place", "its best rival's"))
+        for p in self._matched_rivals(r, v, matched):
+            if all(self._moved_m(r, p, q) > apart_m for q, _, _ in places):
+                places.append((p, "a place the search matched most", "its most matched rival's"))
+        return places
+
+    def _settle_by_trial(
+        self,
+        r: RobotState,
+        v: Alignment,
+        places: list,
+        met: list[float],
+        placed_map: np.ndarray,
+        start: int = 0,
+    ) -> Alignment | None:
+        """The first of ``places`` (Placer._trial_places) from ``start`` whose trial ``met`` puts
+        ``trial_ratio`` times as much of the robot's walls on the others' as at every other place
+        tried, verified again there (Placer._settle_unplaced); None if none. A place other than
+        the search's best ``v`` stands with ``v`` as its rival."""
+        for i in range(start, len(places)):
+            q, at, _ = places[i]
             k = max((j for j in range(len(places)) if j != i), key=lambda j: met[j])  # the best other
             place = v
             if i:
                 place = dataclasses.replace(
-                    v,
-                    transform=q,
-                    rival=np.array(v.transform, float),
+                    v, status="unaligned", transform=q, rival=np.array(v.transform, float),
                     rival_ratio=1.0 / max(v.rival_ratio, 1e-9),
-                )
+                )  # fmt: skip
             settled = self._settle_unplaced(
                 r, place, placed_map, met[i], met[k], rival_tried=True, at=at, against=places[k][2]
             )
             if settled is not None:
                 log.info("%s: %s", r.robot, settled.reason)
                 return settled
-        return v
+        return None
 
     def _far_rival(self, r: RobotState, v: Alignment) -> bool:
         """Whether the search's best distinct rival lies farther than ``search_agree_m`` from its
@@ -327,22 +351,14 @@ class Placer:
         against 46.0 — its walls near the others' but not on them)."""
         if not self._contradicts_self(r):
             return v
-        rivals = []
-        if v.rival_ratio < self.cfg.trial_rival_ratio and self._far_rival(r, v):
-            rivals.append(
-                (np.array(v.rival, float), "its best rival's place", "the search's best rival place")
-            )
-        matched = next(iter(self._matched_rivals(r, v)), None)
-        if matched is not None and all(
-            self._moved_m(r, matched, p) > self.cfg.alignment.distinct_m for p, _, _ in rivals
-        ):
-            rivals.append((matched, "its most matched rival's place", "the search's most matched place"))
-        if not rivals:
+        near_rival = v.rival_ratio < self.cfg.trial_rival_ratio and self._far_rival(r, v)
+        places = self._trial_places(r, v, near_rival, 1, self.cfg.alignment.distinct_m)
+        if len(places) < 2:
             return v
-        met = self.fleet.trial(r, [v.transform, *(p for p, _, _ in rivals)])
+        met = self.fleet.trial(r, [q for q, _, _ in places])
         here = met[0]
-        k = int(np.argmax(met[1:]))
-        there, which, at = met[1 + k], rivals[k][1], rivals[k][2]
+        k = 1 + int(np.argmax(met[1:]))
+        there, which = met[k], f"{places[k][2]} place"
         if there < self.cfg.alignment.min_rival_ratio * here or there == 0.0:
             log.info("%s: a trial bend puts %.1f m of its walls on the others' at its place, %.1f m at"
                      " %s: it stands", r.robot, here, there, which)  # fmt: skip
@@ -353,23 +369,12 @@ class Placer:
         )
         log.info("%s: %s", r.robot, why)
         refused = dataclasses.replace(v, status="unaligned", reason=why)
-        # the rival, where the trial put ``trial_ratio`` times as much there (verified again there,
-        # as Placer._share_trial's): ACES's middle piece against the two others, on the final maps
-        # of a run at f7cdc54, 128.7 m at its truth (its best rival) against 83.8 m at its best
-        rival = dataclasses.replace(
-            refused, transform=rivals[k][0], rival=np.array(v.transform, float),
-            rival_ratio=1.0 / max(v.rival_ratio, 1e-9),
-        )  # fmt: skip
+        # a rival, where the trial put ``trial_ratio`` times as much there as at every other place
+        # (verified again there, as Placer._share_trial's): ACES's middle piece against the two
+        # others, on the final maps of a run at f7cdc54, 128.7 m at its truth (its best rival)
+        # against 83.8 m at its best
         bent_map = self.fleet.global_segments(r.robot)
-        j = max((j for j in range(len(met)) if j != 1 + k), key=lambda j: met[j])  # its place or the other
-        against = "the search's best" if j == 0 else rivals[j - 1][1].removesuffix(" place")
-        settled = self._settle_unplaced(
-            r, rival, bent_map, there, met[j], rival_tried=True, at=at, against=against
-        )
-        if settled is not None:
-            log.info("%s: %s", r.robot, settled.reason)
-            return settled
-        return refused
+        return self._settle_by_trial(r, v, places, met, bent_map, start=1) or refused
 
     def _matched_rivals(self, r: RobotState, v: Alignment, limit: int = 1) -> list[np.ndarray]:
         """The search's most matched places (Alignment.others) farther than ``search_agree_m`` from

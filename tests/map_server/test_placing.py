@@ -55,6 +55,17 @@ def _trials(monkeypatch, f: Fleet, figures) -> list:
     return tried
 
 
+def _moved(pose: np.ndarray, off_m: float) -> np.ndarray:
+    """``pose`` moved ``off_m`` along its x axis."""
+    return compose(pose, np.array([off_m, 0.0, 0.0]))
+
+
+def _at_truth(a, truth) -> bool:
+    """Whether the verdict ``a`` is placed within the demo's bounds (0.05 m, 0.5 deg) of ``truth``."""
+    err_m, err_rad = transform_error(a.transform, truth)
+    return a.status == "aligned" and err_m < 0.05 and err_rad < np.radians(0.5)
+
+
 def test_a_robot_not_placed_against_the_rigid_maps_is_searched_against_the_bent_ones(monkeypatch):
     """A search that finds no place against the placed maps as their alignments put them is made
     again against them as the fleet's graph bent them (MIT-CSAIL in 3 pieces: the rigid placed
@@ -77,9 +88,7 @@ def test_a_robot_not_placed_against_the_rigid_maps_is_searched_against_the_bent_
     asked.clear()
     a = f.placer.estimate(r, None, None, None, search=True)
     assert asked == [True, False]
-    assert a.status == "aligned" and "as the graph bent them" in a.reason
-    err_m, err_rad = transform_error(a.transform, truth)
-    assert err_m < 0.05 and err_rad < np.radians(0.5)
+    assert _at_truth(a, truth) and "as the graph bent them" in a.reason
 
 
 def test_two_robots_that_match_each_other_but_not_the_reference_take_the_frame_over():
@@ -221,7 +230,7 @@ def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
         return a if rigid_placed else dataclasses.replace(a, status="unaligned", reason="r")
 
     def bent(a):  # the bent maps' best place elsewhere
-        moved = compose(a.transform, np.array([bent_off_m, 0.0, 0.0]))
+        moved = _moved(a.transform, bent_off_m)
         return dataclasses.replace(a, status=bent_status, transform=moved, score_m=bent_score_m, reason="b")
 
     f, truth, calls = _two_searches(monkeypatch, rigid, bent)
@@ -229,14 +238,12 @@ def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
     a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
     assert len(calls) == 2 and calls[0].status == "aligned"
     assert len(tried) == (trial is not None)  # tried only where the two places lie apart
-    bent_place = compose(calls[1].transform, np.array([bent_off_m, 0.0, 0.0]))  # (as returned)
+    bent_place = _moved(calls[1].transform, bent_off_m)  # (as returned)
     if tried:
         rigid_at, bent_at = tried[0]
         assert np.allclose(rigid_at, calls[0].transform) and np.allclose(bent_at, bent_place)
     if outcome.startswith("rigid"):
-        assert a.status == "aligned" and np.allclose(a.transform, calls[0].transform)
-        err_m, err_rad = transform_error(a.transform, truth)
-        assert err_m < 0.05 and err_rad < np.radians(0.5)
+        assert _at_truth(a, truth) and np.allclose(a.transform, calls[0].transform)
     elif outcome.startswith("bent"):
         assert a.status == "aligned" and np.allclose(a.transform, bent_place)
     else:
@@ -303,7 +310,7 @@ def test_the_bent_maps_place_refused_for_its_share_stands_where_a_trial_bend_set
     import dataclasses
 
     def rigid(a):  # a place 20 m off
-        return dataclasses.replace(a, transform=compose(a.transform, np.array([20.0, 0.0, 0.0])))
+        return dataclasses.replace(a, transform=_moved(a.transform, 20.0))
 
     def bent(a):  # its truth, refused for its share
         return dataclasses.replace(a, status="unaligned", reason="rejected: share 0.12 < 0.15")
@@ -313,9 +320,7 @@ def test_the_bent_maps_place_refused_for_its_share_stands_where_a_trial_bend_set
     a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
     assert len(calls) == 2
     if outcome == "bent":
-        assert a.status == "aligned" and "a trial bend puts 70.0 m" in a.reason
-        err_m, err_rad = transform_error(a.transform, truth)
-        assert err_m < 0.05 and err_rad < np.radians(0.5)
+        assert _at_truth(a, truth) and "a trial bend puts 70.0 m" in a.reason
     elif outcome == "rigid":  # (the trial settles for the rigid maps' place: its search placed it)
         assert a.status == "aligned" and "settled by a trial bend" in a.reason
         assert transform_error(a.transform, truth)[0] > 19.0
@@ -323,35 +328,39 @@ def test_the_bent_maps_place_refused_for_its_share_stands_where_a_trial_bend_set
         assert a.status == "unaligned" and "ambiguous" in a.reason
 
 
-def _refused_for_share(
-    monkeypatch, trial, noise_m=5.0, score_m=40.0, best_off_m=0.0, rival_off_m=15.0, others=()
-):
-    """Robot 1 of :func:`_fleet_of_two` searched, its search's best place (the true one moved
-    ``best_off_m`` along x) refused for its share with its best distinct rival the true one moved
-    ``rival_off_m``, its other places (Alignment.others) the true one moved ``off`` with ``matched``
-    m for each ``(off, matched)`` of ``others``, the robot's map contradicting itself by ``noise_m``
-    and Fleet.trial answered by ``trial``. Returns the verdict, the places tried per trial and
-    robot 1's true place."""
-    import dataclasses
-
+def _searched(monkeypatch, trial, noise_m, answer):
+    """Robot 1 of :func:`_fleet_of_two` searched, its search's verdict answered by ``answer(a)``
+    (``a``: what the real search found, its true place), the robot's map contradicting itself by
+    ``noise_m`` and Fleet.trial answered by ``trial``. Returns the verdict, the places tried per
+    trial and robot 1's true place."""
     from map_server import placing
 
     f, truth = _fleet_of_two()
     real = placing.estimate_alignment
-
-    def refused(*args, **kwargs):
-        a = real(*args, **kwargs)  # (the true place)
-        best, rival = (compose(a.transform, np.array([off, 0.0, 0.0])) for off in (best_off_m, rival_off_m))
-        rows = [[*compose(a.transform, np.array([off, 0.0, 0.0])), m] for off, m in others]
-        return dataclasses.replace(
-            a, status="unaligned", transform=best, score_m=score_m, reason="rejected: share", rival=rival,
-            others=np.array(rows, float).reshape(-1, 4),
-        )  # fmt: skip
-
-    monkeypatch.setattr(placing, "estimate_alignment", refused)
+    monkeypatch.setattr(placing, "estimate_alignment", lambda *args, **kwargs: answer(real(*args, **kwargs)))
     tried = _trials(monkeypatch, f, trial)
     monkeypatch.setattr(f.placer, "own_noise_m", lambda r: noise_m)
     return f.placer.estimate(f.robots["robot1"], None, None, None, search=True), tried, truth
+
+
+def _refused_for_share(
+    monkeypatch, trial, noise_m=5.0, score_m=40.0, best_off_m=0.0, rival_off_m=15.0, others=()
+):
+    """:func:`_searched` with its search's best place (the true one moved ``best_off_m`` along x)
+    refused for its share, its best distinct rival the true one moved ``rival_off_m``, its other
+    places (Alignment.others) the true one moved ``off`` with ``matched`` m for each
+    ``(off, matched)`` of ``others``."""
+    import dataclasses
+
+    def refused(a):
+        rows = [[*_moved(a.transform, off), m] for off, m in others]
+        return dataclasses.replace(
+            a, status="unaligned", transform=_moved(a.transform, best_off_m), score_m=score_m,
+            reason="rejected: share", rival=_moved(a.transform, rival_off_m),
+            others=np.array(rows, float).reshape(-1, 4),
+        )  # fmt: skip
+
+    return _searched(monkeypatch, trial, noise_m, refused)
 
 
 @pytest.mark.parametrize(
@@ -376,12 +385,10 @@ def test_a_bent_robots_place_refused_for_its_share_stands_where_a_trial_bend_bea
     assert len(tried) == (outcome != "untried")
     if outcome == "placed":
         assert (
-            a.status == "aligned"
+            _at_truth(a, truth)
             and "a trial bend puts 70.0 m" in a.reason
             and "best rival's place" in a.reason
         )
-        err_m, err_rad = transform_error(a.transform, truth)
-        assert err_m < 0.05 and err_rad < np.radians(0.5)
     else:
         assert a.status == "unaligned" and a.reason == "rejected: share"
 
@@ -403,10 +410,8 @@ def test_where_a_trial_bend_puts_far_more_at_the_best_rival_the_rival_stands(mon
     a, tried, truth = _refused_for_share(monkeypatch, trial, best_off_m=15.0, rival_off_m=0.0)
     assert len(tried) == 1
     if outcome == "rival":
-        assert a.status == "aligned" and "the search's best rival place" in a.reason
+        assert _at_truth(a, truth) and "the search's best rival place" in a.reason
         assert "a trial bend puts 70.0 m" in a.reason and "30.0 m at the search's best place" in a.reason
-        err_m, err_rad = transform_error(a.transform, truth)
-        assert err_m < 0.05 and err_rad < np.radians(0.5)
     else:
         assert a.status == "unaligned" and a.reason == "rejected: share"
 
@@ -435,33 +440,22 @@ def test_a_bent_robots_place_is_tried_against_its_searchs_most_matched_far_place
     place stands where they meet ``trial_ratio`` times as much (verified again there)."""
     import dataclasses
 
-    from map_server import placing
-
-    f, truth = _fleet_of_two()
-    real = placing.estimate_alignment
-
-    def found(*args, **kwargs):
-        a = real(*args, **kwargs)  # (the true place, decisively: its net rival is not tried)
-        best, other = (compose(a.transform, np.array([off, 0.0, 0.0])) for off in (best_off_m, other_off_m))
+    def found(a):  # (the true place, decisively: its net rival is not tried)
+        other = [*_moved(a.transform, other_off_m), other_share * a.score_m]
         return dataclasses.replace(
-            a, transform=best, rival_ratio=5.0, others=np.array([[*other, other_share * a.score_m]])
+            a, transform=_moved(a.transform, best_off_m), rival_ratio=5.0, others=np.array([other])
         )
 
-    monkeypatch.setattr(placing, "estimate_alignment", found)
-    tried = _trials(monkeypatch, f, trial)
-    monkeypatch.setattr(f.placer, "own_noise_m", lambda r: noise_m)
-    a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
+    a, tried, truth = _searched(monkeypatch, trial, noise_m, found)
     assert len(tried) == (outcome != "untried")
     if tried:
         best_at, other_at = tried[0]
         assert transform_error(best_at, truth)[0] == pytest.approx(best_off_m, abs=0.05)
         assert transform_error(other_at, truth)[0] == pytest.approx(other_off_m, abs=0.05)
-    err_m, err_rad = transform_error(a.transform, truth)
     if outcome in ("placed", "untried"):
-        assert a.status == "aligned" and err_m < 0.05 and err_rad < np.radians(0.5)
-        assert "trial" not in a.reason
+        assert _at_truth(a, truth) and "trial" not in a.reason
     elif outcome == "other":
-        assert a.status == "aligned" and err_m < 0.05 and err_rad < np.radians(0.5)
+        assert _at_truth(a, truth)
         assert "a trial bend puts 70.0 m" in a.reason and "30.0 m at the search's best place" in a.reason
     else:
         assert a.status == "unaligned" and "its most matched rival's place" in a.reason
@@ -491,9 +485,7 @@ def test_a_bent_robot_refused_for_its_share_is_tried_at_its_searchs_most_matched
     )
     assert len(tried) == 1 and len(tried[0]) == len(trial)
     if outcome == "truth":
-        assert a.status == "aligned" and "a place the search matched most" in a.reason
+        assert _at_truth(a, truth) and "a place the search matched most" in a.reason
         assert "a trial bend puts 70.0 m" in a.reason and "40.0 m at the search's best place" in a.reason
-        err_m, err_rad = transform_error(a.transform, truth)
-        assert err_m < 0.05 and err_rad < np.radians(0.5)
     else:
         assert a.status == "unaligned" and a.reason == "rejected: share"
