@@ -352,6 +352,12 @@ class FleetConfig:
     # ... and a search's place for a robot whose map contradicts itself, with a distinct rival
     # within this ratio, is tried against that rival (placing.Placer._rival_trial)
     trial_rival_ratio: float = 2.0
+    # the server runs trials after publishing, in steps (map_server/trials.py): a finished trial
+    # answers a later search of the same session whose places lie within this of its own (mean
+    # displacement of the robot's walls) while its map grew by less than this share of its length
+    # (or 4 retry_growth_m); a robot whose placement waits on a trial stays unplaced meanwhile
+    trial_same_m: float = 1.0
+    trial_growth_share: float = 0.25
     # refinements of placed robots (not urgent) are spread over the fusions: a fusion refines
     # due robots, the first in arrival order whose turn it is, until they add up to this many
     # layer segments (the first one always: its cost grows with its map); the others wait for the

@@ -77,8 +77,8 @@ from map_server.incremental import MergedMap, Source
 from map_server.placing import Placer
 from map_server.policy import agrees, contradicts_self
 from map_server.posegraph import FleetGraph, Placed, RobotGraph
-from map_server.registration import MapIndex, Samples
 from map_server.state import RetiredPiece, RobotState
+from map_server.trials import Trial, Trials
 from shared.geometry import apply_segments, compose, inverse, relative, wrap_angle
 from shared.messages import GRAPH_FIELDS, FusedMap, PoseUpdate, RobotMap, RobotPath, RobotStatus
 
@@ -112,6 +112,8 @@ class Fleet:
         self.free_of: Callable[[str, str], object] | None = None
         self.placer = Placer(self)  # the alignment rounds (placing.py)
         self._stiff: dict[str, tuple] = {}  # robot -> what Fleet._consistent measured
+        self.trials = Trials()  # the graph's trials of robots at places (trials.py)
+        self._defer_trials = False  # run after publishing (the server: fuse(bend=False))
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -136,6 +138,7 @@ class Fleet:
             m = self._with_graph(r, m)
         m = m.with_scans_of(r.map)  # (the keyframe scans came once each: the map kept is whole)
         if r.map is not None and m.session != r.map.session:
+            self.trials.forget(m.robot)
             self._retire(r, now_s)
             r.new_session()
             if self.reference == m.robot:
@@ -210,6 +213,7 @@ class Fleet:
         The alignment rounds see the same state either way (they come before the graph)."""
         if self.epoch_s is None:
             self.epoch_s = now_s
+        self._defer_trials = not bend
         self.placer.new_fusion()
         for r in self.robots.values():
             if r.map is not None and r.layer is None:
@@ -370,7 +374,7 @@ class Fleet:
             r.bent = dataclasses.replace(r.layer, seg=self.graph.rows(p, xr))
             r.bent_x, r.bent_of = xr, r.layer
 
-    def trial(self, r: RobotState, places: list[np.ndarray]) -> list[float]:
+    def trial(self, r: RobotState, places: list[np.ndarray]) -> list[float] | None:
         """How much of ``r``'s walls [m] meets the others' walls once the fleet's graph has tried it
         at each of ``places`` (its map frame in the global frame): a copy of the graph with ``r``
         placed there, its keyframes matched (and the others' near it) and solved. A piece whose own
@@ -378,39 +382,48 @@ class Fleet:
         bends it into them, at a wrong one its keyframes meet nothing that holds (ACES in 3 pieces,
         final maps: 61-69 m at the truth against 29-30 m at the place the other search chose). The
         live graph is left as it is. Each trial matches every keyframe it has due (at most
-        ``trial_keyframes`` in all); 0 for a place where nothing bends (no other robot bent)."""
+        ``trial_keyframes`` in all); 0 for a place where nothing bends (no other robot bent).
+        Run at once in a fusion with the graph inline (``fuse(bend=True)``); else (the server)
+        queued and run after publishing (:meth:`try_places`, map_server/trials.py): None until it is
+        done, then its answer for as long as it stands for the robot's places."""
         cfg = self.cfg.graph
         others = [x for x in self._bend_placed() if x is not r]
         items = [_graph_item(x, self._consistent(x), self._contradicts(x)) for x in others]
         if not cfg.enabled or not items or r.graph is None or r.map is None:
             return [0.0 for _ in places]
+        at = np.array(places, float).reshape(-1, 3)
+        if self._defer_trials:
+            met = self.trials.answer(r.robot, r.map.session, at, r.layer.length_m, self.cfg)
+            if met is not None:
+                return None if met == "waiting" else met
         keep = {id(x.graph): x.graph for x in self.robots.values() if x.graph is not None}
         for p in self.pieces():
             keep[id(p.layer)] = p.layer
-        fixed = [apply_segments(p.alignment.transform, p.layer.seg) for p in self.pieces()]
+        pieces = [apply_segments(p.alignment.transform, p.layer.seg) for p in self.pieces()]
+        fixed = np.concatenate([np.zeros((0, 2, 2)), *pieces])
         item = _graph_item(r, self._consistent(r), self._contradicts(r))
-        out = []
-        for place in places:
-            g = copy.deepcopy(self.graph, dict(keep))  # (the robots' graphs shared, not copied)
-            mine = dataclasses.replace(item, transform=np.asarray(place, float), status="aligned")
-            now = [*items, mine]
-            g.sync(now)
-            tried = 0
-            while tried < self.cfg.trial_keyframes:
-                n = g.match(now)
-                tried += n
-                if not g.pending or not n:
-                    break
-            x = g.solve(now)
-            theirs = [
-                g.rows(p, x[p.robot]) if p.robot in x else apply_segments(p.transform, p.layer.seg)
-                for p in items
-            ]
-            seg = np.concatenate([*theirs, *fixed]).reshape(-1, 2, 2)
-            walls = g.rows(mine, x[r.robot]) if r.robot in x else apply_segments(place, r.layer.seg)
-            index = MapIndex(seg, cfg.sample_step_m)
-            out.append(index.overlap(np.zeros(3), Samples.of(walls, cfg.sample_step_m), *cfg.stages[-1]))
-        return out
+        base = copy.deepcopy(self.graph, dict(keep))
+        t = Trial(r.robot, r.map.session, at, r.layer.length_m, item, items, fixed, base, keep)
+        if not self._defer_trials:
+            t.step(self.cfg)
+            return t.met
+        self.trials.request(t)
+        log.info("%s: the fleet graph tries it at %d places after publishing", r.robot, len(at))
+        return None
+
+    def try_places(self, stop: Callable[[], bool] | None = None) -> None:
+        """The trials under way (:meth:`trial`), until ``stop()`` says so; a robot whose trial is
+        done is searched again at once (its attempt finds the trial's answer). A trial of a robot
+        placed meanwhile, or of a session replaced, is dropped (every trial is of an unplaced one)."""
+        for robot, t in list(self.trials.queue.items()):
+            r = self.robots.get(robot)
+            if r is None or r.map is None or r.map.session != t.session or r.alignment.placed:
+                del self.trials.queue[robot]
+        for robot in self.trials.step(self.cfg, stop):
+            r, t = self.robots[robot], self.trials.finished[robot]
+            log.info("%s: tried at %d places: %s m of its walls on the others'", robot, len(t.met),
+                     " / ".join(f"{m:.1f}" for m in t.met))  # fmt: skip
+            r.attempt_len_m = None  # (due: RobotState.grew)
 
     def bent_transform(self, r: RobotState) -> np.ndarray | None:
         """Where the graph puts the robot's map frame now: its newest keyframe's correction."""
@@ -466,9 +479,10 @@ class Fleet:
     @property
     def pending_work(self) -> bool:
         """Whether a fusion now would do work without new input: a settle's sweeps are under way
-        (spread over fusions: ``settle_refinements``) or about to begin (a robot left), or
-        keyframes wait to be matched for the fleet's graph (spread over fusions too)."""
-        return self._settling is not None or self._left or self.graph.pending
+        (spread over fusions: ``settle_refinements``) or about to begin (a robot left),
+        keyframes wait to be matched for the fleet's graph (spread over fusions too), or a trial
+        is under way (:meth:`try_places`: its robot is searched again when it is done)."""
+        return self._settling is not None or self._left or self.graph.pending or self.trials.busy
 
     def latest(self) -> FusedMap | None:
         return self._latest

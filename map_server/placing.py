@@ -58,7 +58,7 @@ class FleetView(Protocol):
         self, exclude: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None, rigid: bool = False
     ) -> np.ndarray: ...
 
-    def trial(self, r: RobotState, places: list[np.ndarray]) -> list[float]: ...
+    def trial(self, r: RobotState, places: list[np.ndarray]) -> list[float] | None: ...
 
 
 class Placer:
@@ -184,12 +184,23 @@ class Placer:
         if b.placed:
             why += f" and is placed there ({b.reason})"
         met = self.fleet.trial(r, [a.transform, b.transform])  # the graph tries it at each
+        if met is None:
+            return self._awaiting(a, f"{why}; the fleet's graph tries it at each"), True
         tried = f"a trial bend puts {met[0]:.1f} m of its walls on the others' there, {met[1]:.1f} m"
         ratio, settled = self.cfg.trial_ratio, None
         for v, mine, other in ((a, met[0], met[1]), (b, met[1], met[0])):
             if v.placed and mine >= ratio * other and mine > 0.0:
                 settled = dataclasses.replace(v, reason=f"{v.reason} (settled by {tried} at the other place)")
         settled = settled or self._settle_unplaced(r, b, bent_map, met[1], met[0])
+        if settled is None and not b.placed and met[1] * self.cfg.alignment.min_rival_ratio < met[0]:
+            # the other search placed nothing, and once tried this place meets the others' walls
+            # by a search's margin (min_rival_ratio) more than its best: a rival of this place, as
+            # Placer._rival_trial's (which tries this place's own rivals next). MIT-CSAIL's middle
+            # piece, live at cb2dc5e: 42.4 m at its place (2.26x its rival), 31.5 m at the bent
+            # maps' best 25.8 m away, which its search refused — left "ambiguous" and unplaced
+            why = f"{tried} at the bent maps' best, which their search refused"
+            log.info("%s: the two searches placed %.1f m apart; %s: it stands", r.robot, apart, why)
+            return dataclasses.replace(a, reason=f"{a.reason} (stands: {why})"), False
         if settled is None:
             why += f"; {tried} at the other"
             return dataclasses.replace(a, status="unaligned", reason=f"rejected: ambiguous ({why})"), True
@@ -269,6 +280,8 @@ class Placer:
         if len(places) < 2:
             return v
         met = self.fleet.trial(r, [q for q, _, _ in places])
+        if met is None:
+            return self._awaiting(v, f"{v.reason}; the fleet's graph tries it at {len(places)} places")
         return self._settle_by_trial(r, v, places, met, placed_map) or v
 
     def _trial_places(
@@ -316,6 +329,12 @@ class Placer:
                 return settled
         return None
 
+    @staticmethod
+    def _awaiting(v: Alignment, why: str) -> Alignment:
+        """``v`` unplaced while the fleet's graph tries it after publishing (Fleet.trial): the
+        robot is searched again when the trial is done."""
+        return dataclasses.replace(v, status="unaligned", reason=f"waiting for a trial: {why}")
+
     def _far_rival(self, r: RobotState, v: Alignment) -> bool:
         """Whether the search's best distinct rival lies farther than ``search_agree_m`` from its
         place: nearer, it is the same place where the robot's bent map fits otherwise (ACES's first
@@ -356,6 +375,10 @@ class Placer:
         if len(places) < 2:
             return v
         met = self.fleet.trial(r, [q for q, _, _ in places])
+        if met is None:
+            n = len(places) - 1
+            why = f"its place ({v.reason.removeprefix('matched: ')}) against {n} rival place{'s' * (n > 1)}"
+            return self._awaiting(v, f"the fleet's graph tries {why}")
         here = met[0]
         k = 1 + int(np.argmax(met[1:]))
         there, which = met[k], f"{places[k][2]} place"

@@ -102,6 +102,7 @@ class MapServer:
         self.received: Counter[str] = Counter()
         self.fuse_ms: deque[float] = deque(maxlen=cfg.timing_window)  # recent fusion times (fuse+persist)
         self.bend_ms: deque[float] = deque(maxlen=cfg.timing_window)  # ... and the graph's after them
+        self.trial_ms: deque[float] = deque(maxlen=cfg.timing_window)  # ... and its trials' steps
         self._bend_s = -np.inf  # time.monotonic() of the graph's last bend (_bend)
         self._bent = False  # it ran in the last tick: its result goes out with the next fusion
         self.backlog = {"maps": 0, "poses": 0, "max_maps": 0, "max_poses": 0}  # queue depth at each tick
@@ -356,17 +357,20 @@ class MapServer:
     def _bend(self) -> None:
         """The fleet's graph matched and solved once the fused map is out (Fleet.fuse), if it has
         work and ``graph_every_s`` passed since the last time; what it moves goes out with the
-        next fusion (the loop does not sleep while the graph owes work: ``owes``)."""
+        next fusion (the loop does not sleep while the graph owes work: ``owes``). Then the
+        graph's trials under way (Fleet.try_places), a step of them: both cut short when a map
+        waits."""
         self._bent = False
-        if not self.fleet.graph_stale:
-            return
-        if time.monotonic() - self._bend_s < self.cfg.graph_every_s:
-            return
-        t0 = time.perf_counter()
-        self.fleet.bend(stop=self._map_waits)  # (cut short for a map: the rest in the next bend)
-        self._bend_s = time.monotonic()
-        self._bent = True
-        self.bend_ms.append((time.perf_counter() - t0) * 1e3)
+        if self.fleet.graph_stale and time.monotonic() - self._bend_s >= self.cfg.graph_every_s:
+            t0 = time.perf_counter()
+            self.fleet.bend(stop=self._map_waits)  # (cut short for a map: the rest in the next bend)
+            self._bend_s = time.monotonic()
+            self._bent = True
+            self.bend_ms.append((time.perf_counter() - t0) * 1e3)
+        if self.fleet.trials.busy:  # the graph's trials of robots at places (map_server/trials.py)
+            t0 = time.perf_counter()
+            self.fleet.try_places(stop=self._map_waits)
+            self.trial_ms.append((time.perf_counter() - t0) * 1e3)
 
     def _map_waits(self) -> bool:
         with self._lock:
@@ -476,6 +480,7 @@ class MapServer:
             "queue": dict(self.backlog, waiting_maps=waiting["maps"], waiting_poses=waiting["poses"]),
             "fuse_ms": _timings(self.fuse_ms),
             "bend_ms": _timings(self.bend_ms),  # the fleet graph's, after publishing
+            "trial_ms": _timings(self.trial_ms),  # its trials' steps, after publishing
             "received": received,
             "rejected": rejected,
             "reasons": reasons,
@@ -505,10 +510,11 @@ class MapServer:
         if now - self._last_status_s >= self.cfg.status_every_s:
             self._last_status_s = now
             st = self.status()
-            q, f, b = st["queue"], st["fuse_ms"], st["bend_ms"]
+            q, f, b, t = st["queue"], st["fuse_ms"], st["bend_ms"], st["trial_ms"]
             log.info(
                 "status: %d fusions (%.1f maps each), queue %d maps %d poses (max %d/%d), "
-                "fusion p50 %.1f p95 %.1f max %.1f ms, graph after it p50 %.1f p95 %.1f ms, peak rss %.0f MB",
+                "fusion p50 %.1f p95 %.1f max %.1f ms, graph after it p50 %.1f p95 %.1f ms, "
+                "its trials max %.1f ms a step, peak rss %.0f MB",
                 st["fusions"],
                 st["maps_per_fusion"],
                 q["maps"],
@@ -520,6 +526,7 @@ class MapServer:
                 f["max"],
                 b["p50"],
                 b["p95"],
+                t["max"],
                 st["peak_rss_mb"],
             )
         if self.rejected and now - self._last_log_s >= self.cfg.log_rejections_every_s:

@@ -421,6 +421,46 @@ def test_the_server_solves_the_graph_after_publishing_and_at_most_every_graph_ev
     assert len(server.bend_ms) == n + 1
 
 
+def test_the_server_runs_the_graphs_trials_after_publishing():
+    """A trial the rounds ask for in a fusion (Fleet.trial, map_server/trials.py) is queued, not run
+    there: the server steps it after publishing, keeps the loop at the fusion pace while one is
+    under way (``owes``), and times its steps (``trial_ms``); a trial of a robot placed meanwhile
+    is dropped."""
+    from map_server.server import MapServer, ServerConfig
+    from shared import codec
+    from shared.keys import Keys
+
+    class Bus:
+        def put(self, key, payload, reliable=True):
+            pass
+
+    keys = Keys()
+    server = MapServer(Bus(), keys, ServerConfig(graph_every_s=0.0))
+    runs = {"r0": bent_run(0, 0.0), "r1": bent_run(1, BEND)}
+    for name, run in runs.items():
+        for chunk in codec.split(graph_message(name, run, prior=run[3][0], seq=1)):
+            server.on_map(keys.robot_map(name), codec.encode(chunk))
+    server.tick()
+    for _ in range(50):  # (the graph's own work first)
+        if not server.owes:
+            break
+        server.tick()
+    assert not server.owes and not server.trial_ms
+    from map_server.alignment import Alignment
+
+    r = server.fleet.robots["r1"]
+    place, r.alignment = r.alignment.transform, Alignment("unaligned", np.zeros(3), np.zeros(3))
+    assert server.fleet.trial(r, [place]) is None and server.owes
+    server._bend()  # (what a tick does after publishing)
+    assert len(server.trial_ms) == 1 and not server.fleet.trials.busy and r.attempt_len_m is None
+    assert server.fleet.trial(r, [place])[0] > 100.0  # (its walls on r0's)
+    server.fleet.trial(r, [compose(place, np.array([0.0, 5.0, 0.0]))])
+    r.alignment = Alignment("aligned", place, np.zeros(3))  # placed meanwhile: its trial is dropped
+    server._bend()
+    assert len(server.trial_ms) == 2 and not server.fleet.trials.busy and "r1" in server.fleet.trials.finished
+    assert server.fleet.trials.finished["r1"].places.shape == (1, 3)
+
+
 def test_a_bend_cut_short_for_a_waiting_map_goes_on_in_the_next():
     """The server cuts the graph's work short when a map waits (``Fleet.bend(stop)``): one robot's
     keyframes matched and one iteration of the solve, the rest left due (``graph_stale``) and
@@ -908,3 +948,38 @@ def test_a_trial_bend_meets_the_others_walls_at_a_bent_robots_true_place_not_at_
     assert at_wrong < 0.1 * at_truth  # measured 0 m
     assert fleet.graph.solution == before[0] and fleet.graph.constraints == before[1]
     assert "r1" not in fleet.graph.solution
+
+
+def test_a_trial_run_after_publishing_in_steps_answers_as_one_run_at_once():
+    """The server runs the graph's trials after publishing (map_server/trials.py): Fleet.trial
+    queues one and says None until it is done, in steps cut short by ``stop()`` (a map waits), and
+    then answers as a trial run at once does, for places within ``trial_same_m`` of those tried;
+    the robot is searched again once it is in, and other places ask for a new trial."""
+    from map_server.alignment import Alignment
+
+    fleet, runs = fleet_of(True)
+    r = fleet.robots["r1"]
+    r.alignment = Alignment("unaligned", np.zeros(3), np.zeros(3), reason="unplaced for the test")
+    r.bent = r.bent_x = r.bent_of = None
+    fleet.graph.forget("r1")
+    truth = runs["r1"][3][0]
+    places = [truth, compose(truth, np.array([3.0, 1.5, np.radians(20.0)]))]
+    at_once = fleet.trial(r, places)
+    before = (dict(fleet.graph.solution), {k: dict(v) for k, v in fleet.graph.constraints.items()})
+
+    fleet._defer_trials = True  # (as fuse(bend=False) sets it: the server's way)
+    r.attempt_len_m = 100.0
+    assert fleet.trial(r, places) is None and fleet.trials.busy and fleet.pending_work
+    assert fleet.trial(r, places) is None and len(fleet.trials.queue) == 1  # (not asked twice)
+    steps = 0
+    while fleet.trials.busy:
+        fleet.try_places(stop=lambda: True)  # (a map always waits: the least work each step)
+        steps += 1
+        assert steps < 1000
+    assert steps >= 4 and r.attempt_len_m is None  # (measured: 16 steps; due: searched again)
+    nearby = [compose(p, np.array([0.3, 0.0, 0.0])) for p in places]
+    # measured: 1103.7 m and 0 m, at once 1104.0 m and 0 m
+    assert fleet.trial(r, nearby) == pytest.approx(at_once, rel=0.02)
+    assert fleet.graph.solution == before[0] and fleet.graph.constraints == before[1]
+    assert fleet.trial(r, [truth, compose(truth, np.array([0.0, 5.0, 0.0]))]) is None  # another place
+    assert fleet.trial(r, places[:1]) is None and len(fleet.trials.queue) == 1  # (replaces it)

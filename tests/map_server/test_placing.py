@@ -44,12 +44,13 @@ def _two_searches(monkeypatch, rigid, bent) -> tuple[Fleet, np.ndarray, list]:
 
 
 def _trials(monkeypatch, f: Fleet, figures) -> list:
-    """Fleet.trial answered with ``figures``; returns the places it was asked about, per call."""
+    """Fleet.trial answered with ``figures`` (None: under way, as the server's after publishing);
+    returns the places it was asked about, per call."""
     tried = []
 
     def trial_of(r, places):
         tried.append([np.array(p) for p in places])
-        return list(figures)
+        return None if figures is None else list(figures)
 
     monkeypatch.setattr(f, "trial", trial_of)
     return tried
@@ -201,7 +202,7 @@ def test_a_young_map_is_attempted_at_most_every_young_retry_s_and_at_once_when_m
 @pytest.mark.parametrize(
     ("rigid_placed", "bent_off_m", "bent_score_m", "bent_status", "trial", "outcome"),
     [
-        (True, 20.0, 40.0, "unaligned", (50.0, 45.0), "ambiguous"),
+        (True, 20.0, 40.0, "unaligned", (50.0, 46.0), "ambiguous"),
         (True, 1.0, 40.0, "unaligned", None, "rigid"),
         (True, 20.0, 10.0, "unaligned", None, "rigid"),  # a best place on too little wall is no rival
         (True, 20.0, 60.0, "aligned", (50.0, 45.0), "ambiguous"),  # both place, apart: neither stands
@@ -212,6 +213,10 @@ def test_a_young_map_is_attempted_at_most_every_young_retry_s_and_at_once_when_m
         (True, 20.0, 60.0, "aligned", (29.0, 61.0), "bent, settled"),
         # ... if its own search placed it
         (True, 20.0, 40.0, "unaligned", (29.0, 61.0), "ambiguous"),
+        # where only the rigid maps' placed, its place is what a rival trial keeps: it stands if it
+        # meets a search's margin (1.1x) more than the bent maps' best (MIT-CSAIL's middle piece,
+        # live at cb2dc5e: 42.4 against 31.5 m, left ambiguous and unplaced for good)
+        (True, 20.0, 40.0, "unaligned", (42.4, 31.5), "rigid, stands"),
     ],
 )
 def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
@@ -221,9 +226,11 @@ def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
     found against the rigid maps stands where the bent maps' best place lies within
     ``search_agree_m`` of it (or stands on less wall than a merge needs); where it lies farther,
     the fleet's graph tries the robot at both (Fleet.trial) and a place whose walls then meet the
-    others' ``trial_ratio`` times as much as at the other stands, if its search placed it; else
-    neither stands (ambiguous): each search has placed a piece of ACES wrongly where the other
-    found its truth. The bent maps place alone where the rigid maps place nothing."""
+    others' ``trial_ratio`` times as much as at the other stands, if its search placed it; the
+    rigid maps' place also stands where it meets ``alignment.min_rival_ratio`` times as much as the
+    bent maps' best that their search refused (a rival, as Placer._rival_trial's); else neither
+    stands (ambiguous): each search has placed a piece of ACES wrongly where the other found its
+    truth. The bent maps place alone where the rigid maps place nothing."""
     import dataclasses
 
     def rigid(a):  # as found (or refused)
@@ -251,6 +258,8 @@ def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
         assert "a trial bend puts" in a.reason
     if outcome.endswith("settled"):
         assert "settled by a trial bend" in a.reason
+    elif outcome.endswith("stands"):
+        assert "(stands: a trial bend puts" in a.reason and "which their search refused" in a.reason
     elif outcome == "rigid":
         assert a is calls[0]
     elif outcome == "bent":
@@ -489,3 +498,35 @@ def test_a_bent_robot_refused_for_its_share_is_tried_at_its_searchs_most_matched
         assert "a trial bend puts 70.0 m" in a.reason and "40.0 m at the search's best place" in a.reason
     else:
         assert a.status == "unaligned" and a.reason == "rejected: share"
+
+
+@pytest.mark.parametrize("trial", ["rival", "share", "searches"])
+def test_a_bent_robot_whose_place_waits_on_a_trial_stays_unplaced_and_says_so(monkeypatch, trial):
+    """The server runs the fleet graph's trials after publishing (map_server/trials.py: Fleet.trial
+    says None until one is done): a robot whose place waits on one stays unplaced meanwhile, and
+    its reason says so — its place tried against a rival, its place refused for its share, or the
+    two searches that placed apart."""
+    import dataclasses
+
+    if trial == "rival":
+        f, _ = _fleet_of_two()
+        f.cfg = dataclasses.replace(f.cfg, trial_rival_ratio=1e9)
+        tried = _trials(monkeypatch, f, None)
+        monkeypatch.setattr(f.placer, "own_noise_m", lambda r: 5.0)
+        a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
+        assert "against 1 rival place" in a.reason
+    elif trial == "share":
+        a, tried, _ = _refused_for_share(monkeypatch, None)
+        assert "rejected: share; the fleet's graph tries it at 2 places" in a.reason
+    else:
+
+        def bent(a):  # its truth, refused for its share
+            return dataclasses.replace(a, status="unaligned", reason="rejected: share 0.12 < 0.15")
+
+        f, _, _ = _two_searches(
+            monkeypatch, lambda a: dataclasses.replace(a, transform=_moved(a.transform, 20.0)), bent
+        )
+        tried = _trials(monkeypatch, f, None)
+        a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
+        assert "the fleet's graph tries it at each" in a.reason
+    assert len(tried) == 1 and a.status == "unaligned" and a.reason.startswith("waiting for a trial: ")
