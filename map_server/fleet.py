@@ -420,7 +420,7 @@ class Fleet:
             if r is None or r.map is None or r.map.session != t.session or r.alignment.placed:
                 del self.trials.queue[robot]
         for robot in self.trials.step(self.cfg, stop):
-            r, t = self.robots[robot], self.trials.finished[robot]
+            r, t = self.robots[robot], self.trials.finished[robot][-1]
             log.info("%s: tried at %d places: %s m of its walls on the others'", robot, len(t.met),
                      " / ".join(f"{m:.1f}" for m in t.met))  # fmt: skip
             r.attempt_len_m = None  # (due: RobotState.grew)

@@ -16,7 +16,7 @@ A finished trial stands for a later search of the same robot session whose place
 (each within ``trial_same_m`` of the trial's, mean displacement of the robot's walls) while its map
 grew by less than ``trial_growth_share`` (or ``4 * retry_growth_m``) since the trial began; anything
 else asks for a new one, which replaces a queued or running trial of that robot. One trial runs at a
-time, the others wait in request order: at most one of each robot, queued or kept.
+time, the others wait in request order: at most one of each robot queued, and its last few kept.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from map_server.registration import MapIndex, Samples
 from shared.geometry import apply_segments
 
 SOLVE_CUTS = 3  # a trial's solve cut short this many times runs whole the next time
+FINISHED_KEPT = 4  # finished trials kept per robot (each answers its places)
 
 
 @dataclass(eq=False)
@@ -43,9 +44,8 @@ class Trial:
     ``items`` the others placed (as the graph takes them), ``fixed`` the retired pieces' segments in
     the global frame, ``base`` a copy of the fleet's graph when it began (``keep``: what copies of
     it share rather than copy: the robots' graphs and the pieces' layers, never modified); a
-    finished trial keeps none of these (Trials.finished). ``met``
-    fills as places are tried; ``graph`` is the current place's copy, ``tried`` its keyframes
-    matched so far."""
+    finished trial keeps none of these (Trials.finished). ``met`` fills as places are tried;
+    ``graph`` is the current place's copy, ``tried`` its keyframes matched so far."""
 
     robot: str
     session: str
@@ -128,23 +128,25 @@ class Trial:
 
 
 class Trials:
-    """The trials under way (``queue``, request order, the first running) and the last one finished
-    of each robot (``finished``)."""
+    """The trials under way (``queue``, request order, the first running; one per robot) and the
+    last ``FINISHED_KEPT`` finished of each robot (``finished``, oldest first): a robot's attempt
+    can ask for two — the two searches' places, then its place's own rivals
+    (Placer._search, Placer._rival_trial) — and each must answer the next attempt."""
 
     def __init__(self) -> None:
         self.queue: dict[str, Trial] = {}
-        self.finished: dict[str, Trial] = {}
+        self.finished: dict[str, list[Trial]] = {}
 
     @property
     def busy(self) -> bool:
         return bool(self.queue)
 
     def answer(self, robot: str, session: str, places: np.ndarray, length_m: float, cfg: FleetConfig):
-        """What a finished trial of ``robot`` met at each of ``places`` if one stands for them; else
-        ``"waiting"`` if one that will is under way, else None (ask: :meth:`request`)."""
-        t = self.finished.get(robot)
-        if t is not None and t.stands_for(session, places, length_m, cfg):
-            return list(t.met)
+        """What a finished trial of ``robot`` met at each of ``places`` if one stands for them (the
+        newest); else ``"waiting"`` if one that will is under way, else None (ask: :meth:`request`)."""
+        for t in reversed(self.finished.get(robot, ())):
+            if t.stands_for(session, places, length_m, cfg):
+                return list(t.met)
         t = self.queue.get(robot)
         if t is not None and t.stands_for(session, places, length_m, cfg):
             return "waiting"
@@ -164,15 +166,15 @@ class Trials:
             if not t.step(cfg, stop):
                 break
             del self.queue[robot]
-            self.finished[robot] = dataclasses.replace(t, items=[], fixed=t.fixed[:0], base=None, keep={})
+            kept = self.finished.setdefault(robot, [])
+            kept.append(dataclasses.replace(t, items=[], fixed=t.fixed[:0], base=None, keep={}))
+            del kept[:-FINISHED_KEPT]
             out.append(robot)
             if stop is not None and stop():
                 break
         return out
 
-    def forget(self, robot: str, session: str | None = None) -> None:
-        """Drop ``robot``'s trials (only those of another session than ``session`` when given)."""
-        for d in (self.queue, self.finished):
-            t = d.get(robot)
-            if t is not None and (session is None or t.session != session):
-                del d[robot]
+    def forget(self, robot: str) -> None:
+        """Drop ``robot``'s trials (a new session)."""
+        self.queue.pop(robot, None)
+        self.finished.pop(robot, None)
