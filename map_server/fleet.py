@@ -393,9 +393,10 @@ class Fleet:
             return [0.0 for _ in places]
         at = np.array(places, float).reshape(-1, 3)
         if self._defer_trials:
-            met = self.trials.answer(r.robot, r.map.session, at, r.layer.length_m, self.cfg)
-            if met is not None:
-                return None if met == "waiting" else met
+            asked = (r.robot, r.map.session, at, r.layer.length_m, self.cfg)
+            met = self.trials.answer(*asked)
+            if met is not None or self.trials.under_way(*asked):
+                return met
         keep = {id(x.graph): x.graph for x in self.robots.values() if x.graph is not None}
         for p in self.pieces():
             keep[id(p.layer)] = p.layer

@@ -141,16 +141,22 @@ class Trials:
     def busy(self) -> bool:
         return bool(self.queue)
 
-    def answer(self, robot: str, session: str, places: np.ndarray, length_m: float, cfg: FleetConfig):
-        """What a finished trial of ``robot`` met at each of ``places`` if one stands for them (the
-        newest); else ``"waiting"`` if one that will is under way, else None (ask: :meth:`request`)."""
+    def answer(
+        self, robot: str, session: str, places: np.ndarray, length_m: float, cfg: FleetConfig
+    ) -> list[float] | None:
+        """What a finished trial of ``robot`` met at each of ``places``, the newest that stands for
+        them (Trial.stands_for); None if none does."""
         for t in reversed(self.finished.get(robot, ())):
             if t.stands_for(session, places, length_m, cfg):
                 return list(t.met)
-        t = self.queue.get(robot)
-        if t is not None and t.stands_for(session, places, length_m, cfg):
-            return "waiting"
         return None
+
+    def under_way(
+        self, robot: str, session: str, places: np.ndarray, length_m: float, cfg: FleetConfig
+    ) -> bool:
+        """Whether the trial of ``robot`` queued or running will stand for ``places``."""
+        t = self.queue.get(robot)
+        return t is not None and t.stands_for(session, places, length_m, cfg)
 
     def request(self, t: Trial) -> None:
         """Queue ``t``, in place of any trial of its robot queued or running."""

@@ -372,10 +372,9 @@ def test_the_graph_can_run_after_the_fused_map_and_its_result_goes_out_next():
     assert np.percentile(keyframe_errors(fleet, runs, "r1"), 90) < 0.15
 
 
-def test_the_server_solves_the_graph_after_publishing_and_at_most_every_graph_every_s():
-    """The server's tick publishes first (Fleet.fuse without the graph), then matches and solves
-    the graph if it has work and ``graph_every_s`` passed; a held-back graph keeps the loop at the
-    fusion pace (``owes``) and its result goes out with the next tick's fusion."""
+def _server_of_two(graph_every_s: float):
+    """A map server (no bus) that has been sent two bent robots' maps with their priors (seq 1);
+    returns it, the runs and ``send(name, run, seq)``, which sends one robot's map again."""
     from map_server.server import MapServer, ServerConfig
     from shared import codec
     from shared.keys import Keys
@@ -385,7 +384,7 @@ def test_the_server_solves_the_graph_after_publishing_and_at_most_every_graph_ev
             pass
 
     keys = Keys()
-    server = MapServer(Bus(), keys, ServerConfig(graph_every_s=3600.0))
+    server = MapServer(Bus(), keys, ServerConfig(graph_every_s=graph_every_s))
     runs = {"r0": bent_run(0, 0.0), "r1": bent_run(1, BEND)}
 
     def send(name, run, seq):
@@ -394,6 +393,14 @@ def test_the_server_solves_the_graph_after_publishing_and_at_most_every_graph_ev
 
     for name, run in runs.items():
         send(name, run, 1)
+    return server, runs, send
+
+
+def test_the_server_solves_the_graph_after_publishing_and_at_most_every_graph_every_s():
+    """The server's tick publishes first (Fleet.fuse without the graph), then matches and solves
+    the graph if it has work and ``graph_every_s`` passed; a held-back graph keeps the loop at the
+    fusion pace (``owes``) and its result goes out with the next tick's fusion."""
+    server, runs, send = _server_of_two(graph_every_s=3600.0)
     first = server.tick()  # both placed by their priors; the graph's first bend after it
     assert first is not None and len(server.bend_ms) == 1 and server.owes
     bent = server.tick()  # the bend goes out
@@ -426,20 +433,7 @@ def test_the_server_runs_the_graphs_trials_after_publishing():
     there: the server steps it after publishing, keeps the loop at the fusion pace while one is
     under way (``owes``), and times its steps (``trial_ms``); a trial of a robot placed meanwhile
     is dropped."""
-    from map_server.server import MapServer, ServerConfig
-    from shared import codec
-    from shared.keys import Keys
-
-    class Bus:
-        def put(self, key, payload, reliable=True):
-            pass
-
-    keys = Keys()
-    server = MapServer(Bus(), keys, ServerConfig(graph_every_s=0.0))
-    runs = {"r0": bent_run(0, 0.0), "r1": bent_run(1, BEND)}
-    for name, run in runs.items():
-        for chunk in codec.split(graph_message(name, run, prior=run[3][0], seq=1)):
-            server.on_map(keys.robot_map(name), codec.encode(chunk))
+    server, _, _ = _server_of_two(graph_every_s=0.0)
     server.tick()
     for _ in range(50):  # (the graph's own work first)
         if not server.owes:
