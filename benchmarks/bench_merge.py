@@ -51,7 +51,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import shapely
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -61,9 +60,9 @@ from _results import save_results  # noqa: E402
 from fleet_slam.report import WRONG_MERGE_DEG, WRONG_MERGE_M  # noqa: E402
 from map_server.alignment import estimate_alignment  # noqa: E402
 from map_server.config import FleetConfig  # noqa: E402
-from map_server.contradiction import Check, own_noise, placed_noise, shrink  # noqa: E402
+from map_server.contradiction import Check, own_noise, placed_noise, shrink, shrink_placed  # noqa: E402
 from map_server.fleet import Fleet  # noqa: E402
-from map_server.freespace import FreeSpaces, place_area  # noqa: E402
+from map_server.freespace import FreeSpaces  # noqa: E402
 from map_server.fusion import fuse_particles, merge_segments  # noqa: E402
 from shared import codec  # noqa: E402
 from shared.config import apply_overrides  # noqa: E402
@@ -321,15 +320,12 @@ def run_seed(
         def checked():
             """contradiction.Check's arguments, as Placer.veto gives them."""
             seen = [(j, lj, a) for j, lj in others if (a := area(j, t)) is not None]
-            theirs = [place_area(a, truth[names[j]]) for j, _, a in seen]
-            theirs = shrink(shapely.union_all(theirs), ccfg.margin_m) if theirs else None
+            grid = (ccfg.margin_m, ccfg.cell_m, ccfg.max_cells)
+            theirs = shrink_placed([(a, truth[names[j]]) for j, _, a in seen], *grid)
             noise = placed_noise(
-                [
-                    (own_noise(lj.seg, shrink(a, ccfg.margin_m), ccfg.step_m), truth[names[j]])
-                    for j, lj, a in seen
-                ]
+                [(own_noise(lj.seg, shrink(a, *grid), ccfg.step_m), truth[names[j]]) for j, lj, a in seen]
             )
-            return layer(i, k).seg, shrink(area(i, t), ccfg.margin_m), merged, theirs, ccfg, noise
+            return layer(i, k).seg, shrink(area(i, t), *grid), merged, theirs, ccfg, noise
 
         check = Check(*checked()) if ccfg.enabled else None
         a = estimate_alignment(layer(i, k).seg, merged, cfg.alignment, veto=check)

@@ -23,12 +23,10 @@ from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
-import shapely
 
 from map_server import candidates, contradiction, policy
 from map_server.alignment import Alignment, estimate_alignment, query_reach, verify_join
 from map_server.config import FleetConfig
-from map_server.freespace import place_area
 from map_server.registration import MapIndex, OutsideIndex, Samples
 from map_server.schedule import Around, PlacedKey, global_box
 from map_server.state import RetiredPiece, RobotState
@@ -434,13 +432,17 @@ class Placer:
         placed += [(p.robot, p.session, p.layer, p.alignment.transform) for p in self.fleet.pieces()]
         parts = [(a, lay, t) for robot, ses, lay, t in placed if (a := free_of(robot, ses)) is not None]
         made_of = tuple((id(a), id(lay), *np.round(t, 4)) for a, lay, t in parts)
+        grid = (cc.margin_m, cc.cell_m, cc.max_cells)
         if self._placed_free is None or self._placed_free[0] != made_of:
-            union = shapely.union_all([place_area(a, t) for a, _, t in parts]) if parts else None
             noise = contradiction.placed_noise(
                 [(n, t) for n, (_, _, t) in zip(self._own_noise(parts), parts, strict=True)]
             )
             # (the ids it is known by stay theirs: _noise_cache holds the parts)
-            self._placed_free = (made_of, contradiction.shrink(union, cc.margin_m), noise)
+            self._placed_free = (
+                made_of,
+                contradiction.shrink_placed([(a, t) for a, _, t in parts], *grid),
+                noise,
+            )
         theirs, noise = self._placed_free[1:]
         if own is None and theirs is None:
             return None
@@ -461,15 +463,19 @@ class Placer:
         return float(contradiction.own_noise(r.layer.seg, own, self.cfg.contradiction.step_m)[1].sum())
 
     def _shrink(self, area):
-        """contradiction.shrink of a robot's free space, kept while it is the same object: a free
-        space of a real log's 361-beam scans (7,000-12,000 vertices) takes 2-10 s to shrink, and
-        every search of an unplaced robot shrank its own again (MIT-CSAIL in 3 pieces: fusions of
-        5-20 s). The newest few are kept (the robots' and retired pieces' current free spaces)."""
+        """contradiction.shrink of a robot's free space, kept while it is the same object (a free
+        space of a real log's 361-beam scans, 7,000-12,000 vertices, takes a tenth of a second to
+        put on the grid; it took GEOS 2-10 s to buffer, at every search of an unplaced robot).
+        The newest few are kept (the robots' and retired pieces' current free spaces)."""
         if area is None:
             return None
         hit = self._shrunk.get(id(area))
         if hit is None or hit[0] is not area:
-            hit = self._shrunk[id(area)] = (area, contradiction.shrink(area, self.cfg.contradiction.margin_m))
+            cc = self.cfg.contradiction
+            hit = self._shrunk[id(area)] = (
+                area,
+                contradiction.shrink(area, cc.margin_m, cc.cell_m, cc.max_cells),
+            )
             while len(self._shrunk) > 2 * (len(self.fleet.robots) + len(self.fleet.pieces())) + 8:
                 del self._shrunk[next(iter(self._shrunk))]  # (the oldest first)
         return hit[1]

@@ -95,6 +95,38 @@ def polygons(geom) -> list[Polygon]:
     return []
 
 
+def ring_edges(geom) -> np.ndarray:
+    """Every ring's edges ``(E,2,2)`` (outer rings and holes) of the polygons in ``geom``."""
+    polys = polygons(geom)
+    if not polys:
+        return np.zeros((0, 2, 2))
+    xy, ring = shapely.get_coordinates(shapely.get_rings(np.array(polys, dtype=object)), return_index=True)
+    same = ring[1:] == ring[:-1]  # (a ring's coordinates close on its first: no edge across rings)
+    return np.stack([xy[:-1][same], xy[1:][same]], axis=1)
+
+
+def fill(edges: np.ndarray, x0: float, y0: float, cell_m: float, shape: tuple[int, int]) -> np.ndarray:
+    """The cells ``(H,W)`` bool of a grid (cell (0,0)'s lower-left corner at ``(x0, y0)``) whose
+    centre lies inside the rings whose edges are ``edges (E,2,2)``, by the even-odd rule (outer
+    rings and their holes; polygons that do not overlap): a scanline fill, every edge's crossings
+    of the rows' centre lines at once, toggled and summed along each row."""
+    h, w = shape
+    e = (np.asarray(edges, float).reshape(-1, 2, 2) - (x0, y0)) / cell_m - 0.5  # (cell centres at k)
+    ya, yb = e[:, 0, 1], e[:, 1, 1]
+    lo = np.clip(np.ceil(np.minimum(ya, yb)), 0, h).astype(np.int64)  # rows lo <= r < hi cross
+    hi = np.clip(np.ceil(np.maximum(ya, yb)), 0, h).astype(np.int64)
+    n = hi - lo
+    k = np.flatnonzero(n > 0)
+    owner = np.repeat(k, n[k])
+    row = lo[owner] + np.arange(len(owner)) - np.repeat(np.cumsum(n[k]) - n[k], n[k])
+    t = (row - ya[owner]) / (yb[owner] - ya[owner])
+    x = e[owner, 0, 0] + t * (e[owner, 1, 0] - e[owner, 0, 0])
+    col = np.clip(np.ceil(x), 0, w).astype(np.int64)  # the first cell centre right of the crossing
+    toggles = np.bincount(row * (w + 1) + col, minlength=h * (w + 1)).astype(np.uint8)
+    # (a uint8 sum wraps at 256: its parity stays right)
+    return (np.cumsum(toggles.reshape(h, w + 1), axis=1, dtype=np.uint8)[:, :w] & 1).astype(bool)
+
+
 def to_rings(geom, tolerance_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """``geom`` simplified by ``tolerance_m`` as ``ring_offsets, ring_hole, vertices`` (the arrays
     of a :class:`FusedFree`) and the tolerance used: doubled until the vertices fit one message."""

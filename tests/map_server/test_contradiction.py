@@ -27,6 +27,35 @@ def test_inside_counts_the_length_of_wall_inside():
     assert cd.inside_m(None, seg, 0.1) == 0.0 and cd.inside_m(room, np.zeros((0, 2, 2)), 0.1) == 0.0
 
 
+def test_free_space_is_shrunk_on_a_grid_as_a_disk_erodes_it():
+    """``shrink`` keeps the cells farther than the margin from the free space's edge: as shapely's
+    round buffer does, to within a cell (a pillar's corner grows round, not mitred into a spike);
+    the placed union of overlapping parts is the union shrunk (no seam where they meet); a box too
+    large for ``max_cells`` takes coarser cells."""
+    room = ROOM.difference(shapely.box(4.0, 2.0, 4.2, 2.2))  # a pillar
+    s = cd.shrink(room, CC.margin_m, CC.cell_m)
+    truth = room.buffer(-CC.margin_m)
+    assert s.cell_m == CC.cell_m and s.area == pytest.approx(truth.area, rel=0.01)
+    inner, outer = truth.buffer(-CC.cell_m), room.difference(truth.buffer(CC.cell_m))
+    xx, yy = np.meshgrid(np.arange(-0.5, 10.5, 0.017), np.arange(-0.5, 6.5, 0.017))  # (off the cells)
+    for geom, want in ((inner, True), (outer, False)):
+        at = shapely.contains_xy(geom, xx, yy)
+        assert at.sum() > 1000 and (s.contains_xy(xx[at], yy[at]) == want).all()
+    assert not s.contains_xy(np.array([4.1]), np.array([1.8]))[0]  # 0.2 m below the pillar
+    left, right = shapely.box(0.0, 0.0, 6.0, 6.0), shapely.box(-2.0, 0.0, 6.0, 6.0)
+    pose = np.array([4.0, 0.0, 0.0])  # right's frame 4 m on: the two make ROOM
+    both = cd.shrink_placed([(left, None), (right, pose)], CC.margin_m, CC.cell_m)
+    assert (
+        both.area == pytest.approx(9.4 * 5.4, rel=0.01)
+        and both.contains_xy(np.array([6.0]), np.array([3.0]))[0]
+    )
+    coarse = cd.shrink(ROOM, CC.margin_m, CC.cell_m, max_cells=10_000)
+    assert coarse.cell_m > CC.cell_m and coarse.cells.size <= 10_000
+    assert coarse.area == pytest.approx(9.4 * 5.4, rel=0.05)
+    assert cd.shrink(shapely.box(0.0, 0.0, 0.5, 5.0), CC.margin_m) is None  # nothing left
+    assert cd.shrink(None, CC.margin_m) is None and cd.shrink_placed([], CC.margin_m) is None
+
+
 def test_walls_inside_free_space_contradict_and_walls_on_its_edge_do_not():
     free = cd.shrink(ROOM, CC.margin_m)
     wall_on_edge = np.array([[[0.0, 0.1], [10.0, 0.1]]])  # the room's own wall, 10 cm off
@@ -320,7 +349,7 @@ def test_a_young_map_that_contradicts_itself_waits_for_maturity():
     cfg = FleetConfig()
     (seg0, _), (seg2, _) = scan_map("office", 0, 70.0), scan_map("office", 2, 70.0)
     free2 = scan_free("office", 2, 70.0)
-    x, y = cd.shrink(free2, 1.0).representative_point().coords[0]
+    x, y = free2.buffer(-1.0).representative_point().coords[0]  # (a point 1 m inside)
     door = np.array([[[x - 1.5, y], [x + 1.5, y]]])
     noisy = np.concatenate([seg2, door])
     assert cd.own_noise(noisy, cd.shrink(free2, CC.margin_m), CC.step_m)[1].sum() > cfg.young_max_self_m

@@ -154,11 +154,11 @@ def test_a_free_space_is_shrunk_once_while_it_is_the_same(monkeypatch):
 
     f, _ = _fleet_of_two()
     shrunk, real = [], contradiction.shrink
-    monkeypatch.setattr(contradiction, "shrink", lambda a, m: shrunk.append(a) or real(a, m))
+    monkeypatch.setattr(contradiction, "shrink", lambda a, *k: shrunk.append(a) or real(a, *k))
     area = shapely.box(0.0, 0.0, 10.0, 5.0)
     first = f.placer._shrink(area)
     assert f.placer._shrink(area) is first and len(shrunk) == 1
-    assert first.area == pytest.approx(9.4 * 4.4)  # (0.3 m off every side)
+    assert first.area == pytest.approx(9.4 * 4.4, rel=0.03)  # (0.3 m off every side, on 5 cm cells)
     again = shapely.box(0.0, 0.0, 10.0, 5.0)  # a new free space (the same shape)
     assert f.placer._shrink(again) is not first and len(shrunk) == 2
     for k in range(40):

@@ -18,8 +18,10 @@ from shared.occupancy import (
     FREE,
     OCCUPIED,
     UNKNOWN,
+    fill,
     grid_quality,
     occupancy_grid,
+    ring_edges,
     to_rings,
     unexplained,
     view_rings,
@@ -152,3 +154,25 @@ def test_the_nav2_pair_reads_back_with_an_independent_reader(tmp_path):
     assert at(-0.3, 1.0) == -1 and at(4.3, 2.0) == -1  # outside: unknown
     with pytest.raises(ValueError, match=r"named \*\.yaml"):
         save_nav2(tmp_path / "map.pgm", g)
+
+
+@pytest.mark.parametrize("x0, y0", [(-1.0, -1.0), (3.01, 1.52), (-7.0, -6.0)])
+def test_a_scanline_fill_holds_the_cells_whose_centre_lies_in_the_polygon(x0, y0):
+    """``fill`` (the contradiction check's grid) against shapely's own point test, cell by cell: a
+    room with a pillar and a sliver hole, a jagged star of 400 vertices, and windows that cut
+    them (a part filled in its box of a larger grid)."""
+    import shapely
+
+    rng = np.random.default_rng(3)
+    a = np.sort(rng.uniform(0.0, 2 * np.pi, 400))
+    r = rng.uniform(1.0, 5.0, 400)
+    star = shapely.Polygon(np.column_stack([12.0 + r * np.cos(a), 3.0 + r * np.sin(a)])).buffer(0)
+    room = shapely.box(0.0, 0.0, 10.0, 6.0).difference(shapely.box(2.0, 2.0, 4.0, 4.0))
+    room = room.difference(shapely.box(6.0, 1.0, 6.03, 5.0))  # thinner than a cell
+    geom = shapely.union_all([room, star])
+    cell, shape = 0.05, (200, 380)
+    cells = fill(ring_edges(geom), x0, y0, cell, shape)
+    xx, yy = np.meshgrid(x0 + (np.arange(shape[1]) + 0.5) * cell, y0 + (np.arange(shape[0]) + 0.5) * cell)
+    truth = shapely.contains_xy(geom, xx, yy)
+    assert truth.sum() > 5000 and (cells == truth).all()
+    assert not fill(np.zeros((0, 2, 2)), x0, y0, cell, shape).any()
