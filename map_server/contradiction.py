@@ -114,7 +114,7 @@ def shrink_placed(
     """The union of ``parts`` — ``(area, pose)``, a shapely area in a frame placed at ``pose (3,)``
     (None: as it is) — shrunk by ``margin_m``, as cells of ``cell_m`` (coarser where the union's
     box would take more than ``max_cells``): the cells whose centre lies in the union farther than
-    ``margin_m`` from its edge (a disk's erosion, measured between cell centres). None when
+    ``margin_m`` from its edge (a disk's erosion, to within a cell). None when
     nothing is left. A grid, not a polygon buffer: a real log's free space (7,000-12,000 vertices,
     up to 1,300 holes) took GEOS 1-5 s and 200 MB to shrink, searched again at every new map."""
     edges = []
@@ -138,9 +138,20 @@ def shrink_placed(
         c0, r0 = np.floor((e.reshape(-1, 2).min(axis=0) - (x0, y0)) / cell).astype(int)
         c1, r1 = np.ceil((e.reshape(-1, 2).max(axis=0) - (x0, y0)) / cell).astype(int) + 1
         c1, r1 = min(c1, w), min(r1, h)
-        free[r0:r1, c0:c1] |= fill(e, x0 + c0 * cell, y0 + r0 * cell, cell, (r1 - r0, c1 - c0))
-    # a cell's centre lies about half a cell inside the edge its distance is measured to
-    keep = ndimage.distance_transform_edt(free) > margin_m / cell + 0.5
+        part = fill(e, x0 + c0 * cell, y0 + r0 * cell, cell, (r1 - r0, c1 - c0))
+        # the cells its edges cross are its edge's, not free: a hole narrower than a cell (a gap
+        # between views either side of a wall) holds no cell's centre and would vanish
+        pts = sample_segments(e, cell / 2, ends=True)[0]
+        part[
+            np.floor((pts[:, 1] - y0) / cell).astype(int) - r0,
+            np.floor((pts[:, 0] - x0) / cell).astype(int) - c0,
+        ] = False
+        free[r0:r1, c0:c1] |= part
+    # (measured from the centres of the cells its edges cross, up to 0.7 of a cell inside the
+    # edge; a quarter of a cell more errs on shrinking more, as GEOS's mitred buffer did: a 10 x 6 m
+    # room shrunk by 0.3 m keeps 49.6 m2 of 9.4 x 5.4 = 50.8, an office robot's free space 151 m2
+    # where the mitred buffer kept 154 and a round one 157)
+    keep = ndimage.distance_transform_edt(free) > margin_m / cell + 0.25
     rows, cols = np.flatnonzero(keep.any(axis=1)), np.flatnonzero(keep.any(axis=0))
     if not len(rows):
         return None

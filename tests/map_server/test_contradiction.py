@@ -29,24 +29,26 @@ def test_inside_counts_the_length_of_wall_inside():
 
 def test_free_space_is_shrunk_on_a_grid_as_a_disk_erodes_it():
     """``shrink`` keeps the cells farther than the margin from the free space's edge: as shapely's
-    round buffer does, to within a cell (a pillar's corner grows round, not mitred into a spike);
+    round buffer does, to within a cell or two (a pillar's corner grows round, not mitred into a
+    spike; a sliver of a hole, narrower than a cell, holds no cell's centre and stays a hole);
     the placed union of overlapping parts is the union shrunk (no seam where they meet); a box too
     large for ``max_cells`` takes coarser cells."""
     room = ROOM.difference(shapely.box(4.0, 2.0, 4.2, 2.2))  # a pillar
+    room = room.difference(shapely.box(7.0, 1.0, 7.02, 2.0))  # a sliver (a gap between two views)
     s = cd.shrink(room, CC.margin_m, CC.cell_m)
     truth = room.buffer(-CC.margin_m)
-    assert s.cell_m == CC.cell_m and s.area == pytest.approx(truth.area, rel=0.01)
-    inner, outer = truth.buffer(-CC.cell_m), room.difference(truth.buffer(CC.cell_m))
+    assert s.cell_m == CC.cell_m and s.area == pytest.approx(truth.area, rel=0.04)
+    inner, outer = truth.buffer(-2 * CC.cell_m), room.difference(truth.buffer(2 * CC.cell_m))
     xx, yy = np.meshgrid(np.arange(-0.5, 10.5, 0.017), np.arange(-0.5, 6.5, 0.017))  # (off the cells)
     for geom, want in ((inner, True), (outer, False)):
         at = shapely.contains_xy(geom, xx, yy)
         assert at.sum() > 1000 and (s.contains_xy(xx[at], yy[at]) == want).all()
-    assert not s.contains_xy(np.array([4.1]), np.array([1.8]))[0]  # 0.2 m below the pillar
+    assert not s.contains_xy(np.array([4.1, 7.0, 7.2]), np.array([1.8, 1.5, 1.5])).any()  # by each
     left, right = shapely.box(0.0, 0.0, 6.0, 6.0), shapely.box(-2.0, 0.0, 6.0, 6.0)
     pose = np.array([4.0, 0.0, 0.0])  # right's frame 4 m on: the two make ROOM
     both = cd.shrink_placed([(left, None), (right, pose)], CC.margin_m, CC.cell_m)
     assert (
-        both.area == pytest.approx(9.4 * 5.4, rel=0.01)
+        both.area == pytest.approx(9.4 * 5.4, rel=0.04)
         and both.contains_xy(np.array([6.0]), np.array([3.0]))[0]
     )
     coarse = cd.shrink(ROOM, CC.margin_m, CC.cell_m, max_cells=10_000)
