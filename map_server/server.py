@@ -103,6 +103,7 @@ class MapServer:
         self.fuse_ms: deque[float] = deque(maxlen=cfg.timing_window)  # recent fusion times (fuse+persist)
         self.bend_ms: deque[float] = deque(maxlen=cfg.timing_window)  # ... and the graph's after them
         self.trial_ms: deque[float] = deque(maxlen=cfg.timing_window)  # ... and its trials' steps
+        self.free_ms: deque[float] = deque(maxlen=cfg.timing_window)  # the free space's fusions
         self._bend_s = -np.inf  # time.monotonic() of the graph's last bend (_bend)
         self._bent = False  # it ran in the last tick: its result goes out with the next fusion
         self.backlog = {"maps": 0, "poses": 0, "max_maps": 0, "max_poses": 0}  # queue depth at each tick
@@ -410,9 +411,11 @@ class MapServer:
     def _tick_free(self, now: float) -> None:
         """Fuse and publish the free space when it or a placement changed (at most every
         ``free.min_gap_s``); persisted first, like the map."""
+        t0 = time.perf_counter()
         fused = self._fuse_free()
         if fused is None:
             return
+        self.free_ms.append((time.perf_counter() - t0) * 1e3)
         self._persist()
         payload = self._free_payload(fused)
         with self._lock:
@@ -481,6 +484,7 @@ class MapServer:
             "fuse_ms": _timings(self.fuse_ms),
             "bend_ms": _timings(self.bend_ms),  # the fleet graph's, after publishing
             "trial_ms": _timings(self.trial_ms),  # its trials' steps, after publishing
+            "free_ms": _timings(self.free_ms),  # the free space's fusions, after publishing
             "received": received,
             "rejected": rejected,
             "reasons": reasons,
@@ -510,11 +514,11 @@ class MapServer:
         if now - self._last_status_s >= self.cfg.status_every_s:
             self._last_status_s = now
             st = self.status()
-            q, f, b, t = st["queue"], st["fuse_ms"], st["bend_ms"], st["trial_ms"]
+            q, f, b, t, fr = st["queue"], st["fuse_ms"], st["bend_ms"], st["trial_ms"], st["free_ms"]
             log.info(
                 "status: %d fusions (%.1f maps each), queue %d maps %d poses (max %d/%d), "
                 "fusion p50 %.1f p95 %.1f max %.1f ms, graph after it p50 %.1f p95 %.1f ms, "
-                "its trials max %.1f ms a step, peak rss %.0f MB",
+                "its trials max %.1f ms a step, free space p50 %.1f max %.1f ms, peak rss %.0f MB",
                 st["fusions"],
                 st["maps_per_fusion"],
                 q["maps"],
@@ -527,6 +531,8 @@ class MapServer:
                 b["p50"],
                 b["p95"],
                 t["max"],
+                fr["p50"],
+                fr["max"],
                 st["peak_rss_mb"],
             )
         if self.rejected and now - self._last_log_s >= self.cfg.log_rejections_every_s:

@@ -94,6 +94,7 @@ def test_the_server_publishes_persists_and_restores_the_free_space(tmp_path):
     assert wait_for(lambda: KEYS.robot_free("robot1") in bus.queries)  # the whole is asked for
     puts = [codec.decode(p) for k, p in bus.puts if k == KEYS.fused_free]
     assert len(puts) == 1 and isinstance(puts[0], FusedFree) and puts[0].session == server.session
+    assert len(server.free_ms) == 1 and server.status()["free_ms"]["max"] > 0.0  # (timed: the status line)
     kept = Polygon(SQUARE + 1.0).buffer(-M, join_style="mitre")
     assert fused_geometry(puts[0]).symmetric_difference(kept).area < 1e-3
     ((_, answer),) = server.answer_free(KEYS.fused_free)
