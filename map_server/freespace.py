@@ -15,6 +15,7 @@ adds nothing (its frame is nowhere yet). Each (robot, session)'s own union is ca
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,7 +32,11 @@ class FreeFusionConfig:
     tolerance_m: float = 0.02  # the fused polygons' simplification (a boundary moves at most this)
     wall_margin_m: float = 0.08  # free space keeps this far from every wall seen (> both tolerances)
     explained_m: float = 0.10  # a wall edge this close to a fused segment is the segment's
-    min_gap_s: float = 2.0  # server time between fusions of free space (a union is not free)
+    min_gap_s: float = 2.0  # server time between fusions of free space (a union is not free) ...
+    # ... and at least this many times what the last one took: the loop that fuses the maps runs
+    # it, and a real log's three pieces (MIT-CSAIL: 19,000 vertices, 2,000 holes) take GEOS
+    # 1.5-2.5 s to keep off the walls, which at every 2 s would hold the maps' fusions most of the time
+    gap_per_cost: float = 5.0
     moved_m: float = 0.01  # a placement that moved this much (or moved_rad) re-fuses
     moved_rad: float = 0.001
 
@@ -55,6 +60,7 @@ class FreeSpaces:
         self.changed = False  # a new message since the last fusion
         self.fused: FusedFree | None = None
         self._last_fuse_s = -np.inf
+        self.cost_s = 0.0  # what the last fusion took (wall clock)
 
     def put(self, m: FreeSpace) -> str:
         """Take ``m``: ``"kept"`` (newer than what its (robot, session) has: the whole of it, or
@@ -96,8 +102,9 @@ class FreeSpaces:
 
     def due(self, placements: Placements, now_s: float) -> bool:
         """Whether a fusion now would differ from the last one: new free space, or a placement
-        added, dropped or moved; and the gap since the last has passed."""
-        if now_s - self._last_fuse_s < self.cfg.min_gap_s:
+        added, dropped or moved; and the gap since the last has passed (``min_gap_s``, or
+        ``gap_per_cost`` times what the last took)."""
+        if now_s - self._last_fuse_s < max(self.cfg.min_gap_s, self.cfg.gap_per_cost * self.cost_s):
             return False
         if self.changed or self._fused_with is None:
             return bool(self.latest) or self._fused_with is not None
@@ -118,6 +125,7 @@ class FreeSpaces:
     ) -> FusedFree:  # fmt: skip
         """The placed sessions' free space in the global frame, kept off the walls, and the walls
         seen that ``segments (M,2,2)`` (the fused map) lacks (a new version)."""
+        t0 = time.perf_counter()
         parts, walls = [], []
         used = {}
         for key in sorted(k for k in placements if k in self.latest):
@@ -142,4 +150,5 @@ class FreeSpaces:
         self._fused_with = (frozenset(used), used)
         self.changed = False
         self._last_fuse_s = now_s
+        self.cost_s = time.perf_counter() - t0
         return self.fused

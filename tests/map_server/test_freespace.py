@@ -52,6 +52,8 @@ def test_free_space_is_placed_united_and_refused_when_stale():
     assert not fs.due(placements, 1.0)  # nothing changed
     moved = {**placements, ("robot2", "s9"): np.array([3.0, 0.0, 0.0])}
     assert not fs.due(moved, 1.0) and fs.due(moved, 2.5)  # a move re-fuses, after min_gap_s
+    fs.cost_s = 0.9  # ... or, after a fusion that took 0.9 s, 5 times that (the loop is the maps')
+    assert fs.cfg.gap_per_cost == 5.0 and not fs.due(moved, 4.4) and fs.due(moved, 4.6)
     f = fs.fuse(moved, "server", 5, 2.5)
     assert fused_geometry(f).area == pytest.approx(2 * SIDE**2, abs=0.01)  # apart now
     f = fs.fuse({("robot1", "s1"): np.zeros(3)}, "server", 6, 5.0)  # robot2 not placed: not in it
