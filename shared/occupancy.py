@@ -105,24 +105,31 @@ def ring_edges(geom) -> np.ndarray:
     return np.stack([xy[:-1][same], xy[1:][same]], axis=1)
 
 
-def fill(edges: np.ndarray, x0: float, y0: float, cell_m: float, shape: tuple[int, int]) -> np.ndarray:
+def fill(
+    edges: np.ndarray, x0: float, y0: float, cell_m: float, shape: tuple[int, int], chunk: int = 20_000
+) -> np.ndarray:
     """The cells ``(H,W)`` bool of a grid (cell (0,0)'s lower-left corner at ``(x0, y0)``) whose
     centre lies inside the rings whose edges are ``edges (E,2,2)``, by the even-odd rule (outer
-    rings and their holes; polygons that do not overlap): a scanline fill, every edge's crossings
-    of the rows' centre lines at once, toggled and summed along each row."""
+    rings and their holes; polygons that do not overlap): a scanline fill, each edge's crossings
+    of the rows' centre lines toggling the cells right of them, summed along each row (``chunk``
+    edges at a time: bounded memory)."""
     h, w = shape
-    e = (np.asarray(edges, float).reshape(-1, 2, 2) - (x0, y0)) / cell_m - 0.5  # (cell centres at k)
-    ya, yb = e[:, 0, 1], e[:, 1, 1]
-    lo = np.clip(np.ceil(np.minimum(ya, yb)), 0, h).astype(np.int64)  # rows lo <= r < hi cross
-    hi = np.clip(np.ceil(np.maximum(ya, yb)), 0, h).astype(np.int64)
-    n = hi - lo
-    k = np.flatnonzero(n > 0)
-    owner = np.repeat(k, n[k])
-    row = lo[owner] + np.arange(len(owner)) - np.repeat(np.cumsum(n[k]) - n[k], n[k])
-    t = (row - ya[owner]) / (yb[owner] - ya[owner])
-    x = e[owner, 0, 0] + t * (e[owner, 1, 0] - e[owner, 0, 0])
-    col = np.clip(np.ceil(x), 0, w).astype(np.int64)  # the first cell centre right of the crossing
-    toggles = np.bincount(row * (w + 1) + col, minlength=h * (w + 1)).astype(np.uint8)
+    toggles = np.zeros(h * (w + 1), np.uint8)
+    edges = np.asarray(edges, float).reshape(-1, 2, 2)
+    for c0 in range(0, len(edges), chunk):
+        e = (edges[c0 : c0 + chunk] - (x0, y0)) / cell_m - 0.5  # (cell centres at whole numbers)
+        ya, yb = e[:, 0, 1], e[:, 1, 1]
+        lo = np.clip(np.ceil(np.minimum(ya, yb)), 0, h).astype(np.int64)  # rows lo <= r < hi cross
+        hi = np.clip(np.ceil(np.maximum(ya, yb)), 0, h).astype(np.int64)
+        n = hi - lo
+        k = np.flatnonzero(n > 0)
+        owner = np.repeat(k, n[k])
+        row = lo[owner] + np.arange(len(owner)) - np.repeat(np.cumsum(n[k]) - n[k], n[k])
+        t = (row - ya[owner]) / (yb[owner] - ya[owner])
+        x = e[owner, 0, 0] + t * (e[owner, 1, 0] - e[owner, 0, 0])
+        col = np.clip(np.ceil(x), 0, w).astype(np.int64)  # the first cell centre right of the crossing
+        at, count = np.unique(row * (w + 1) + col, return_counts=True)
+        toggles[at] ^= (count & 1).astype(np.uint8)
     # (a uint8 sum wraps at 256: its parity stays right)
     return (np.cumsum(toggles.reshape(h, w + 1), axis=1, dtype=np.uint8)[:, :w] & 1).astype(bool)
 

@@ -58,6 +58,24 @@ def test_free_space_is_shrunk_on_a_grid_as_a_disk_erodes_it():
     assert cd.shrink(None, CC.margin_m) is None and cd.shrink_placed([], CC.margin_m) is None
 
 
+def test_free_space_is_eroded_in_bands_as_at_once():
+    """The erosion runs over bands of rows (bounded memory), each with the rows within its radius
+    either side: cell for cell what one distance transform of the whole grid gives."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(5)
+    free = np.ones((230, 170), bool)
+    boxes = np.column_stack(
+        [rng.integers(0, 230, 40), rng.integers(0, 170, 40), rng.integers(1, 12, (40, 2))]
+    )
+    for r, c, dr, dc in boxes:
+        free[r : r + dr, c : c + dc] = False  # (walls and pillars)
+    free[:, [0, -1]] = False
+    for radius, band in ((6.25, 7), (2.5, 1), (6.25, 256)):
+        want = ndimage.distance_transform_edt(free) > radius
+        assert want.sum() > 100 and (cd._eroded(free, radius, band) == want).all()
+
+
 def test_walls_inside_free_space_contradict_and_walls_on_its_edge_do_not():
     free = cd.shrink(ROOM, CC.margin_m)
     wall_on_edge = np.array([[[0.0, 0.1], [10.0, 0.1]]])  # the room's own wall, 10 cm off
