@@ -81,17 +81,19 @@ class FreeSpaces:
         """Forget the free space of sessions the fleet no longer keeps (bounded like the maps)."""
         for key in [k for k in self.latest if k not in keys]:
             del self.latest[key]
-            self._own_cache.pop(key, None)
             self.changed = True
+        for key in [k for k in list(self._own_cache) if k not in self.latest]:  # (a fusion on its
+            self._own_cache.pop(key, None)  # thread may have cached a session dropped meanwhile)
 
     def area(self, robot: str, session: str):
         """The free space a robot session's views saw, united, in its map frame (shapely; None
         when none came)."""
         return self._own((robot, session))[0] if (robot, session) in self.latest else None
 
-    def _own(self, key: tuple[str, str]) -> tuple[object, np.ndarray]:
-        """A session's views united and its wall edges ``(E,2,2)``, in its map frame."""
-        m = self.latest[key]
+    def _own(self, key: tuple[str, str], m: FreeSpace | None = None) -> tuple[object, np.ndarray]:
+        """A session's views united and its wall edges ``(E,2,2)``, in its map frame (of its
+        latest message, or of ``m``)."""
+        m = self.latest[key] if m is None else m
         cached = self._own_cache.get(key)
         if cached is None or cached[0] != m.seq:
             v = view_vertices(m)  # placed once, for the rings and their wall edges
@@ -119,24 +121,30 @@ class FreeSpaces:
                 return True
         return False
 
-    def fuse(
-        self, placements: Placements, server: str, map_version: int, now_s: float,
-        segments: np.ndarray | None = None,
-    ) -> FusedFree:  # fmt: skip
-        """The placed sessions' free space in the global frame, kept off the walls, and the walls
-        seen that ``segments (M,2,2)`` (the fused map) lacks (a new version)."""
+    def begin(self, placements: Placements, now_s: float) -> list:
+        """What a fusion now is made of — each placed session's latest message and its placement,
+        ``[(key, message, pose)]`` — and the fusion counted as begun: a message that comes while it
+        runs (:meth:`compute`, on another thread) makes the next one due."""
+        used = {k: np.asarray(placements[k], float).copy() for k in sorted(placements) if k in self.latest}
+        self._fused_with = (frozenset(used), used)
+        self.changed = False
+        self._last_fuse_s = now_s
+        return [(k, self.latest[k], t) for k, t in used.items()]
+
+    def compute(self, parts: list, segments: np.ndarray | None = None) -> tuple:
+        """The free space of ``parts`` (:meth:`begin`) in the global frame, kept off the walls, and
+        the walls seen that ``segments (M,2,2)`` (the fused map) lacks: ``FusedFree``'s arrays and
+        what it took [s]. Reads only what it is given and the sessions' unions (cached by their
+        message): another thread may run it while messages come (GEOS releases the GIL)."""
         t0 = time.perf_counter()
-        parts, walls = [], []
-        used = {}
-        for key in sorted(k for k in placements if k in self.latest):
-            t = np.asarray(placements[key], float)
-            used[key] = t.copy()
-            own, own_walls = self._own(key)
+        areas, walls = [], []
+        for key, m, t in parts:
+            own, own_walls = self._own(key, m)
             if own.is_empty:
                 continue
-            parts.append(place_area(own, t))
+            areas.append(place_area(own, t))
             walls.append(apply_segments(t, own_walls))
-        seen = shapely.union_all(parts) if parts else shapely.MultiPolygon()
+        seen = shapely.union_all(areas) if areas else shapely.MultiPolygon()
         free = seen.buffer(-self.cfg.wall_margin_m, join_style="mitre") if not seen.is_empty else seen
         offsets, hole, vertices, tol = to_rings(free, self.cfg.tolerance_m)
         known = free
@@ -144,11 +152,21 @@ class FreeSpaces:
             lines = shapely.multilinestrings(np.asarray(segments, float).reshape(-1, 2, 2))
             known = shapely.union(free, lines.buffer(self.cfg.explained_m, cap_style="flat"))
         extra = unexplained(np.concatenate(walls) if walls else np.zeros((0, 2, 2)), known)
+        return tol, offsets, hole, vertices, extra, time.perf_counter() - t0
+
+    def finish(self, computed: tuple, server: str, map_version: int, now_s: float) -> FusedFree:
+        """The fused free space :meth:`compute` gave, as a new version (``now_s``: when it began)."""
+        tol, offsets, hole, vertices, extra, self.cost_s = computed
         self.version += 1
         self.fused = FusedFree(server, "", self.version, int(map_version), max(now_s, 0.0), tol, offsets,
                                hole, vertices, extra)  # fmt: skip
-        self._fused_with = (frozenset(used), used)
-        self.changed = False
-        self._last_fuse_s = now_s
-        self.cost_s = time.perf_counter() - t0
         return self.fused
+
+    def fuse(
+        self, placements: Placements, server: str, map_version: int, now_s: float,
+        segments: np.ndarray | None = None,
+    ) -> FusedFree:  # fmt: skip
+        """The placed sessions' free space in the global frame, kept off the walls, and the walls
+        seen that ``segments (M,2,2)`` (the fused map) lacks (a new version): :meth:`begin`,
+        :meth:`compute` and :meth:`finish` at once."""
+        return self.finish(self.compute(self.begin(placements, now_s), segments), server, map_version, now_s)

@@ -18,6 +18,7 @@ import threading
 import time
 import uuid
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import msgpack
@@ -62,6 +63,9 @@ class ServerConfig:
     # again, as a new version, at most this often: its figures are what a subscriber sees of them
     refusals_every_s: float = 2.0
     timing_window: int = 200  # fusion times kept for the status percentiles
+    # the free space is fused on a thread of its own (GEOS releases the GIL): MIT-CSAIL's three
+    # pieces take 0.5-3 s, which in the loop held the maps' fusions; off: in the loop, as a tick's
+    free_in_background: bool = True
     free: FreeFusionConfig = field(default_factory=FreeFusionConfig)  # the fleet's free space
 
 
@@ -104,6 +108,7 @@ class MapServer:
         self.bend_ms: deque[float] = deque(maxlen=cfg.timing_window)  # ... and the graph's after them
         self.trial_ms: deque[float] = deque(maxlen=cfg.timing_window)  # ... and its trials' steps
         self.free_ms: deque[float] = deque(maxlen=cfg.timing_window)  # the free space's fusions
+        self._free_job: _FreeJob | None = None  # the free space's fusion under way (_tick_free)
         self._bend_s = -np.inf  # time.monotonic() of the graph's last bend (_bend)
         self._bent = False  # it ran in the last tick: its result goes out with the next fusion
         self.backlog = {"maps": 0, "poses": 0, "max_maps": 0, "max_poses": 0}  # queue depth at each tick
@@ -410,12 +415,37 @@ class MapServer:
 
     def _tick_free(self, now: float) -> None:
         """Fuse and publish the free space when it or a placement changed (at most every
-        ``free.min_gap_s``); persisted first, like the map."""
-        t0 = time.perf_counter()
-        fused = self._fuse_free()
-        if fused is None:
+        ``free.min_gap_s``, or ``free.gap_per_cost`` times what the last took); on a thread of its
+        own (``free_in_background``: published at the first tick after it ends); persisted first,
+        like the map."""
+        job = self._free_job
+        if job is not None:
+            if job.thread.is_alive():
+                return
+            self._free_job = None
+            if job.error is not None:  # (nothing lost: the messages are kept, it is tried again)
+                log.error("fusing the free space failed: %s", job.error)
+                self.free.changed = True
+                return
+            self._publish_free(job.computed, job.version, job.now_s)
             return
-        self.free_ms.append((time.perf_counter() - t0) * 1e3)
+        placements = self.fleet.placements()
+        if not self.free.due(placements, self.now_s()):
+            return
+        latest = self.fleet.latest()
+        version, seg = (0, None) if latest is None else (latest.version, latest.seg)
+        self._free_job = _FreeJob(
+            self.free.begin(placements, self.now_s()), seg, version, self.now_s(), self.free.compute
+        )
+        if self.cfg.free_in_background:
+            self._free_job.thread.start()
+        else:
+            self._free_job.run()
+            self._tick_free(now)  # (ended: published at once)
+
+    def _publish_free(self, computed: tuple, version: int, now_s: float) -> None:
+        fused = self.free.finish(computed, self.server_id, version, now_s)
+        self.free_ms.append(self.free.cost_s * 1e3)
         self._persist()
         payload = self._free_payload(fused)
         with self._lock:
@@ -461,6 +491,9 @@ class MapServer:
                 self._wake.wait(self.cfg.idle_period_s)  # a new map (or stop) ends the wait early
             stop.wait(max(0.0, self.cfg.min_fuse_gap_s - (time.monotonic() - t)))
         self.tick()
+        if self._free_job is not None:  # (its thread ends by itself: seconds at most)
+            self._free_job.thread.join()
+            self._tick_free(self.now_s())
 
     def _payloads(self, fused: FusedMap) -> list[bytes]:
         """The fused map as encoded chunks, stamped with this server process's session."""
@@ -572,6 +605,23 @@ def decode_graph_state(blob: bytes | None) -> dict[str, tuple[str, int, np.ndarr
     for robot, (session, seq, raw) in items.items():
         out[str(robot)] = (str(session), int(seq), np.frombuffer(raw, "<f8").reshape(-1, 3))
     return out
+
+
+class _FreeJob:
+    """One fusion of the free space (FreeSpaces.compute of what ``begin`` gave), on its own thread
+    when the server runs it in the background; the result or the error is kept for the loop."""
+
+    def __init__(self, parts: list, seg, version: int, now_s: float, compute: Callable):
+        self.parts, self.seg, self.version, self.now_s, self._compute = parts, seg, version, now_s, compute
+        self.computed: tuple | None = None
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self.run, name="free-space", daemon=True)
+
+    def run(self) -> None:
+        try:
+            self.computed = self._compute(self.parts, self.seg)
+        except Exception as e:  # (reported by the loop, which goes on)
+            self.error = e
 
 
 def _timings(recent: deque[float]) -> dict[str, float]:

@@ -94,6 +94,11 @@ def test_the_server_publishes_persists_and_restores_the_free_space(tmp_path):
     server.on_free(KEYS.robot_free("robot1"), codec.encode(gap))  # adds to seq 8, never received
     assert server.tick() is not None
     assert wait_for(lambda: KEYS.robot_free("robot1") in bus.queries)  # the whole is asked for
+    job = server._free_job  # fused on a thread of its own (free_in_background), out at a later tick
+    assert job is not None and not any(k == KEYS.fused_free for k, _ in bus.puts)
+    job.thread.join(10.0)
+    server.tick()
+    assert server._free_job is None
     puts = [codec.decode(p) for k, p in bus.puts if k == KEYS.fused_free]
     assert len(puts) == 1 and isinstance(puts[0], FusedFree) and puts[0].session == server.session
     assert len(server.free_ms) == 1 and server.status()["free_ms"]["max"] > 0.0  # (timed: the status line)
@@ -105,3 +110,26 @@ def test_the_server_publishes_persists_and_restores_the_free_space(tmp_path):
     assert again.free.latest[("robot1", "s1")].seq == 3
     ((_, answer),) = again.answer_free(KEYS.fused_free)
     assert fused_geometry(codec.decode(answer)).area == pytest.approx(SIDE**2, abs=0.01)
+
+
+def test_a_free_space_fusion_that_fails_is_reported_and_tried_again(tmp_path, caplog):
+    """The free space's fusion runs on its own thread: one that raises is logged by the loop, the
+    messages stay, and the next tick fuses them again (in the loop here: ``free_in_background``
+    off)."""
+    from map_server.server import ServerConfig
+
+    bus = PullBus([])
+    server = MapServer(bus, KEYS, ServerConfig(free_in_background=False), store=Store(tmp_path))
+    for c in room_chunks():
+        server.on_map(KEYS.robot_map("robot1"), codec.encode(c))
+    server.on_free(KEYS.robot_free("robot1"), codec.encode(views(seq=3)))
+    real = server.free.compute
+    server.free.compute = lambda *a: 1 / 0
+    server.tick()
+    assert "fusing the free space failed: division by zero" in caplog.text and server.free.changed
+    assert not any(k == KEYS.fused_free for k, _ in bus.puts) and server._free_job is None
+    server.free.compute = real
+    server.free._last_fuse_s = -np.inf  # (past min_gap_s)
+    server.tick()
+    puts = [codec.decode(p) for k, p in bus.puts if k == KEYS.fused_free]
+    assert len(puts) == 1 and fused_geometry(puts[0]).area > 0.0
