@@ -15,7 +15,6 @@ adds nothing (its frame is nowhere yet). Each (robot, session)'s own union is ca
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -60,7 +59,7 @@ class FreeSpaces:
         self.changed = False  # a new message since the last fusion
         self.fused: FusedFree | None = None
         self._last_fuse_s = -np.inf
-        self.cost_s = 0.0  # what the last fusion took (wall clock)
+        self.cost_s = 0.0  # what the last fusion took (wall clock: the caller times it)
 
     def put(self, m: FreeSpace) -> str:
         """Take ``m``: ``"kept"`` (newer than what its (robot, session) has: the whole of it, or
@@ -133,10 +132,9 @@ class FreeSpaces:
 
     def compute(self, parts: list, segments: np.ndarray | None = None) -> tuple:
         """The free space of ``parts`` (:meth:`begin`) in the global frame, kept off the walls, and
-        the walls seen that ``segments (M,2,2)`` (the fused map) lacks: ``FusedFree``'s arrays and
-        what it took [s]. Reads only what it is given and the sessions' unions (cached by their
+        the walls seen that ``segments (M,2,2)`` (the fused map) lacks: ``FusedFree``'s arrays.
+        Reads only what it is given and the sessions' unions (cached by their
         message): another thread may run it while messages come (GEOS releases the GIL)."""
-        t0 = time.perf_counter()
         areas, walls = [], []
         for key, m, t in parts:
             own, own_walls = self._own(key, m)
@@ -152,11 +150,11 @@ class FreeSpaces:
             lines = shapely.multilinestrings(np.asarray(segments, float).reshape(-1, 2, 2))
             known = shapely.union(free, lines.buffer(self.cfg.explained_m, cap_style="flat"))
         extra = unexplained(np.concatenate(walls) if walls else np.zeros((0, 2, 2)), known)
-        return tol, offsets, hole, vertices, extra, time.perf_counter() - t0
+        return tol, offsets, hole, vertices, extra
 
     def finish(self, computed: tuple, server: str, map_version: int, now_s: float) -> FusedFree:
         """The fused free space :meth:`compute` gave, as a new version (``now_s``: when it began)."""
-        tol, offsets, hole, vertices, extra, self.cost_s = computed
+        tol, offsets, hole, vertices, extra = computed
         self.version += 1
         self.fused = FusedFree(server, "", self.version, int(map_version), max(now_s, 0.0), tol, offsets,
                                hole, vertices, extra)  # fmt: skip

@@ -427,7 +427,7 @@ class MapServer:
                 log.error("fusing the free space failed: %s", job.error)
                 self.free.changed = True
                 return
-            self._publish_free(job.computed, job.version, job.now_s)
+            self._publish_free(job)
             return
         placements = self.fleet.placements()
         if not self.free.due(placements, self.now_s()):
@@ -443,9 +443,10 @@ class MapServer:
             self._free_job.run()
             self._tick_free(now)  # (ended: published at once)
 
-    def _publish_free(self, computed: tuple, version: int, now_s: float) -> None:
-        fused = self.free.finish(computed, self.server_id, version, now_s)
-        self.free_ms.append(self.free.cost_s * 1e3)
+    def _publish_free(self, job: _FreeJob) -> None:
+        fused = self.free.finish(job.computed, self.server_id, job.version, job.now_s)
+        self.free.cost_s = job.cost_s  # (the next one waits gap_per_cost times this)
+        self.free_ms.append(job.cost_s * 1e3)
         self._persist()
         payload = self._free_payload(fused)
         with self._lock:
@@ -614,12 +615,15 @@ class _FreeJob:
     def __init__(self, parts: list, seg, version: int, now_s: float, compute: Callable):
         self.parts, self.seg, self.version, self.now_s, self._compute = parts, seg, version, now_s, compute
         self.computed: tuple | None = None
+        self.cost_s = 0.0  # what it took
         self.error: BaseException | None = None
         self.thread = threading.Thread(target=self.run, name="free-space", daemon=True)
 
     def run(self) -> None:
+        t0 = time.perf_counter()
         try:
             self.computed = self._compute(self.parts, self.seg)
+            self.cost_s = time.perf_counter() - t0
         except Exception as e:  # (reported by the loop, which goes on)
             self.error = e
 
