@@ -66,6 +66,7 @@ class ServerConfig:
     # the free space is fused on a thread of its own (GEOS releases the GIL): MIT-CSAIL's three
     # pieces take 0.5-3 s, which in the loop held the maps' fusions; off: in the loop, as a tick's
     free_in_background: bool = True
+    free_inline_below_s: float = 0.1  # ... but in the loop while the last took less than this
     free: FreeFusionConfig = field(default_factory=FreeFusionConfig)  # the fleet's free space
 
 
@@ -437,7 +438,7 @@ class MapServer:
         self._free_job = _FreeJob(
             self.free.begin(placements, self.now_s()), seg, version, self.now_s(), self.free.compute
         )
-        if self.cfg.free_in_background:
+        if self.cfg.free_in_background and self.free.cost_s >= self.cfg.free_inline_below_s:
             self._free_job.thread.start()
         else:
             self._free_job.run()
