@@ -320,7 +320,7 @@ def run_seed(
         def checked():
             """contradiction.Check's arguments, as Placer.veto gives them."""
             seen = [(j, lj, a) for j, lj in others if (a := area(j, t)) is not None]
-            grid = (ccfg.margin_m, ccfg.cell_m, ccfg.max_cells)
+            grid = ccfg.grid
             theirs = shrink_placed([(a, truth[names[j]]) for j, _, a in seen], *grid)
             noise = placed_noise(
                 [(own_noise(lj.seg, shrink(a, *grid), ccfg.step_m), truth[names[j]]) for j, lj, a in seen]

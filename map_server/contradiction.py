@@ -21,7 +21,7 @@ import numpy as np
 from scipy import ndimage
 
 from shared.geometry import apply_points, apply_segments, inverse, sample_segments
-from shared.occupancy import fill, ring_edges
+from shared.occupancy import cell_index, fill, ring_edges
 
 
 @dataclass(frozen=True)
@@ -67,6 +67,11 @@ class ContradictionConfig:
     outshone_factor: float = 2.0
     outshone_min_seen_m2: float = 50.0
 
+    @property
+    def grid(self) -> tuple[float, float, int]:
+        """:func:`shrink`'s arguments after the area: ``margin_m, cell_m, max_cells``."""
+        return self.margin_m, self.cell_m, self.max_cells
+
 
 @dataclass(frozen=True)
 class Shrunk:
@@ -89,13 +94,13 @@ class Shrunk:
 
     def contains_xy(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Whether each point lies in a cell kept."""
-        col = np.floor((np.asarray(x, float) - self.x0) / self.cell_m).astype(np.int64)
-        row = np.floor((np.asarray(y, float) - self.y0) / self.cell_m).astype(np.int64)
+        x = np.asarray(x, float)
+        row, col = cell_index(np.column_stack([x.ravel(), np.ravel(y)]), self.x0, self.y0, self.cell_m)
         h, w = self.cells.shape
         ok = (row >= 0) & (row < h) & (col >= 0) & (col < w)
-        out = np.zeros(np.shape(ok), bool)
+        out = np.zeros(len(ok), bool)
         out[ok] = self.cells[row[ok], col[ok]]
-        return out
+        return out.reshape(x.shape)
 
     def centres(self) -> np.ndarray:
         """The centres ``(K,2)`` of the cells kept."""
@@ -103,13 +108,21 @@ class Shrunk:
         return np.column_stack([self.x0 + (col + 0.5) * self.cell_m, self.y0 + (row + 0.5) * self.cell_m])
 
 
-def shrink(area, margin_m: float, cell_m: float = 0.05, max_cells: int = 4_000_000) -> Shrunk | None:
+def shrink(
+    area,
+    margin_m: float,
+    cell_m: float = ContradictionConfig.cell_m,
+    max_cells: int = ContradictionConfig.max_cells,
+) -> Shrunk | None:
     """``area`` (shapely) shrunk by ``margin_m`` (:func:`shrink_placed` of it alone)."""
     return shrink_placed([(area, None)], margin_m, cell_m, max_cells)
 
 
 def shrink_placed(
-    parts: list, margin_m: float, cell_m: float = 0.05, max_cells: int = 4_000_000
+    parts: list,
+    margin_m: float,
+    cell_m: float = ContradictionConfig.cell_m,
+    max_cells: int = ContradictionConfig.max_cells,
 ) -> Shrunk | None:
     """The union of ``parts`` — ``(area, pose)``, a shapely area in a frame placed at ``pose (3,)``
     (None: as it is) — shrunk by ``margin_m``, as cells of ``cell_m`` (coarser where the union's
@@ -117,7 +130,7 @@ def shrink_placed(
     ``margin_m`` from its edge (a disk's erosion, to within a cell). None when
     nothing is left. A grid, not a polygon buffer: a real log's free space (7,000-12,000 vertices,
     up to 1,300 holes) took GEOS 1-5 s and 200 MB to shrink, searched again at every new map."""
-    edges = []
+    edges, boxes = [], []  # each part's edges, and their box (lo, hi)
     for area, pose in parts:
         if area is None or area.is_empty:
             continue
@@ -126,27 +139,24 @@ def shrink_placed(
             e = apply_segments(np.asarray(pose, float), e)
         if len(e):
             edges.append(e)
+            boxes.append((e.reshape(-1, 2).min(axis=0), e.reshape(-1, 2).max(axis=0)))
     if not edges:
         return None
-    lo = np.min([e.reshape(-1, 2).min(axis=0) for e in edges], axis=0)
-    hi = np.max([e.reshape(-1, 2).max(axis=0) for e in edges], axis=0)
+    lo, hi = np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
     cell = max(cell_m, float(np.sqrt(np.prod(hi - lo + 2 * cell_m) / max_cells)))
     x0, y0 = np.floor(lo / cell) * cell - cell  # (a cell outside every edge: the border is not free)
     w, h = (np.ceil((hi - (x0, y0)) / cell) + 1).astype(int)
     free = np.zeros((h, w), bool)
-    for e in edges:  # each part in its own box (the parts overlap: even-odd holds within one)
-        c0, r0 = np.floor((e.reshape(-1, 2).min(axis=0) - (x0, y0)) / cell).astype(int)
-        c1, r1 = np.ceil((e.reshape(-1, 2).max(axis=0) - (x0, y0)) / cell).astype(int) + 1
-        c1, r1 = min(c1, w), min(r1, h)
-        part = fill(e, x0 + c0 * cell, y0 + r0 * cell, cell, (r1 - r0, c1 - c0))
+    for e, (e_lo, e_hi) in zip(edges, boxes, strict=True):  # each part in its own box (the parts
+        c0, r0 = np.floor((e_lo - (x0, y0)) / cell).astype(int)  # overlap: even-odd holds in one)
+        c1, r1 = np.minimum(np.ceil((e_hi - (x0, y0)) / cell).astype(int) + 1, (w, h))
+        px, py = x0 + c0 * cell, y0 + r0 * cell
+        part = fill(e, px, py, cell, (r1 - r0, c1 - c0))
         # the cells its edges cross are its edge's, not free: a hole narrower than a cell (a gap
         # between views either side of a wall) holds no cell's centre and would vanish
-        for k in range(0, len(e), 20_000):  # (in chunks: bounded memory)
-            pts = sample_segments(e[k : k + 20_000], cell / 2, ends=True)[0]
-            part[
-                np.floor((pts[:, 1] - y0) / cell).astype(int) - r0,
-                np.floor((pts[:, 0] - x0) / cell).astype(int) - c0,
-            ] = False
+        for k in range(0, len(e), 20_000):  # (in chunks: bounded memory; indexed as the grid is)
+            row, col = cell_index(sample_segments(e[k : k + 20_000], cell / 2, ends=True)[0], x0, y0, cell)
+            part[row - r0, col - c0] = False
         free[r0:r1, c0:c1] |= part
     # (measured from the centres of the cells its edges cross, up to 0.7 of a cell inside the
     # edge; a quarter of a cell more errs on shrinking more, as GEOS's mitred buffer did: a 10 x 6 m

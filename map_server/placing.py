@@ -432,7 +432,6 @@ class Placer:
         placed += [(p.robot, p.session, p.layer, p.alignment.transform) for p in self.fleet.pieces()]
         parts = [(a, lay, t) for robot, ses, lay, t in placed if (a := free_of(robot, ses)) is not None]
         made_of = tuple((id(a), id(lay), *np.round(t, 4)) for a, lay, t in parts)
-        grid = (cc.margin_m, cc.cell_m, cc.max_cells)
         if self._placed_free is None or self._placed_free[0] != made_of:
             noise = contradiction.placed_noise(
                 [(n, t) for n, (_, _, t) in zip(self._own_noise(parts), parts, strict=True)]
@@ -440,7 +439,7 @@ class Placer:
             # (the ids it is known by stay theirs: _noise_cache holds the parts)
             self._placed_free = (
                 made_of,
-                contradiction.shrink_placed([(a, t) for a, _, t in parts], *grid),
+                contradiction.shrink_placed([(a, t) for a, _, t in parts], *cc.grid),
                 noise,
             )
         theirs, noise = self._placed_free[1:]
@@ -471,11 +470,7 @@ class Placer:
             return None
         hit = self._shrunk.get(id(area))
         if hit is None or hit[0] is not area:
-            cc = self.cfg.contradiction
-            hit = self._shrunk[id(area)] = (
-                area,
-                contradiction.shrink(area, cc.margin_m, cc.cell_m, cc.max_cells),
-            )
+            hit = self._shrunk[id(area)] = (area, contradiction.shrink(area, *self.cfg.contradiction.grid))
             while len(self._shrunk) > 2 * (len(self.fleet.robots) + len(self.fleet.pieces())) + 8:
                 del self._shrunk[next(iter(self._shrunk))]  # (the oldest first)
         return hit[1]

@@ -63,10 +63,11 @@ class ServerConfig:
     # again, as a new version, at most this often: its figures are what a subscriber sees of them
     refusals_every_s: float = 2.0
     timing_window: int = 200  # fusion times kept for the status percentiles
-    # the free space is fused on a thread of its own (GEOS releases the GIL): MIT-CSAIL's three
-    # pieces take 0.5-3 s, which in the loop held the maps' fusions; off: in the loop, as a tick's
-    free_in_background: bool = True
-    free_inline_below_s: float = 0.1  # ... but in the loop while the last took less than this
+    # the free space is fused on a thread of its own (GEOS releases the GIL) when the last fusion
+    # took this long or more — MIT-CSAIL's three pieces take 0.5-3 s, which in the loop held the
+    # maps' fusions — else in the loop (a few simulated robots': a thread would only contend for
+    # the GIL with the maps' fusions); inf: always in the loop
+    free_thread_above_s: float = 0.1
     free: FreeFusionConfig = field(default_factory=FreeFusionConfig)  # the fleet's free space
 
 
@@ -158,7 +159,9 @@ class MapServer:
             self._latest = self._payloads(latest)
             self._paths = self.fleet.paths(latest.version, self.session)
         if self.free.latest:  # the fleet's free space as the restored placements put it
-            self._latest_free = [self._free_payload(self._fuse_free(force=True))]
+            version, seg = (0, None) if latest is None else (latest.version, latest.seg)
+            fused = self.free.fuse(self.fleet.placements(), self.server_id, version, self.now_s(), seg)
+            self._latest_free = [self._free_payload(fused)]
         log.info(
             "restored %d robots (%d retired sessions), fused version %s", len(self.fleet.robots),
             sum(map(len, self.fleet.retired.values())), None if latest is None else latest.version,
@@ -403,46 +406,37 @@ class MapServer:
                 newest[robot] = (m.stamp_s, ses)
         return keep | {(robot, ses) for robot, (_, ses) in newest.items()}
 
-    def _fuse_free(self, force: bool = False) -> FusedFree | None:
-        placements = self.fleet.placements()
-        if not force and not self.free.due(placements, self.now_s()):
-            return None
-        latest = self.fleet.latest()
-        version, seg = (0, None) if latest is None else (latest.version, latest.seg)
-        return self.free.fuse(placements, self.server_id, version, self.now_s(), seg)
-
     def _free_payload(self, f: FusedFree) -> bytes:
         return codec.encode(dataclasses.replace(f, session=self.session))
 
     def _tick_free(self, now: float) -> None:
         """Fuse and publish the free space when it or a placement changed (at most every
-        ``free.min_gap_s``, or ``free.gap_per_cost`` times what the last took); on a thread of its
-        own (``free_in_background``: published at the first tick after it ends); persisted first,
-        like the map."""
+        ``free.min_gap_s``, or ``free.gap_per_cost`` times what the last took): in the loop, or on
+        a thread of its own when the last took ``free_thread_above_s`` or more (published at the
+        first tick after it ends); persisted first, like the map."""
         job = self._free_job
-        if job is not None:
-            if job.thread.is_alive():
+        if job is None:
+            placements = self.fleet.placements()
+            if not self.free.due(placements, self.now_s()):
                 return
-            self._free_job = None
-            if job.error is not None:  # (nothing lost: the messages are kept, it is tried again)
-                log.error("fusing the free space failed: %s", job.error)
-                self.free.changed = True
+            latest = self.fleet.latest()
+            version, seg = (0, None) if latest is None else (latest.version, latest.seg)
+            job = _FreeJob(
+                self.free.begin(placements, self.now_s()), seg, version, self.now_s(), self.free.compute
+            )
+            if self.free.cost_s >= self.cfg.free_thread_above_s:
+                self._free_job = job
+                job.thread.start()
                 return
-            self._publish_free(job)
+            job.run()
+        elif job.thread.is_alive():
             return
-        placements = self.fleet.placements()
-        if not self.free.due(placements, self.now_s()):
+        self._free_job = None
+        if job.error is not None:  # (nothing lost: the messages are kept, it is tried again)
+            log.error("fusing the free space failed: %s", job.error)
+            self.free.changed = True
             return
-        latest = self.fleet.latest()
-        version, seg = (0, None) if latest is None else (latest.version, latest.seg)
-        self._free_job = _FreeJob(
-            self.free.begin(placements, self.now_s()), seg, version, self.now_s(), self.free.compute
-        )
-        if self.cfg.free_in_background and self.free.cost_s >= self.cfg.free_inline_below_s:
-            self._free_job.thread.start()
-        else:
-            self._free_job.run()
-            self._tick_free(now)  # (ended: published at once)
+        self._publish_free(job)
 
     def _publish_free(self, job: _FreeJob) -> None:
         fused = self.free.finish(job.computed, self.server_id, job.version, job.now_s)

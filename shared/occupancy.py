@@ -95,6 +95,15 @@ def polygons(geom) -> list[Polygon]:
     return []
 
 
+def cell_index(xy: np.ndarray, x0: float, y0: float, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column of the cells (cell (0,0)'s lower-left corner at ``(x0, y0)``, square cells
+    of ``cell_m``) holding points ``(N,2)``; they may fall outside the grid."""
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    col = np.floor((xy[:, 0] - x0) / cell_m).astype(np.int64)
+    row = np.floor((xy[:, 1] - y0) / cell_m).astype(np.int64)
+    return row, col
+
+
 def ring_edges(geom) -> np.ndarray:
     """Every ring's edges ``(E,2,2)`` (outer rings and holes) of the polygons in ``geom``."""
     polys = polygons(geom)
@@ -192,10 +201,7 @@ class Grid:
 
     def index(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Row and column of the cells holding points ``(N,2)`` (may fall outside)."""
-        xy = np.asarray(xy, float).reshape(-1, 2)
-        col = np.floor((xy[:, 0] - self.origin_x) / self.resolution_m).astype(np.int64)
-        row = np.floor((xy[:, 1] - self.origin_y) / self.resolution_m).astype(np.int64)
-        return row, col
+        return cell_index(xy, self.origin_x, self.origin_y, self.resolution_m)
 
 
 def occupancy_grid(seg: np.ndarray, free, resolution_m: float = 0.05, margin_m: float = 0.5) -> Grid:

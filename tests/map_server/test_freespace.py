@@ -92,10 +92,10 @@ def test_the_server_publishes_persists_and_restores_the_free_space(tmp_path):
     nothing = (np.array([0]), np.zeros(0, int), np.zeros((0, 2)), np.zeros(0, bool))
     gap = FreeSpace("robot1", "s1", 9, 6.0, np.zeros((1, 3)), *nothing, rings_from=1)
     server.on_free(KEYS.robot_free("robot1"), codec.encode(gap))  # adds to seq 8, never received
-    server.free.cost_s = 0.5  # as after a fusion of 0.5 s (free_inline_below_s: a short one stays inline)
+    server.free.cost_s = 0.5  # as after a fusion of 0.5 s (free_thread_above_s: a short one stays inline)
     assert server.tick() is not None
     assert wait_for(lambda: KEYS.robot_free("robot1") in bus.queries)  # the whole is asked for
-    job = server._free_job  # fused on a thread of its own (free_in_background), out at a later tick
+    job = server._free_job  # fused on a thread of its own, out at a later tick
     assert job is not None and not any(k == KEYS.fused_free for k, _ in bus.puts)
     job.thread.join(10.0)
     server.tick()
@@ -103,7 +103,7 @@ def test_the_server_publishes_persists_and_restores_the_free_space(tmp_path):
     puts = [codec.decode(p) for k, p in bus.puts if k == KEYS.fused_free]
     assert len(puts) == 1 and isinstance(puts[0], FusedFree) and puts[0].session == server.session
     assert len(server.free_ms) == 1 and server.status()["free_ms"]["max"] > 0.0  # (timed: the status line)
-    assert server.free.cost_s < server.cfg.free_inline_below_s  # (this one was short: the next inline)
+    assert server.free.cost_s < server.cfg.free_thread_above_s  # (this one was short: the next inline)
     kept = Polygon(SQUARE + 1.0).buffer(-M, join_style="mitre")
     assert fused_geometry(puts[0]).symmetric_difference(kept).area < 1e-3
     ((_, answer),) = server.answer_free(KEYS.fused_free)
@@ -116,12 +116,12 @@ def test_the_server_publishes_persists_and_restores_the_free_space(tmp_path):
 
 def test_a_free_space_fusion_that_fails_is_reported_and_tried_again(tmp_path, caplog):
     """The free space's fusion runs on its own thread: one that raises is logged by the loop, the
-    messages stay, and the next tick fuses them again (in the loop here: ``free_in_background``
-    off)."""
+    messages stay, and the next tick fuses them again (in the loop here: ``free_thread_above_s``
+    infinite)."""
     from map_server.server import ServerConfig
 
     bus = PullBus([])
-    server = MapServer(bus, KEYS, ServerConfig(free_in_background=False), store=Store(tmp_path))
+    server = MapServer(bus, KEYS, ServerConfig(free_thread_above_s=float("inf")), store=Store(tmp_path))
     for c in room_chunks():
         server.on_map(KEYS.robot_map("robot1"), codec.encode(c))
     server.on_free(KEYS.robot_free("robot1"), codec.encode(views(seq=3)))
@@ -138,7 +138,7 @@ def test_a_free_space_fusion_that_fails_is_reported_and_tried_again(tmp_path, ca
 
 
 def test_a_short_free_space_fusion_stays_in_the_loop(tmp_path):
-    """While the last fusion took less than ``free_inline_below_s`` (a few robots' free space) the
+    """While the last fusion took less than ``free_thread_above_s`` (a few robots' free space) the
     next runs in the loop and goes out at the same tick: a thread would only contend for the GIL
     with the maps' fusions (bench_fleet's latency at 8 and 16 agents)."""
     bus = PullBus([])
@@ -146,6 +146,6 @@ def test_a_short_free_space_fusion_stays_in_the_loop(tmp_path):
     for c in room_chunks():
         server.on_map(KEYS.robot_map("robot1"), codec.encode(c))
     server.on_free(KEYS.robot_free("robot1"), codec.encode(views(seq=3)))
-    assert server.cfg.free_in_background and server.free.cost_s == 0.0
+    assert server.cfg.free_thread_above_s == 0.1 and server.free.cost_s == 0.0
     server.tick()
     assert server._free_job is None and sum(k == KEYS.fused_free for k, _ in bus.puts) == 1
