@@ -31,10 +31,11 @@ without processes or network, in simulated time:
   keyframes' error (ATE, RMSE) in the fleet's graph (the whole fleet fitted to the truth at once)
   against in the robot's own map (fitted alone): what the merge costs or gains over the agents.
 
-Prints one row per robot (evidence, false verdicts, placed, delay, final error, floor, ATE fleet /
-own) and a summary: median and worst delay, wrong merges, robots never placed (or placed and undone
-by the end), how many final errors exceed issue 21's bound (0.05 m / 0.5°) and how many floors do;
-writes benchmarks/results/bench_merge.json.
+Prints one row per robot (evidence, false verdicts, placed, delay, final error, floor, its own map
+frame against its true start, ATE fleet / own) and a summary: median and worst delay, wrong merges,
+robots never placed (or placed and undone by the end), how many final errors exceed issue 21's bound
+(0.05 m / 0.5°), how many floors do and how many robots' own map frames do; writes
+benchmarks/results/bench_merge.json.
 Live timing (a fusion takes time, messages queue) is not in this figure: bench_demo.py measures
 the whole fleet on loopback.
 """
@@ -196,7 +197,9 @@ def _against_truth(paths_now: dict, names: list[str], ref: str, truth: dict, tru
     ``floor_deg``: the final error (its first keyframe against the reference's, the start
     relation) of a merge that placed each map where it truly lies as a whole — what the agents'
     own maps leave to any rigid merge (an agent whose map turned 0.3° from its first pose puts
-    its start 5 cm from where its walls say it is)."""
+    its start 5 cm from where its walls say it is); ``frame_m`` / ``frame_deg``: the robot's own
+    share of that — its map frame as the fit of its keyframes to its true path has it, against
+    its true start (the floor of a pair is about the two robots' frames composed)."""
     fits, out = {}, {}
     for n, p in paths_now.items():
         if len(p.local) >= 3:  # (a map placed as a whole has no path to compare)
@@ -213,6 +216,7 @@ def _against_truth(paths_now: dict, names: list[str], ref: str, truth: dict, tru
     e = np.hypot(*(transform_points(align_se2(xy, target), xy) - target).T)
     for n, a in fits.items():
         row = out[n] = dict(own_ate_m=a.rmse_m, fleet_ate_m=float(np.sqrt(np.mean(e[owner == n] ** 2))))
+        row["frame_m"], row["frame_deg"] = _error(a.alignment, true[names.index(n)][1][0])
         if ref in fits:
             row["floor_m"], row["floor_deg"] = _error(
                 compose(inverse(fits[ref].alignment), a.alignment), truth[n]
@@ -458,8 +462,8 @@ def main() -> int:
         results = [f.result() for f in futures]
 
     print(f"{'world':9} {'seed':>4} {'robot':7} {'evidence':>8} {'false':>9} {'placed':>6} {'delay':>6} "
-          f"{'error':>14} {'floor':>14} {'ATE fleet/own':>13}  wrong")  # fmt: skip
-    delays, wrong, unplaced, unplaced_end, errors, floors, ates = [], 0, 0, 0, [], [], []
+          f"{'error':>14} {'floor':>14} {'own frame':>14} {'ATE fleet/own':>13}  wrong")  # fmt: skip
+    delays, wrong, unplaced, unplaced_end, errors, floors, ates, frames = [], 0, 0, 0, [], [], [], []
     for res in results:
         for n, r in res["robots"].items():
 
@@ -469,16 +473,19 @@ def main() -> int:
             err = "-" if "error_m" not in r else f"{r['error_m']:.3f}m/{r['error_deg']:.2f}°"
             flo = "-" if "floor_m" not in r else f"{r['floor_m']:.3f}m/{r['floor_deg']:.2f}°"
             at = "-" if "own_ate_m" not in r else f"{r['fleet_ate_m']:.3f}/{r['own_ate_m']:.3f}"
+            fr = "-" if "frame_m" not in r else f"{r['frame_m']:.3f}m/{r['frame_deg']:.2f}°"
             print(
                 f"{res['world']:9} {res['seed']:4d} {n:7} {f(r.get('evidence_s')):>8} "
                 f"{r.get('false_verdicts', 0):5d}/{r.get('false_after', 0):<3d} "
-                f"{f(r['placed_s']):>6} {f(r.get('delay_s')):>6} {err:>14} {flo:>14} {at:>13}  "
+                f"{f(r['placed_s']):>6} {f(r.get('delay_s')):>6} {err:>14} {flo:>14} {fr:>14} {at:>13}  "
                 + ("REFERENCE" if r["reference"] else ("WRONG" if r.get("wrong_merge") else ""))
                 + contra_text(r)
                 + (f"  unplaced: {r['reason']}" if r.get("reason") else "")
             )
             if "own_ate_m" in r:
                 ates.append((r["fleet_ate_m"], r["own_ate_m"]))
+            if "frame_m" in r:
+                frames.append((r["frame_m"], r["frame_deg"]))
             if r["reference"]:
                 continue
             if "floor_m" in r:
@@ -493,6 +500,7 @@ def main() -> int:
                 unplaced_end += r["placed_s"] is not None  # placed once, not at the end (undone)
     over = sum(m > ERROR_BOUND_M or deg > ERROR_BOUND_DEG for m, deg in errors)
     floor_over = sum(m > ERROR_BOUND_M or deg > ERROR_BOUND_DEG for m, deg in floors)
+    frames_over = sum(m > ERROR_BOUND_M or deg > ERROR_BOUND_DEG for m, deg in frames)
     summary = dict(
         runs=len(results), wrong_merges=wrong, unplaced=unplaced, unplaced_at_end=unplaced_end,
         errors_over_bound=over, errors_scored=len(errors),
@@ -503,6 +511,9 @@ def main() -> int:
         error_max_deg=max((e[1] for e in errors), default=None),
         floors_over_bound=floor_over, floors_scored=len(floors),
         floor_max_m=max((e[0] for e in floors), default=None),
+        frames_over_bound=frames_over, frames_scored=len(frames),
+        frame_max_m=max((e[0] for e in frames), default=None),
+        frame_mean_m=float(np.mean([e[0] for e in frames])) if frames else None,
         fleet_ate_mean_m=float(np.mean([a[0] for a in ates])) if ates else None,
         own_ate_mean_m=float(np.mean([a[1] for a in ates])) if ates else None,
     )  # fmt: skip
@@ -513,7 +524,9 @@ def main() -> int:
         f"{len(errors)} (mean {summary['error_mean_m'] or 0:.3f} m), worst {summary['error_max_m']} m / "
         f"{summary['error_max_deg']}°; a merge placing every map where it truly lies as a whole would be "
         f"over the bound {floor_over} of {len(floors)} times (worst {summary['floor_max_m'] or 0:.3f} m: the "
-        f"agents' own maps); keyframes against the truth (ATE, RMSE, mean) "
+        f"agents' own maps: {frames_over} of {len(frames)} robots' own map frames are over it, mean "
+        f"{summary['frame_mean_m'] or 0:.3f} m, worst {summary['frame_max_m'] or 0:.3f} m); keyframes "
+        f"against the truth (ATE, RMSE, mean) "
         f"{summary['fleet_ate_mean_m'] or 0:.3f} m in the fleet's graph, "
         f"{summary['own_ate_mean_m'] or 0:.3f} m in the robots' own maps"
     )

@@ -62,7 +62,8 @@ def test_the_truth_simulated_again_is_the_truth_beside_the_scans():
 
 def test_a_map_turned_from_its_first_pose_leaves_a_floor_to_any_rigid_merge():
     """A robot whose own map is turned 0.3° about a point 10 m from its first pose, placed where its
-    map truly lies: its keyframes agree with the truth, its first one is 5 cm and 0.3° off."""
+    map truly lies: its keyframes agree with the truth, its first one is 5 cm and 0.3° off — its own
+    map frame's error (the reference's own frame is exact)."""
     from types import SimpleNamespace
 
     from shared.geometry import compose, inverse, relative
@@ -93,3 +94,7 @@ def test_a_map_turned_from_its_first_pose_leaves_a_floor_to_any_rigid_merge():
     assert rows["rob"]["fleet_ate_m"] == pytest.approx(0.0, abs=1e-9)
     assert rows["rob"]["floor_m"] == pytest.approx(10.0 * turn, rel=1e-3)  # 0.052 m
     assert rows["rob"]["floor_deg"] == pytest.approx(0.3, rel=1e-3)
+    assert rows["ref"]["frame_m"] == pytest.approx(0.0, abs=1e-9)
+    assert rows["ref"]["frame_deg"] == pytest.approx(0.0, abs=1e-7)
+    assert rows["rob"]["frame_m"] == pytest.approx(10.0 * turn, rel=1e-3)
+    assert rows["rob"]["frame_deg"] == pytest.approx(0.3, rel=1e-3)
