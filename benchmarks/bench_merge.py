@@ -224,6 +224,16 @@ def _against_truth(paths_now: dict, names: list[str], ref: str, truth: dict, tru
     return out
 
 
+def _over(errors: list[tuple[float, float]]) -> int:
+    """How many ``(m, deg)`` errors exceed issue 21's bound."""
+    return sum(m > ERROR_BOUND_M or deg > ERROR_BOUND_DEG for m, deg in errors)
+
+
+def _m_deg(row: dict, key: str) -> str:
+    """A row's ``<key>_m`` / ``<key>_deg`` error as printed ("-" when the row has none)."""
+    return "-" if f"{key}_m" not in row else f"{row[f'{key}_m']:.3f}m/{row[f'{key}_deg']:.2f}°"
+
+
 def _wrong(t: np.ndarray, truth: np.ndarray) -> bool:
     m, deg = _error(t, truth)
     return m > WRONG_MERGE_M or deg > WRONG_MERGE_DEG
@@ -470,10 +480,8 @@ def main() -> int:
             def f(v, fmt="{:.0f}"):
                 return "-" if v is None else fmt.format(v)
 
-            err = "-" if "error_m" not in r else f"{r['error_m']:.3f}m/{r['error_deg']:.2f}°"
-            flo = "-" if "floor_m" not in r else f"{r['floor_m']:.3f}m/{r['floor_deg']:.2f}°"
+            err, flo, fr = (_m_deg(r, key) for key in ("error", "floor", "frame"))
             at = "-" if "own_ate_m" not in r else f"{r['fleet_ate_m']:.3f}/{r['own_ate_m']:.3f}"
-            fr = "-" if "frame_m" not in r else f"{r['frame_m']:.3f}m/{r['frame_deg']:.2f}°"
             print(
                 f"{res['world']:9} {res['seed']:4d} {n:7} {f(r.get('evidence_s')):>8} "
                 f"{r.get('false_verdicts', 0):5d}/{r.get('false_after', 0):<3d} "
@@ -498,9 +506,7 @@ def main() -> int:
                 errors.append((r["error_m"], r["error_deg"]))
             else:
                 unplaced_end += r["placed_s"] is not None  # placed once, not at the end (undone)
-    over = sum(m > ERROR_BOUND_M or deg > ERROR_BOUND_DEG for m, deg in errors)
-    floor_over = sum(m > ERROR_BOUND_M or deg > ERROR_BOUND_DEG for m, deg in floors)
-    frames_over = sum(m > ERROR_BOUND_M or deg > ERROR_BOUND_DEG for m, deg in frames)
+    over, floor_over, frames_over = _over(errors), _over(floors), _over(frames)
     summary = dict(
         runs=len(results), wrong_merges=wrong, unplaced=unplaced, unplaced_at_end=unplaced_end,
         errors_over_bound=over, errors_scored=len(errors),
