@@ -31,8 +31,14 @@ without processes or network, in simulated time:
   keyframes' error (ATE, RMSE) in the fleet's graph (the whole fleet fitted to the truth at once)
   against in the robot's own map (fitted alone): what the merge costs or gains over the agents.
 
+- **the graph's edges against the truth**: each robot's own edges and the constraints tying it to
+  the others, their median error and χ (the error in units of the edge's stated uncertainty) — a
+  robot's final error is what these leave along the edges between its first keyframe and the
+  reference's.
+
 Prints one row per robot (evidence, false verdicts, placed, delay, final error, floor, its own map
-frame against its true start, ATE fleet / own) and a summary: median and worst delay, wrong merges,
+frame against its true start, ATE fleet / own, χ of its own edges / of its ties) and a summary:
+median and worst delay, wrong merges,
 robots never placed (or placed and undone by the end), how many final errors exceed issue 21's bound
 (0.05 m / 0.5°), how many floors do and how many robots' own map frames do; writes
 benchmarks/results/bench_merge.json.
@@ -67,7 +73,7 @@ from map_server.freespace import FreeSpaces  # noqa: E402
 from map_server.fusion import fuse_particles, merge_segments  # noqa: E402
 from shared import codec  # noqa: E402
 from shared.config import apply_overrides  # noqa: E402
-from shared.geometry import apply_segments, compose, inverse, relative, transform_points  # noqa: E402
+from shared.geometry import apply_segments, compose, inverse, relative, transform_points, wrap_angle  # noqa: E402
 from shared.messages import FreeSpace, RobotMap  # noqa: E402
 from shared.metrics import align_se2, ate, poses_at  # noqa: E402
 
@@ -220,6 +226,50 @@ def _against_truth(paths_now: dict, names: list[str], ref: str, truth: dict, tru
         if ref in fits:
             row["floor_m"], row["floor_deg"] = _error(
                 compose(inverse(fits[ref].alignment), a.alignment), truth[n]
+            )
+    return out
+
+
+def _edges_against_truth(graphs: dict, constraints: dict, true_kf: dict) -> dict:
+    """The fleet graph's edges against the truth, per robot (``true_kf``: robot -> its true poses
+    at its keyframes): its own edges (the relative poses its own solution gives) and the constraints
+    tying its keyframes to the others' — the median error of each (m, |°|) and the median of
+    ``sqrt(eᵀ I e / 3)``, the error in units of the edge's own stated uncertainty (1: as stated;
+    under 1: the graph trusts the edge less than it deserves). A robot's final error is the sum of
+    both along the edges between its first keyframe and the reference's."""
+
+    def stats(z, info, tz) -> tuple[float, float, float]:
+        e = z - tz
+        e[:, 2] = wrap_angle(e[:, 2])
+        chi = np.sqrt(np.einsum("ei,eij,ej->e", e, info, e) / 3.0)
+        return (float(np.median(np.hypot(e[:, 0], e[:, 1]))), float(np.degrees(np.median(np.abs(e[:, 2])))),
+                float(np.median(chi)))  # fmt: skip
+
+    out = {}
+    for n, g in graphs.items():
+        row = out[n] = {}
+        if n not in true_kf:
+            continue
+        tk = true_kf[n]
+        if len(g.a):
+            row["own_edge_m"], row["own_edge_deg"], row["own_edge_chi"] = stats(
+                g.z, g.info, relative(tk[g.a], tk[g.b])
+            )
+        z, info, tz = [], [], []
+        for c in constraints.get(n, {}).values():
+            if c.other not in true_kf or c.other not in graphs:
+                continue
+            og = graphs[c.other]
+            ai, bi = int(np.searchsorted(og.ids, c.a_id)), int(np.searchsorted(g.ids, c.b_id))
+            if ai >= len(og.ids) or og.ids[ai] != c.a_id or bi >= len(g.ids) or g.ids[bi] != c.b_id:
+                continue  # (a keyframe no longer in its robot's graph)
+            z.append(c.z)
+            info.append(c.info)
+            tz.append(relative(true_kf[c.other][ai], tk[bi]))
+        row["constraints"] = len(z)
+        if z:
+            row["constraint_m"], row["constraint_deg"], row["constraint_chi"] = stats(
+                np.array(z, float), np.array(info), np.array(tz)
             )
     return out
 
@@ -383,6 +433,11 @@ def run_seed(
 
     true = [true_path(world, i, 100 * seed + i, float(recs[i].stamps[-1]) + 1.0) for i in range(robots)]
     against = _against_truth(paths_now, names, ref, truth, true)
+    graphs = {n: fleet.robots[n].graph for n in paths_now if fleet.robots[n].graph is not None}
+    graphs = {n: g for n, g in graphs.items() if not g.rigid and len(g) == len(paths_now[n].kf_stamp)}
+    true_kf = {n: poses_at(*true[names.index(n)], paths_now[n].kf_stamp) for n in graphs}
+    for n, row in _edges_against_truth(graphs, fleet.graph.constraints, true_kf).items():
+        against.setdefault(n, {}).update(row)
     out = {}
     for i, n in enumerate(names):
         row = dict(robot=n, reference=n == ref, placed_s=placed_at.get(n)) | against.get(n, {})
@@ -472,8 +527,10 @@ def main() -> int:
         results = [f.result() for f in futures]
 
     print(f"{'world':9} {'seed':>4} {'robot':7} {'evidence':>8} {'false':>9} {'placed':>6} {'delay':>6} "
-          f"{'error':>14} {'floor':>14} {'own frame':>14} {'ATE fleet/own':>13}  wrong")  # fmt: skip
+          f"{'error':>14} {'floor':>14} {'own frame':>14} {'ATE fleet/own':>13} "
+          f"{'χ own/ties':>10}  wrong")  # fmt: skip
     delays, wrong, unplaced, unplaced_end, errors, floors, ates, frames = [], 0, 0, 0, [], [], [], []
+    edges: dict[str, list[float]] = {}  # own_edge_* / constraint_* -> each robot's median
     for res in results:
         for n, r in res["robots"].items():
 
@@ -482,10 +539,16 @@ def main() -> int:
 
             err, flo, fr = (_m_deg(r, key) for key in ("error", "floor", "frame"))
             at = "-" if "own_ate_m" not in r else f"{r['fleet_ate_m']:.3f}/{r['own_ate_m']:.3f}"
+            chi = f"{f(r.get('own_edge_chi'), '{:.2f}')}/{f(r.get('constraint_chi'), '{:.2f}')}"
+            for key in ("own_edge", "constraint"):
+                for unit in ("m", "deg", "chi"):
+                    if f"{key}_{unit}" in r:
+                        edges.setdefault(f"{key}_{unit}", []).append(r[f"{key}_{unit}"])
             print(
                 f"{res['world']:9} {res['seed']:4d} {n:7} {f(r.get('evidence_s')):>8} "
                 f"{r.get('false_verdicts', 0):5d}/{r.get('false_after', 0):<3d} "
-                f"{f(r['placed_s']):>6} {f(r.get('delay_s')):>6} {err:>14} {flo:>14} {fr:>14} {at:>13}  "
+                f"{f(r['placed_s']):>6} {f(r.get('delay_s')):>6} {err:>14} {flo:>14} {fr:>14} {at:>13} "
+                f"{chi:>10}  "
                 + ("REFERENCE" if r["reference"] else ("WRONG" if r.get("wrong_merge") else ""))
                 + contra_text(r)
                 + (f"  unplaced: {r['reason']}" if r.get("reason") else "")
@@ -522,7 +585,7 @@ def main() -> int:
         frame_mean_m=float(np.mean([e[0] for e in frames])) if frames else None,
         fleet_ate_mean_m=float(np.mean([a[0] for a in ates])) if ates else None,
         own_ate_mean_m=float(np.mean([a[1] for a in ates])) if ates else None,
-    )  # fmt: skip
+    ) | {f"{k}_median": float(np.median(v)) for k, v in edges.items()}  # fmt: skip
     print(
         f"{len(results)} runs: {wrong} wrong merges, {unplaced} robots never placed, {unplaced_end} placed "
         f"but not at the end; delay from evidence to merge median {summary['delay_median_s']} s, worst "
@@ -536,6 +599,15 @@ def main() -> int:
         f"{summary['fleet_ate_mean_m'] or 0:.3f} m in the fleet's graph, "
         f"{summary['own_ate_mean_m'] or 0:.3f} m in the robots' own maps"
     )
+    if "constraint_m_median" in summary and "own_edge_m_median" in summary:
+        print(
+            "the graph's edges against the truth (median over robots of each robot's median): its own "
+            f"{summary['own_edge_m_median']:.4f} m / {summary['own_edge_deg_median']:.3f}°, χ "
+            f"{summary['own_edge_chi_median']:.2f}; the ties between robots "
+            f"{summary['constraint_m_median']:.4f} m / "
+            f"{summary['constraint_deg_median']:.3f}°, χ {summary['constraint_chi_median']:.2f} "
+            "(χ: the error in units of the edge's stated uncertainty)"
+        )
     args_out = vars(args) | {
         "cache": str(args.cache),
         "out": str(args.out),

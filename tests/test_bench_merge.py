@@ -98,3 +98,47 @@ def test_a_map_turned_from_its_first_pose_leaves_a_floor_to_any_rigid_merge():
     assert rows["ref"]["frame_deg"] == pytest.approx(0.0, abs=1e-7)
     assert rows["rob"]["frame_m"] == pytest.approx(10.0 * turn, rel=1e-3)
     assert rows["rob"]["frame_deg"] == pytest.approx(0.3, rel=1e-3)
+
+
+def test_the_graphs_edges_against_the_truth_in_units_of_their_stated_uncertainty():
+    """A robot's own edges 1 cm long against a stated 2 cm (χ = 0.5/√3), a tie to another robot's
+    keyframe 0.5° off against a stated 1° (χ = 0.5/√3 too); a tie to a keyframe gone is not counted."""
+    from types import SimpleNamespace
+
+    from shared.geometry import relative
+
+    true_a = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    true_b = np.array([[2.0, 1.0, np.pi / 2], [2.0, 2.0, np.pi / 2]])
+    edge_info = np.diag([1 / 0.02**2, 1 / 0.02**2, 1 / 0.01**2])
+    off_1cm, off_half_deg = np.array([0.01, 0.0, 0.0]), np.array([0.0, 0.0, np.radians(0.5)])
+    a = SimpleNamespace(
+        ids=np.array([10, 11, 12]),
+        a=np.array([0, 1]),
+        b=np.array([1, 2]),
+        z=relative(true_a[:2], true_a[1:]) + off_1cm,
+        info=np.stack([edge_info] * 2),
+    )
+    b = SimpleNamespace(
+        ids=np.array([5, 6]),
+        a=np.zeros(0, int),
+        b=np.zeros(0, int),
+        z=np.zeros((0, 3)),
+        info=np.zeros((0, 3, 3)),
+    )
+    tie_info = np.diag([1e4, 1e4, 1 / np.radians(1.0) ** 2])
+    tie = SimpleNamespace(
+        b_id=6, other="a", a_id=12, z=relative(true_a[2], true_b[1]) + off_half_deg, info=tie_info
+    )
+    gone = SimpleNamespace(b_id=5, other="a", a_id=99, z=np.zeros(3), info=tie_info)
+    with bench_script("bench_merge") as module:
+        rows = module._edges_against_truth(
+            {"a": a, "b": b}, {"b": {0: tie, 1: gone}}, {"a": true_a, "b": true_b}
+        )
+    assert rows["a"]["own_edge_m"] == pytest.approx(0.01)
+    assert rows["a"]["own_edge_deg"] == pytest.approx(0.0, abs=1e-9)
+    assert rows["a"]["own_edge_chi"] == pytest.approx(0.5 / np.sqrt(3.0))
+    assert rows["a"]["constraints"] == 0 and "constraint_chi" not in rows["a"]
+    assert "own_edge_m" not in rows["b"] and rows["b"]["constraints"] == 1
+    assert rows["b"]["constraint_m"] == pytest.approx(0.0, abs=1e-9)
+    assert rows["b"]["constraint_deg"] == pytest.approx(0.5)
+    assert rows["b"]["constraint_chi"] == pytest.approx(0.5 / np.sqrt(3.0))
