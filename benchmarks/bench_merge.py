@@ -34,7 +34,8 @@ without processes or network, in simulated time:
 - **the graph's edges against the truth**: each robot's own edges and the constraints tying it to
   the others, their median error and χ (the error in units of the edge's stated uncertainty) — a
   robot's final error is what these leave along the edges between its first keyframe and the
-  reference's.
+  reference's. With ``--decompose`` the final graph is solved again with every tie at the truth
+  and with every robot's own edges at the truth: which of the two leaves the error.
 
 Prints one row per robot (evidence, false verdicts, placed, delay, final error, floor, its own map
 frame against its true start, ATE fleet / own, χ of its own edges / of its ties) and a summary:
@@ -49,12 +50,13 @@ the whole fleet on loopback.
 from __future__ import annotations
 
 import argparse
+import copy
 import itertools
 import json
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +70,7 @@ from fleet_slam.report import WRONG_MERGE_DEG, WRONG_MERGE_M  # noqa: E402
 from map_server.alignment import estimate_alignment  # noqa: E402
 from map_server.config import FleetConfig  # noqa: E402
 from map_server.contradiction import Check, own_noise, placed_noise, shrink, shrink_placed  # noqa: E402
-from map_server.fleet import Fleet  # noqa: E402
+from map_server.fleet import Fleet, _graph_item  # noqa: E402
 from map_server.freespace import FreeSpaces  # noqa: E402
 from map_server.fusion import fuse_particles, merge_segments  # noqa: E402
 from shared import codec  # noqa: E402
@@ -274,6 +276,59 @@ def _edges_against_truth(graphs: dict, constraints: dict, true_kf: dict) -> dict
     return out
 
 
+def decompose(graph, items: list, true_kf: dict, ref: str) -> dict:
+    """Where each robot's final error comes from: the fleet's graph (``graph``: a FleetGraph at its
+    final state, not changed; ``items``: its placed robots, map_server.posegraph.Placed) solved
+    again as it is, with every tie between robots set to the truth (what the robots' own edges
+    leave), with every robot's own edges set to the truth (what the ties leave), and with both.
+    Robot -> ``{as_is, true_ties, true_own, both}``, each ``(m, deg)``: its first keyframe against
+    the reference's (``true_kf``: each robot's true poses at its keyframes)."""
+    items = [it for it in items if not it.graph.rigid and it.robot in true_kf]
+    if ref not in {it.robot for it in items}:
+        return {}
+    graphs = {it.robot: it.graph for it in items}
+
+    def true_ties(g):
+        out = {}
+        for n, cs in g.constraints.items():
+            out[n] = {}
+            for key, c in cs.items():
+                if n in graphs and c.other in graphs:
+                    og, mine = graphs[c.other], graphs[n]
+                    ai, bi = int(np.searchsorted(og.ids, c.a_id)), int(np.searchsorted(mine.ids, c.b_id))
+                    if (
+                        ai < len(og.ids)
+                        and og.ids[ai] == c.a_id
+                        and bi < len(mine.ids)
+                        and mine.ids[bi] == c.b_id
+                    ):
+                        c = replace(c, z=relative(true_kf[c.other][ai], true_kf[n][bi]))
+                out[n][key] = c
+        return out
+
+    own = []
+    for it in items:
+        tk, g = true_kf[it.robot], it.graph
+        own.append(replace(it, graph=replace(g, z=relative(tk[g.a], tk[g.b]))))
+    out: dict[str, dict] = {}
+    for name, ties, placed in (("as_is", False, items), ("true_ties", True, items), ("true_own", False, own),
+                               ("both", True, own)):  # fmt: skip
+        g = copy.deepcopy(graph)
+        if ties:
+            g.constraints = true_ties(g)
+        x = g.solve(placed)
+        for it in placed:
+            if it.robot != ref:
+                d = relative(
+                    relative(x[ref][0], x[it.robot][0]), relative(true_kf[ref][0], true_kf[it.robot][0])
+                )
+                out.setdefault(it.robot, {})[name] = (
+                    float(np.hypot(d[0], d[1])),
+                    float(np.degrees(abs(d[2]))),
+                )
+    return out
+
+
 def _over(errors: list[tuple[float, float]]) -> int:
     """How many ``(m, deg)`` errors exceed issue 21's bound."""
     return sum(m > ERROR_BOUND_M or deg > ERROR_BOUND_DEG for m, deg in errors)
@@ -297,9 +352,11 @@ def run_seed(
     sets: list[str],
     known: dict | None = None,
     evidence: str = "chain",
+    decomposed: bool = False,
 ) -> dict:
     """Evidence and the fleet's placements for one seed's recorded robots (``known``: the
-    evidence rows of an earlier run on the same recordings, not measured again)."""
+    evidence rows of an earlier run on the same recordings, not measured again; ``decomposed``:
+    each robot's final error decomposed, :func:`decompose`)."""
     cfg = apply_overrides(FleetConfig(), sets)
     recs = [load(p) for p in paths]
     names = [f"robot{i + 1}" for i in range(robots)]
@@ -438,6 +495,10 @@ def run_seed(
     true_kf = {n: poses_at(*true[names.index(n)], paths_now[n].kf_stamp) for n in graphs}
     for n, row in _edges_against_truth(graphs, fleet.graph.constraints, true_kf).items():
         against.setdefault(n, {}).update(row)
+    if decomposed:
+        items = [_graph_item(r, fleet._consistent(r), fleet._contradicts(r)) for r in fleet._bend_placed()]
+        for n, row in decompose(fleet.graph, items, true_kf, ref).items():
+            against.setdefault(n, {})["decomposed"] = row
     out = {}
     for i, n in enumerate(names):
         row = dict(robot=n, reference=n == ref, placed_s=placed_at.get(n)) | against.get(n, {})
@@ -489,6 +550,9 @@ def main() -> int:
     p.add_argument("--evidence", choices=["chain", "all"], default="chain",
                    help="match each robot against the reference and the robots evidenced before it "
                         "(chain), or against every other robot (all)")  # fmt: skip
+    p.add_argument(
+        "--decompose", action="store_true", help="each final error with the ties, or own edges, at the truth"
+    )
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "bench_merge.json")
     args = p.parse_args()
     apply_overrides(FleetConfig(), args.set)  # a bad override fails before any work
@@ -521,6 +585,7 @@ def main() -> int:
                 args.set,
                 known.get((w, s)) if known else None,
                 args.evidence,
+                args.decompose,
             )
             for w, s in runs
         ]
@@ -599,6 +664,21 @@ def main() -> int:
         f"{summary['fleet_ate_mean_m'] or 0:.3f} m in the fleet's graph, "
         f"{summary['own_ate_mean_m'] or 0:.3f} m in the robots' own maps"
     )
+    decomposed = [(res["world"], res["seed"], n, r["decomposed"]) for res in results
+                  for n, r in res["robots"].items() if "decomposed" in r]  # fmt: skip
+    if decomposed:
+        print("each final error solved again (first keyframe against the reference's): as it is / every tie "
+              "between robots at the truth / every robot's own edges at the truth / both")  # fmt: skip
+        for world, seed, n, d in decomposed:
+            cells = (f"{d[k][0]:.3f}m {d[k][1]:.2f}°" for k in ("as_is", "true_ties", "true_own", "both"))
+            print(f"  {world:9} {seed:4d} {n:7} " + " / ".join(cells))
+        for key in ("as_is", "true_ties", "true_own"):
+            summary[f"decomposed_{key}_over_bound"] = _over([d[key] for *_, d in decomposed])
+        print(
+            f"over the bound: as it is {summary['decomposed_as_is_over_bound']}, with true ties "
+            f"{summary['decomposed_true_ties_over_bound']}, with true own edges "
+            f"{summary['decomposed_true_own_over_bound']} of {len(decomposed)}"
+        )
     if "constraint_m_median" in summary and "own_edge_m_median" in summary:
         print(
             "the graph's edges against the truth (median over robots of each robot's median): its own "

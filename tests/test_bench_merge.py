@@ -142,3 +142,47 @@ def test_the_graphs_edges_against_the_truth_in_units_of_their_stated_uncertainty
     assert rows["b"]["constraint_m"] == pytest.approx(0.0, abs=1e-9)
     assert rows["b"]["constraint_deg"] == pytest.approx(0.5)
     assert rows["b"]["constraint_chi"] == pytest.approx(0.5 / np.sqrt(3.0))
+
+
+def test_a_final_error_decomposed_into_what_the_ties_and_the_own_edges_leave():
+    """Two robots side by side, tied once at their last keyframes: the tie 5 cm off and one of the
+    second robot's own edges turned 0.01 rad. Solved again with the tie at the truth only the turn is
+    left (at its first keyframe, 1 m from the turn), with its own edges at the truth only the tie's
+    5 cm, with both nothing; the graph given is left as it was."""
+    from map_server.posegraph import Constraint, FleetGraph, Placed, RobotGraph
+    from shared.geometry import compose, inverse, relative
+
+    t = np.arange(4.0)
+    true_r = np.column_stack([t, np.zeros(4), np.zeros(4)])
+    true_s = np.column_stack([t, np.full(4, 2.0), np.zeros(4)])
+    info = np.stack([np.diag([1e4, 1e4, 1e6])] * 3)
+
+    def graph(true, turn):
+        z = relative(true[:-1], true[1:])
+        z[1, 2] += turn
+        pose = [np.zeros(3)]
+        for step in z:
+            pose.append(compose(pose[-1], step))
+        return RobotGraph(
+            np.arange(4), np.array(pose), np.arange(3), np.arange(1, 4), z, info, np.zeros(0, int)
+        )
+
+    gr, gs = graph(true_r, 0.0), graph(true_s, 0.01)
+    ref = Placed("r", gr, None, np.zeros(3), "reference")
+    other = Placed("s", gs, None, relative(true_r[0], true_s[0]), "aligned")
+    tie_z = relative(true_r[3], true_s[3]) + np.array([0.05, 0.0, 0.0])
+    fg = FleetGraph()
+    fg.constraints = {"s": {(3, "r"): Constraint(3, "r", 3, tie_z, np.diag([1e4, 1e4, 1e6]))}}
+    with bench_script("bench_merge") as module:
+        out = module.decompose(fg, [ref, other], {"r": true_r, "s": true_s}, "r")["s"]
+    assert fg.solution == {} and fg.constraints["s"][(3, "r")].z is tie_z  # (solved on copies)
+    assert out["both"][0] == pytest.approx(0.0, abs=1e-4) and out["both"][1] == pytest.approx(0.0, abs=1e-3)
+    assert out["true_own"][0] == pytest.approx(0.05, abs=1e-3)
+    # the tie at the truth: its first keyframe walked back from the last one along its own edges
+    kf0 = compose(compose(compose(true_s[3], inverse(gs.z[2])), inverse(gs.z[1])), inverse(gs.z[0]))
+    d = relative(kf0, true_s[0])
+    assert out["true_ties"][0] == pytest.approx(np.hypot(d[0], d[1]), rel=0.02)
+    assert out["true_ties"][1] == pytest.approx(np.degrees(0.01), rel=0.02)
+    # as it is, both: the tie's 5 cm along the robots' way, the turn's 2 cm across it
+    assert out["as_is"][0] == pytest.approx(np.hypot(out["true_ties"][0], out["true_own"][0]), rel=0.02)
+    assert out["as_is"][1] == pytest.approx(np.degrees(0.01), rel=0.02)
