@@ -70,7 +70,7 @@ from fleet_slam.report import WRONG_MERGE_DEG, WRONG_MERGE_M  # noqa: E402
 from map_server.alignment import estimate_alignment  # noqa: E402
 from map_server.config import FleetConfig  # noqa: E402
 from map_server.contradiction import Check, own_noise, placed_noise, shrink, shrink_placed  # noqa: E402
-from map_server.fleet import Fleet, _graph_item  # noqa: E402
+from map_server.fleet import Fleet  # noqa: E402
 from map_server.freespace import FreeSpaces  # noqa: E402
 from map_server.fusion import fuse_particles, merge_segments  # noqa: E402
 from shared import codec  # noqa: E402
@@ -232,6 +232,18 @@ def _against_truth(paths_now: dict, names: list[str], ref: str, truth: dict, tru
     return out
 
 
+def _tie_at(c, n: str, graphs: dict) -> tuple[int, int] | None:
+    """Constraint ``c`` on robot ``n``: the positions of its two keyframes in their robots' graphs
+    (``graphs``: robot -> RobotGraph), None when either robot or keyframe is not there."""
+    if n not in graphs or c.other not in graphs:
+        return None
+    og, g = graphs[c.other], graphs[n]
+    ai, bi = int(np.searchsorted(og.ids, c.a_id)), int(np.searchsorted(g.ids, c.b_id))
+    if ai >= len(og.ids) or og.ids[ai] != c.a_id or bi >= len(g.ids) or g.ids[bi] != c.b_id:
+        return None  # (a keyframe no longer in its robot's graph)
+    return ai, bi
+
+
 def _edges_against_truth(graphs: dict, constraints: dict, true_kf: dict) -> dict:
     """The fleet graph's edges against the truth, per robot (``true_kf``: robot -> its true poses
     at its keyframes): its own edges (the relative poses its own solution gives) and the constraints
@@ -259,12 +271,10 @@ def _edges_against_truth(graphs: dict, constraints: dict, true_kf: dict) -> dict
             )
         z, info, tz = [], [], []
         for c in constraints.get(n, {}).values():
-            if c.other not in true_kf or c.other not in graphs:
+            at = _tie_at(c, n, graphs) if c.other in true_kf else None
+            if at is None:
                 continue
-            og = graphs[c.other]
-            ai, bi = int(np.searchsorted(og.ids, c.a_id)), int(np.searchsorted(g.ids, c.b_id))
-            if ai >= len(og.ids) or og.ids[ai] != c.a_id or bi >= len(g.ids) or g.ids[bi] != c.b_id:
-                continue  # (a keyframe no longer in its robot's graph)
+            ai, bi = at
             z.append(c.z)
             info.append(c.info)
             tz.append(relative(true_kf[c.other][ai], tk[bi]))
@@ -288,23 +298,9 @@ def decompose(graph, items: list, true_kf: dict, ref: str) -> dict:
         return {}
     graphs = {it.robot: it.graph for it in items}
 
-    def true_ties(g):
-        out = {}
-        for n, cs in g.constraints.items():
-            out[n] = {}
-            for key, c in cs.items():
-                if n in graphs and c.other in graphs:
-                    og, mine = graphs[c.other], graphs[n]
-                    ai, bi = int(np.searchsorted(og.ids, c.a_id)), int(np.searchsorted(mine.ids, c.b_id))
-                    if (
-                        ai < len(og.ids)
-                        and og.ids[ai] == c.a_id
-                        and bi < len(mine.ids)
-                        and mine.ids[bi] == c.b_id
-                    ):
-                        c = replace(c, z=relative(true_kf[c.other][ai], true_kf[n][bi]))
-                out[n][key] = c
-        return out
+    def true_tie(c, n):
+        at = _tie_at(c, n, graphs)
+        return c if at is None else replace(c, z=relative(true_kf[c.other][at[0]], true_kf[n][at[1]]))
 
     own = []
     for it in items:
@@ -315,16 +311,12 @@ def decompose(graph, items: list, true_kf: dict, ref: str) -> dict:
                                ("both", True, own)):  # fmt: skip
         g = copy.deepcopy(graph)
         if ties:
-            g.constraints = true_ties(g)
+            g.constraints = {n: {k: true_tie(c, n) for k, c in cs.items()} for n, cs in g.constraints.items()}
         x = g.solve(placed)
         for it in placed:
             if it.robot != ref:
-                d = relative(
+                out.setdefault(it.robot, {})[name] = _error(
                     relative(x[ref][0], x[it.robot][0]), relative(true_kf[ref][0], true_kf[it.robot][0])
-                )
-                out.setdefault(it.robot, {})[name] = (
-                    float(np.hypot(d[0], d[1])),
-                    float(np.degrees(abs(d[2]))),
                 )
     return out
 
@@ -490,14 +482,13 @@ def run_seed(
 
     true = [true_path(world, i, 100 * seed + i, float(recs[i].stamps[-1]) + 1.0) for i in range(robots)]
     against = _against_truth(paths_now, names, ref, truth, true)
-    graphs = {n: fleet.robots[n].graph for n in paths_now if fleet.robots[n].graph is not None}
-    graphs = {n: g for n, g in graphs.items() if not g.rigid and len(g) == len(paths_now[n].kf_stamp)}
+    graphs = {n: fleet.robots[n].graph for n in paths_now}
+    graphs = {n: g for n, g in graphs.items() if g is not None and not g.rigid}
     true_kf = {n: poses_at(*true[names.index(n)], paths_now[n].kf_stamp) for n in graphs}
     for n, row in _edges_against_truth(graphs, fleet.graph.constraints, true_kf).items():
         against.setdefault(n, {}).update(row)
     if decomposed:
-        items = [_graph_item(r, fleet._consistent(r), fleet._contradicts(r)) for r in fleet._bend_placed()]
-        for n, row in decompose(fleet.graph, items, true_kf, ref).items():
+        for n, row in decompose(fleet.graph, fleet.graph_items(), true_kf, ref).items():
             against.setdefault(n, {})["decomposed"] = row
     out = {}
     for i, n in enumerate(names):

@@ -263,6 +263,14 @@ class Fleet:
             (r.robot, id(r.graph), r.alignment.transform.tobytes(), r.alignment.status) for r in placed
         )
 
+    def graph_item(self, r: RobotState) -> Placed:
+        """What the fleet's graph takes of placed robot ``r``, with its own-consistency verdicts."""
+        return _graph_item(r, self._consistent(r), self._contradicts(r))
+
+    def graph_items(self) -> list[Placed]:
+        """:meth:`graph_item` of every robot the graph bends."""
+        return [self.graph_item(r) for r in self._bend_placed()]
+
     def _consistent(self, r: RobotState) -> bool:
         """Whether a placed robot's walls stand in its own free space by at most
         ``consistent_self_m`` (not while its free space is not known): the graph takes its own
@@ -326,7 +334,7 @@ class Fleet:
         the rest stays due (``graph_stale``)."""
         cfg = self.cfg.graph
         placed = self._bend_placed()
-        items = [_graph_item(r, self._consistent(r), self._contradicts(r)) for r in placed]
+        items = [self.graph_item(r) for r in placed]
         rebuilding = self.graph.rebuilding
         for robot in self.graph.sync(items):  # what the graph found where the robot was would hold it
             log.info("%s: unplaced or moved far: the fleet graph forgets where it had it", robot)
@@ -388,7 +396,7 @@ class Fleet:
         done, then its answer for as long as it stands for the robot's places."""
         cfg = self.cfg.graph
         others = [x for x in self._bend_placed() if x is not r]
-        items = [_graph_item(x, self._consistent(x), self._contradicts(x)) for x in others]
+        items = [self.graph_item(x) for x in others]
         if not cfg.enabled or not items or r.graph is None or r.map is None:
             return [0.0 for _ in places]
         at = np.array(places, float).reshape(-1, 3)
@@ -402,7 +410,7 @@ class Fleet:
             keep[id(p.layer)] = p.layer
         pieces = [apply_segments(p.alignment.transform, p.layer.seg) for p in self.pieces()]
         fixed = np.concatenate([np.zeros((0, 2, 2)), *pieces])
-        item = _graph_item(r, self._consistent(r), self._contradicts(r))
+        item = self.graph_item(r)
         base = copy.deepcopy(self.graph, dict(keep))
         t = Trial(r.robot, r.map.session, at, r.layer.length_m, item, items, fixed, base, keep)
         if not self._defer_trials:
