@@ -22,7 +22,11 @@ without processes or network, in simulated time:
 - **the fleet**: the maps go into ``map_server.fleet.Fleet`` in time order (a fusion after each,
   as the server does when it is idle), with the defaults or ``--set`` overrides of FleetConfig
   (``confirmations=1``, ``alignment.min_share=0.3``, ...); when each robot is placed, whether
-  correctly, and where its first keyframe ends (the fleet's graph) against the truth.
+  correctly, and where its first keyframe ends (the fleet's graph) against the truth; and its
+  worst place at any time while placed (its placement, or its first keyframe where the graph bent
+  it), against the truth in the reference of that moment: a robot placed well first and moved
+  elsewhere later — placed again, or bent there — is counted beyond the wrong-merge bound (0.3 m /
+  3°), and beyond 3× it (another place, not a young map's drift).
 
 - **against the truth** (each robot's true path simulated again): the *floor* — the final error a
   merge would have that placed every robot's map where it truly lies as a whole (its keyframes
@@ -55,6 +59,7 @@ import itertools
 import json
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -331,6 +336,42 @@ def _m_deg(row: dict, key: str) -> str:
     return "-" if f"{key}_m" not in row else f"{row[f'{key}_m']:.3f}m/{row[f'{key}_deg']:.2f}°"
 
 
+FAR = 3.0  # a place this many times the wrong-merge bound off: another place, not a drifted map's
+
+
+def held_text(row: dict) -> str:
+    """A bench row's worst place while placed, as printed."""
+    m, deg, t = row["worst_held_m"], row["worst_held_deg"], row["worst_held_s"]
+    return f" held {m:.2f} m / {deg:.1f}° off at {t:g} s"
+
+
+def _held_wrong(row: dict, times: float) -> bool:
+    """Whether the robot's worst place while placed (bench row) was ``times`` the wrong-merge
+    bound off (or more)."""
+    return "worst_held_m" in row and (
+        row["worst_held_m"] >= times * WRONG_MERGE_M or row["worst_held_deg"] >= times * WRONG_MERGE_DEG
+    )
+
+
+def _worst_held(held: list[tuple], truth_of: Callable[[str], np.ndarray]) -> tuple | None:
+    """A robot's worst place while it was placed: ``held`` its places after each fusion, ``(time,
+    the reference then, its placement, its map frame where the graph put its first keyframe or
+    None)``; ``truth_of(reference)`` its true map frame in that reference's. ``(m, deg, time)`` of
+    the place farthest off in units of the wrong-merge bound, None if never placed."""
+    worst = None
+    for t, reference, placement, bent in held:
+        truth = truth_of(reference)
+        for frame in (placement, bent):
+            if frame is None:
+                continue
+            e = (*_error(frame, truth), t)
+            if worst is None or max(e[0] / WRONG_MERGE_M, e[1] / WRONG_MERGE_DEG) > max(
+                worst[0] / WRONG_MERGE_M, worst[1] / WRONG_MERGE_DEG
+            ):
+                worst = e
+    return worst
+
+
 def _wrong(t: np.ndarray, truth: np.ndarray) -> bool:
     m, deg = _error(t, truth)
     return m > WRONG_MERGE_M or deg > WRONG_MERGE_DEG
@@ -363,6 +404,10 @@ def run_seed(
     fleet.free_of = free.area
     placed_at: dict[str, float] = {}
     first_place: dict[str, np.ndarray] = {}
+    # every place a robot had after each fusion, while placed: (time, the reference then, its
+    # placement, its map frame where the graph puts its first keyframe or None) — a robot placed
+    # well and later moved elsewhere (placed again, or bent there) is a wrong merge as well
+    held: dict[str, list[tuple]] = {}
     t0 = time.perf_counter()
 
     def fuse(t: float) -> None:
@@ -371,6 +416,11 @@ def run_seed(
             if r.alignment.placed and n not in placed_at:
                 placed_at[n] = t
                 first_place[n] = r.alignment.transform.copy()
+            if r.alignment.placed and fleet.reference is not None and n != fleet.reference:
+                bent = None
+                if r.bent is not None and r.graph is not None and r.bent_x is not None:
+                    bent = compose(r.bent_x[0], inverse(r.graph.pose[0]))
+                held.setdefault(n, []).append((t, fleet.reference, r.alignment.transform.copy(), bent))
 
     for t, is_map, i, k in events:
         if not is_map:
@@ -389,6 +439,10 @@ def run_seed(
     ref = fleet.reference or names[0]
     iref = names.index(ref)
     truth = {n: compose(inverse(recs[iref].start), recs[i].start) for i, n in enumerate(names)}
+
+    def _truth(reference: str, n: str) -> np.ndarray:  # robot n's map frame in the reference's
+        return compose(inverse(recs[names.index(reference)].start), recs[names.index(n)].start)
+
     latest = fleet.latest()
     paths_now = {p.robot: p for p in fleet.paths(latest.version if latest is not None else 0)}
 
@@ -497,6 +551,9 @@ def run_seed(
             row["reason"] = fleet.robots[n].alignment.reason
         if n in first_place:
             row["wrong_merge"] = _wrong(first_place[n], truth[n])
+        worst = _worst_held(held.get(n, []), lambda reference, n=n: _truth(reference, n))
+        if worst is not None:
+            row["worst_held_m"], row["worst_held_deg"], row["worst_held_s"] = worst
         if n in paths_now:
             p = paths_now[n]
             frame = compose(p.pose[0], inverse(p.local[0]))  # its map frame by its first keyframe
@@ -586,6 +643,8 @@ def main() -> int:
           f"{'error':>14} {'floor':>14} {'own frame':>14} {'ATE fleet/own':>13} "
           f"{'χ own/ties':>10}  wrong")  # fmt: skip
     delays, wrong, unplaced, unplaced_end, errors, floors, ates, frames = [], 0, 0, 0, [], [], [], []
+    wrong_held = far_held = 0
+    held_worst = 0.0
     edges: dict[str, list[float]] = {}  # own_edge_* / constraint_* -> each robot's median
     for res in results:
         for n, r in res["robots"].items():
@@ -606,6 +665,7 @@ def main() -> int:
                 f"{f(r['placed_s']):>6} {f(r.get('delay_s')):>6} {err:>14} {flo:>14} {fr:>14} {at:>13} "
                 f"{chi:>10}  "
                 + ("REFERENCE" if r["reference"] else ("WRONG" if r.get("wrong_merge") else ""))
+                + (held_text(r) if _held_wrong(r, 1.0) else "")
                 + contra_text(r)
                 + (f"  unplaced: {r['reason']}" if r.get("reason") else "")
             )
@@ -618,6 +678,9 @@ def main() -> int:
             if "floor_m" in r:
                 floors.append((r["floor_m"], r["floor_deg"]))
             wrong += bool(r.get("wrong_merge"))
+            wrong_held += _held_wrong(r, 1.0)
+            far_held += _held_wrong(r, FAR)
+            held_worst = max(held_worst, r.get("worst_held_m", 0.0))
             unplaced += r["placed_s"] is None
             if r.get("delay_s") is not None:
                 delays.append(r["delay_s"])
@@ -627,7 +690,8 @@ def main() -> int:
                 unplaced_end += r["placed_s"] is not None  # placed once, not at the end (undone)
     over, floor_over, frames_over = _over(errors), _over(floors), _over(frames)
     summary = dict(
-        runs=len(results), wrong_merges=wrong, unplaced=unplaced, unplaced_at_end=unplaced_end,
+        runs=len(results), wrong_merges=wrong, held_over_wrong_bound=wrong_held, held_far=far_held,
+        held_worst_m=held_worst, unplaced=unplaced, unplaced_at_end=unplaced_end,
         errors_over_bound=over, errors_scored=len(errors),
         error_mean_m=float(np.mean([e[0] for e in errors])) if errors else None,
         delay_median_s=float(np.median(delays)) if delays else None,
@@ -643,7 +707,9 @@ def main() -> int:
         own_ate_mean_m=float(np.mean([a[1] for a in ates])) if ates else None,
     ) | {f"{k}_median": float(np.median(v)) for k, v in edges.items()}  # fmt: skip
     print(
-        f"{len(results)} runs: {wrong} wrong merges, {unplaced} robots never placed, {unplaced_end} placed "
+        f"{len(results)} runs: {wrong} wrong merges; robots placed (or bent) at some time beyond the "
+        f"wrong-merge bound {wrong_held}, beyond {FAR:g}× it {far_held} (worst {held_worst:.2f} m); "
+        f"{unplaced} robots never placed, {unplaced_end} placed "
         f"but not at the end; delay from evidence to merge median {summary['delay_median_s']} s, worst "
         f"{summary['delay_max_s']} s; final errors over {ERROR_BOUND_M} m / {ERROR_BOUND_DEG}°: {over} of "
         f"{len(errors)} (mean {summary['error_mean_m'] or 0:.3f} m), worst {summary['error_max_m']} m / "

@@ -100,6 +100,32 @@ def test_a_map_turned_from_its_first_pose_leaves_a_floor_to_any_rigid_merge():
     assert rows["rob"]["frame_deg"] == pytest.approx(0.3, rel=1e-3)
 
 
+def test_a_robot_placed_well_first_and_elsewhere_later_is_found_at_its_worst_place():
+    """A robot's places after each fusion: at its true place, then bent 0.4 m off (a young map's
+    drift: beyond the wrong-merge bound, not 3× it), then placed 34 m away turned half round (another
+    place); against the truth in the reference of the moment (it changed once). The worst is the
+    turned place, in units of the bound; a robot placed 0.1 m / 1° off only is within it."""
+    truths = {"r1": np.array([10.0, 0.0, 0.0]), "r2": np.array([0.0, 5.0, np.pi / 2])}
+    held = [
+        (5.0, "r1", truths["r1"].copy(), None),
+        (6.0, "r1", truths["r1"].copy(), truths["r1"] + [0.0, 0.4, 0.0]),
+        (7.0, "r2", truths["r2"] + [34.0, 0.0, np.pi], None),
+        (8.0, "r2", truths["r2"].copy(), None),
+    ]
+    with bench_script("bench_merge") as module:
+        worst = module._worst_held(held, truths.__getitem__)
+        assert worst[0] == pytest.approx(34.0) and worst[1] == pytest.approx(180.0) and worst[2] == 7.0
+        assert module._worst_held(held[:2], truths.__getitem__) == pytest.approx((0.4, 0.0, 6.0))
+        assert module._worst_held([], truths.__getitem__) is None
+        row = dict(zip(("worst_held_m", "worst_held_deg", "worst_held_s"), worst, strict=True))
+        assert module._held_wrong(row, 1.0) and module._held_wrong(row, module.FAR)
+        row = dict(worst_held_m=0.4, worst_held_deg=0.0, worst_held_s=6.0)
+        assert module._held_wrong(row, 1.0) and not module._held_wrong(row, module.FAR)
+        row = dict(worst_held_m=0.1, worst_held_deg=1.0, worst_held_s=6.0)
+        assert not module._held_wrong(row, 1.0)
+        assert not module._held_wrong({}, 1.0)
+
+
 def test_the_graphs_edges_against_the_truth_in_units_of_their_stated_uncertainty():
     """A robot's own edges 1 cm long against a stated 2 cm (χ = 0.5/√3), a tie to another robot's
     keyframe 0.5° off against a stated 1° (χ = 0.5/√3 too); a tie to a keyframe gone is not counted."""
