@@ -30,6 +30,7 @@ from map_server.config import FleetConfig
 from map_server.registration import MapIndex, OutsideIndex, Samples
 from map_server.schedule import Around, PlacedKey, global_box
 from map_server.state import RetiredPiece, RobotState
+from shared.geometry import relative
 
 log = logging.getLogger("fleet_slam.fleet")
 
@@ -592,11 +593,18 @@ class Placer:
                 fresh.append((r, a, placed_m, key, young))
                 continue
             r.attempted(placed_m, key, now_s)
-            if a.status == "aligned" and current is not None and policy.moved(r, current, a, self.cfg):
+            revised = a.status == "aligned" and current is not None and policy.moved(r, current, a, self.cfg)
+            if revised:
                 a = policy.confirm(r, a, current, self.cfg, now_s)  # a revision: not before it is confirmed
             else:
                 r.pending, r.pending_count = None, 0
             was_placed = r.alignment.placed
+            if revised and r.pending is None:  # confirmed: the robot moves (say so)
+                d = relative(current.transform, a.transform)
+                log.info(
+                    "%s: placed again at %.1f s, %.2f m and %.1f° from where it was (%s)",
+                    r.robot, now_s, np.hypot(d[0], d[1]), np.degrees(abs(d[2])), a.reason,
+                )  # fmt: skip
             r.alignment = a
             if a.placed and not was_placed:
                 r.mark_placed(now_s - self.fleet.epoch_s)

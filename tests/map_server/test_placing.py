@@ -530,3 +530,41 @@ def test_a_bent_robot_whose_place_waits_on_a_trial_stays_unplaced_and_says_so(mo
         a = f.placer.estimate(f.robots["robot1"], None, None, None, search=True)
         assert "the fleet's graph tries it at each" in a.reason
     assert len(tried) == 1 and a.status == "unaligned" and a.reason.startswith("waiting for a trial: ")
+
+
+def test_a_placed_robot_placed_again_elsewhere_says_so(monkeypatch, caplog):
+    """A revision that moves a placed robot (confirmed: ``confirmations`` attempts in a row) is in
+    the log with how far it moved it, as a first placement is: a robot placed well and moved away
+    later is a wrong merge nothing else would show."""
+    import dataclasses
+    import logging
+
+    f, truth = _fleet_of_two()
+    r = f.robots["robot1"]
+    seg, seq, t = r.map.seg, 1, 1.0
+    while not r.alignment.placed and t < 120.0:  # (the maps mature, then the place is confirmed)
+        seq, t = seq + 1, t + f.cfg.retry_interval_s
+        f.put_map(robot_map_from_segments(seg, "robot1", seq=seq), t)
+        f.fuse(t)
+    assert _at_truth(r.alignment, truth)
+    elsewhere = _moved(r.alignment.transform, 2.0)
+    real = f.placer.estimate
+
+    def revised(robot, *args, **kwargs):
+        a = real(robot, *args, **kwargs)
+        if robot is not r:
+            return a
+        return dataclasses.replace(a, status="aligned", transform=elsewhere, reason="revised: as told")
+
+    monkeypatch.setattr(f.placer, "estimate", revised)
+    with caplog.at_level(logging.INFO, logger="fleet_slam.fleet"):
+        for _ in range(2 * f.cfg.confirmations):
+            seq, t = seq + 1, t + f.cfg.retry_interval_s
+            f.put_map(robot_map_from_segments(seg, "robot1", seq=seq), t)
+            f.fuse(t)
+            if np.allclose(r.alignment.transform, elsewhere):
+                break
+    assert np.allclose(r.alignment.transform, elsewhere)
+    said = [m for m in caplog.messages if "placed again" in m]
+    assert len(said) == 1 and said[0].startswith("robot1: placed again at ")
+    assert "2.00 m and 0.0° from where it was (revised: as told)" in said[0]
