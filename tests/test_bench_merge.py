@@ -212,3 +212,16 @@ def test_a_final_error_decomposed_into_what_the_ties_and_the_own_edges_leave():
     # as it is, both: the tie's 5 cm along the robots' way, the turn's 2 cm across it
     assert out["as_is"][0] == pytest.approx(np.hypot(out["true_ties"][0], out["true_own"][0]), rel=0.02)
     assert out["as_is"][1] == pytest.approx(np.degrees(0.01), rel=0.02)
+
+
+def test_a_fused_map_against_the_true_walls():
+    """Two true walls; a map of one of them 3 cm off along its whole length and of the other 20 cm
+    off over a quarter of it: the distance every 0.1 m, over the map's length."""
+    walls = np.array([[[0.0, 0.0], [10.0, 0.0]], [[0.0, 5.0], [0.0, 15.0]]])
+    seg = np.array([[[0.0, 0.03], [10.0, 0.03]], [[0.2, 5.0], [0.2, 7.5]]])
+    with bench_script("bench_merge") as module:
+        e = module.wall_error(seg, walls)
+        assert e["wall_median_m"] == pytest.approx(0.03)
+        assert e["wall_p90_m"] == pytest.approx(0.2)
+        assert e["wall_within"] == pytest.approx(100 / 125)
+        assert module.wall_error(np.zeros((0, 2, 2)), walls)["wall_median_m"] is None
