@@ -37,7 +37,10 @@ without processes or network, in simulated time:
 
 - **the fused map against the true walls**: the server's last fused map, in the world by the
   reference's true start, every 0.1 m along it the distance to the nearest true wall (median, 90th
-  percentile, share within 0.05 m): what a user sees of all the errors above at once.
+  percentile, share within 0.05 m): what a user sees of all the errors above at once. And each
+  placed robot's walls so, where the fleet has them against its own map at its true start (what a
+  rigid merge that knew every robot's true transform would show): is the fusion as accurate as
+  one robot?
 
 - **the graph's edges against the truth**: each robot's own edges and the constraints tying it to
   the others, their median error and χ (the error in units of the edge's stated uncertainty) — a
@@ -598,10 +601,17 @@ def run_seed(
         out[n] = row
     from robot_agent.sim import builtin_world
 
+    walls = builtin_world(world).walls
+    for i, n in enumerate(names):  # each robot's walls: its own map at its true start, and where
+        r = fleet.robots.get(n)  # the fleet has them (bent, or placed as a whole)
+        if r is None or r.layer is None or not len(r.layer) or not r.alignment.placed:
+            continue
+        mine = r.bent.seg if r.bent is not None else apply_segments(r.alignment.transform, r.layer.seg)
+        for key, seg in (("own", apply_segments(recs[i].start, r.layer.seg)),
+                         ("fleet", apply_segments(recs[iref].start, mine))):  # fmt: skip
+            out[n] |= {f"{key}_{k}": v for k, v in wall_error(seg, walls).items()}
     fused = np.zeros((0, 2, 2)) if latest is None else apply_segments(recs[iref].start, latest.seg)
-    return dict(world=world, seed=seed, fuse_s=fuse_s, robots=out) | wall_error(
-        fused, builtin_world(world).walls
-    )
+    return dict(world=world, seed=seed, fuse_s=fuse_s, robots=out) | wall_error(fused, walls)
 
 
 def contra_text(r: dict) -> str:
@@ -755,6 +765,18 @@ def main() -> int:
         f"{summary['fleet_ate_mean_m'] or 0:.3f} m in the fleet's graph, "
         f"{summary['own_ate_mean_m'] or 0:.3f} m in the robots' own maps"
     )
+    own = [r for res in results for r in res["robots"].values() if "own_wall_within" in r]
+    if own:
+        for side in ("own", "fleet"):
+            for key in ("wall_median_m", "wall_p90_m", "wall_within"):
+                summary[f"{side}_{key}_mean"] = float(np.mean([r[f"{side}_{key}"] for r in own]))
+        print(
+            f"each placed robot's walls against the true walls (mean over {len(own)} robots): its own map at "
+            f"its true start median {summary['own_wall_median_m_mean']:.4f} m, 90th percentile "
+            f"{summary['own_wall_p90_m_mean']:.4f} m, {summary['own_wall_within_mean']:.1%} within "
+            f"{ERROR_BOUND_M} m; where the fleet has them {summary['fleet_wall_median_m_mean']:.4f} m, "
+            f"{summary['fleet_wall_p90_m_mean']:.4f} m, {summary['fleet_wall_within_mean']:.1%}"
+        )
     walls = [res for res in results if res.get("wall_median_m") is not None]
     if walls:
         for key in ("wall_median_m", "wall_p90_m", "wall_within"):

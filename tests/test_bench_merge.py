@@ -40,6 +40,12 @@ def test_one_seed_gives_a_row_per_robot(recorded, enabled):
     assert sorted(rows) == ["robot1", "robot2", "robot3"]
     ref = [n for n, r in rows.items() if r["reference"]]
     assert len(ref) == 1 and rows[ref[0]]["error_m"] == pytest.approx(0.0, abs=1e-9)
+    # the reference's walls, alone in the fleet, where its own map at its true start has them; 40 s
+    # of the office mapped within centimetres, and the fused map is the reference's
+    r = rows[ref[0]]
+    assert r["fleet_wall_median_m"] == pytest.approx(r["own_wall_median_m"], abs=1e-12)
+    assert 0.010 < r["own_wall_median_m"] < 0.020 and r["own_wall_within"] > 0.98  # (0.0147, 99.6 %)
+    assert res["wall_median_m"] == pytest.approx(r["own_wall_median_m"], abs=1e-12)  # (it alone placed)
     for r in rows.values():
         if r["reference"]:
             continue
