@@ -184,7 +184,19 @@ class GraphConfig:
     correlation_m: float = 1.0
     floor_sigma_m: float = 0.03  # added to a constraint's fit (the submaps' own errors)
     floor_sigma_rad: float = np.radians(0.5)
-    robust_k: float = 3.0  # Cauchy kernel on constraints (normalized residual units)
+    robust_k: float = 3.0  # Cauchy kernel on constraints (normalized residual units) ...
+    # ... and on those between two robots whose maps agree with themselves (Fleet._consistent): their
+    # ties state sigmas four times their errors (bench_merge: χ 0.27 at the median), so 3 never acted;
+    # 0.5 (about two true sigmas) weighs down the ties biased by walls matched far from the keyframe
+    # they move with. bench_merge, session 50's recordings: final errors over 0.05 m 6 -> 6 of 40 (mean
+    # 0.030 -> 0.028 m, worst 0.079 -> 0.074 m), robots held beyond the wrong-merge bound for a while
+    # 7 -> 2, the fused map within 0.05 m 94.9 -> 95.7 %; recorded with sample_scale 0.7: 10 -> 7 of 40,
+    # 4 -> 0, 92.9 -> 94.4 %. Not for a bent robot's (a real log's piece): its ties must bend it —
+    # 0.5 for every tie (bench_demo --logs ... --splits 3, seeds 10 and 11): Intel 0.024 / 0.026 m and
+    # ACES 0.043 m / 2/3 (its first piece lost to a trial bend) against 0.023 / 0.023 and 0.041 / 0.041
+    # m; for these ties only: Intel 0.024 / 0.023, ACES 0.040 / 0.041, MIT-CSAIL 0.031 / 0.032 m
+    # (0.032 / 0.032 at 3), every piece placed, 0 wrong
+    robust_k_consistent: float = 0.5
     max_chi: float = 5.0  # constraints beyond this after the solve are dropped
     iterations: int = 4  # Gauss-Newton iterations a solve (warm-started from the last one) ...
     # ... stopping once a step moves no pose by more than this (m, rad): a new map moves the

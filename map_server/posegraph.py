@@ -798,8 +798,9 @@ class FleetGraph:
             z.append(compose(p.transform, p.graph.pose[0])[None])
             info.append(np.diag(1.0 / sig**2)[None])
         robust_from = sum(len(v) for v in a)
-        cons = []
+        cons, width = [], []  # (each constraint's kernel width: both robots' maps agree with themselves)
         graphs = {p.robot: p.graph for p in placed}
+        consistent = {p.robot: p.consistent for p in placed}
         for p in placed:
             for c in self.constraints.get(p.robot, {}).values():
                 if c.other not in start:
@@ -811,6 +812,8 @@ class FleetGraph:
                 if bi >= len(p.graph.ids) or p.graph.ids[bi] != c.b_id:
                     continue
                 cons.append((start[c.other] + ai, start[p.robot] + bi, c.z, c.info))
+                both = consistent[p.robot] and consistent[c.other]
+                width.append(cfg.robust_k_consistent if both else cfg.robust_k)
         self.stats["constraints"] = len(cons)
         if cons:
             ca, cb, ci = (
@@ -828,6 +831,7 @@ class FleetGraph:
             z.append(np.array([c[2] for c in cons]))
             info.append(ci)
         a, b = np.concatenate(a).astype(int), np.concatenate(b).astype(int)
+        width = np.array(width, float)
         z, info = np.vstack(z), np.concatenate(info)
         keep = np.ones(len(a), bool)
         x = x0
@@ -835,7 +839,7 @@ class FleetGraph:
         for _round in range(3):
             x = posegraph.optimize(
                 x0, a[keep], b[keep], z[keep], info[keep], iterations=cfg.iterations, tol=cfg.tol,
-                robust_from=int(keep[:robust_from].sum()), robust_k=cfg.robust_k, stop=stop,
+                robust_from=int(keep[:robust_from].sum()), robust_k=width[keep[robust_from:]], stop=stop,
             )  # fmt: skip
             if stop is not None and stop():
                 self.unsolved = True  # (maybe converged: the next solve says so cheaply)

@@ -982,3 +982,26 @@ def test_a_trial_run_after_publishing_in_steps_answers_as_one_run_at_once():
     fleet.try_places()
     # both finished trials answer (an attempt can ask for two: Placer._search, then _rival_trial)
     assert fleet.trial(r, other) is not None and fleet.trial(r, places) == pytest.approx(at_once, rel=0.02)
+
+
+@pytest.mark.parametrize("consistent", [True, False])
+def test_ties_between_maps_that_agree_with_themselves_get_the_narrower_kernel(monkeypatch, consistent):
+    """The robust kernel's width on each constraint between robots: ``robust_k_consistent`` where
+    both robots' maps stand in none of their own free space (their ties state sigmas four times their
+    errors: a narrower kernel weighs down the biased ones), ``robust_k`` where either does not (a
+    bent piece's ties must bend it). The robots' own edges and placements get none."""
+    seen = []
+    solve = posegraph.posegraph.optimize
+
+    def spy(x0, a, b, z, info, **kw):
+        seen.append((kw["robust_from"], np.broadcast_to(kw["robust_k"], (len(a) - kw["robust_from"],))))
+        return solve(x0, a, b, z, info, **kw)
+
+    monkeypatch.setattr(posegraph.posegraph, "optimize", spy)
+    monkeypatch.setattr(Fleet, "_consistent", lambda self, r: consistent)
+    fleet_of(True)
+    robust_from, width = seen[-1]
+    assert robust_from > 0 and len(width) > 0
+    cfg = GraphConfig()
+    assert np.all(width == (cfg.robust_k_consistent if consistent else cfg.robust_k))
+    assert cfg.robust_k_consistent < cfg.robust_k
