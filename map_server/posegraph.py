@@ -59,7 +59,8 @@ with (``shared/messages.py``, RobotMap). The server joins them:
   the graph moved it; and when a robot arrives (placed, or placed again elsewhere), the others'
   keyframes tried near its map are due again: tried before it was there, they met none of its
   walls.
-- **solve**: sparse Gauss-Newton (``shared/posegraph.py``), a Cauchy kernel on the constraints,
+- **solve**: sparse Gauss-Newton (``shared/posegraph.py``), a Cauchy kernel on the constraints
+  (narrower between two maps that agree with themselves: ``robust_k_consistent``),
   warm-started from the last solution; constraints that still disagree (normalized residual
   above ``max_chi``) are dropped and the graph solved again. When a robot leaves (the maps are
   final) the graph forgets its solution and constraints (:meth:`FleetGraph.reset`) and is
