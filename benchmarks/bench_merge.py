@@ -89,7 +89,7 @@ from shared import codec  # noqa: E402
 from shared.config import apply_overrides  # noqa: E402
 from shared.geometry import apply_segments, compose, inverse, relative, transform_points, wrap_angle  # noqa: E402
 from shared.messages import FreeSpace, RobotMap  # noqa: E402
-from shared.metrics import align_se2, ate, poses_at  # noqa: E402
+from shared.metrics import align_se2, ate, nearest_segment, poses_at, sample_segments  # noqa: E402
 
 CACHE_FORMAT = 3  # 2: with the free space; 3: the end of the run (corrected, rebuilt maps)
 
@@ -214,24 +214,13 @@ def wall_error(seg: np.ndarray, walls: np.ndarray, step_m: float = 0.1) -> dict:
     """How far a map's segments ``(N,2,2)`` lie from the true walls ``(W,2,2)`` (both in the world
     frame): every ``step_m`` along them, the distance to the nearest wall; its median, 90th
     percentile and the share within 0.05 m (the transform bound), over the map's length."""
-    from shared.geometry import segment_lengths
-
     if not len(seg):
         return dict(wall_median_m=None, wall_p90_m=None, wall_within=None)
-    n = np.maximum(1, np.ceil(segment_lengths(seg) / step_m)).astype(int)
-    row = np.repeat(np.arange(len(seg)), n)
-    t = ((np.arange(len(row)) - (np.cumsum(n) - n)[row]) + 0.5) / n[row]
-    pts = seg[row, 0] + t[:, None] * (seg[row, 1] - seg[row, 0])  # (S,2) the samples' midpoints
-    a, d = walls[:, 0], walls[:, 1] - walls[:, 0]
-    best = np.full(len(pts), np.inf)
-    for lo in range(0, len(pts), 4096):  # (samples × walls, in blocks)
-        q = pts[lo : lo + 4096, None, :]
-        u = np.clip(((q - a) * d).sum(-1) / np.maximum((d * d).sum(-1), 1e-12), 0.0, 1.0)
-        best[lo : lo + 4096] = np.hypot(*(q - (a + u[..., None] * d)).transpose(2, 0, 1)).min(axis=1)
+    dist, _ = nearest_segment(sample_segments(seg, step_m)[0], walls)
     return dict(
-        wall_median_m=float(np.median(best)),
-        wall_p90_m=float(np.percentile(best, 90)),
-        wall_within=float(np.mean(best <= ERROR_BOUND_M)),
+        wall_median_m=float(np.median(dist)),
+        wall_p90_m=float(np.percentile(dist, 90)),
+        wall_within=float(np.mean(dist <= ERROR_BOUND_M)),
     )
 
 
@@ -377,12 +366,15 @@ def held_text(row: dict) -> str:
     return f" held {m:.2f} m / {deg:.1f}° off at {t:g} s"
 
 
+def _bounds_off(m: float, deg: float) -> float:
+    """How far a place is off, in units of the wrong-merge bound (over 1: a wrong merge)."""
+    return max(m / WRONG_MERGE_M, deg / WRONG_MERGE_DEG)
+
+
 def _held_wrong(row: dict, times: float) -> bool:
     """Whether the robot's worst place while placed (bench row) was ``times`` the wrong-merge
     bound off (or more)."""
-    return "worst_held_m" in row and (
-        row["worst_held_m"] >= times * WRONG_MERGE_M or row["worst_held_deg"] >= times * WRONG_MERGE_DEG
-    )
+    return "worst_held_m" in row and _bounds_off(row["worst_held_m"], row["worst_held_deg"]) >= times
 
 
 def _worst_held(held: list[tuple], truth_of: Callable[[str], np.ndarray]) -> tuple | None:
@@ -390,23 +382,17 @@ def _worst_held(held: list[tuple], truth_of: Callable[[str], np.ndarray]) -> tup
     the reference then, its placement, its map frame where the graph put its first keyframe or
     None)``; ``truth_of(reference)`` its true map frame in that reference's. ``(m, deg, time)`` of
     the place farthest off in units of the wrong-merge bound, None if never placed."""
-    worst = None
-    for t, reference, placement, bent in held:
-        truth = truth_of(reference)
-        for frame in (placement, bent):
-            if frame is None:
-                continue
-            e = (*_error(frame, truth), t)
-            if worst is None or max(e[0] / WRONG_MERGE_M, e[1] / WRONG_MERGE_DEG) > max(
-                worst[0] / WRONG_MERGE_M, worst[1] / WRONG_MERGE_DEG
-            ):
-                worst = e
-    return worst
+    places = [
+        (*_error(frame, truth_of(reference)), t)
+        for t, reference, placement, bent in held
+        for frame in (placement, bent)
+        if frame is not None
+    ]
+    return max(places, key=lambda e: _bounds_off(e[0], e[1]), default=None)
 
 
 def _wrong(t: np.ndarray, truth: np.ndarray) -> bool:
-    m, deg = _error(t, truth)
-    return m > WRONG_MERGE_M or deg > WRONG_MERGE_DEG
+    return _bounds_off(*_error(t, truth)) > 1.0
 
 
 def run_seed(
@@ -440,6 +426,10 @@ def run_seed(
     # placement, its map frame where the graph puts its first keyframe or None) — a robot placed
     # well and later moved elsewhere (placed again, or bent there) is a wrong merge as well
     held: dict[str, list[tuple]] = {}
+
+    def _truth(reference: str, n: str) -> np.ndarray:  # robot n's map frame in the reference's
+        return compose(inverse(recs[names.index(reference)].start), recs[names.index(n)].start)
+
     t0 = time.perf_counter()
 
     def fuse(t: float) -> None:
@@ -470,11 +460,7 @@ def run_seed(
     fuse_s = time.perf_counter() - t0
     ref = fleet.reference or names[0]
     iref = names.index(ref)
-    truth = {n: compose(inverse(recs[iref].start), recs[i].start) for i, n in enumerate(names)}
-
-    def _truth(reference: str, n: str) -> np.ndarray:  # robot n's map frame in the reference's
-        return compose(inverse(recs[names.index(reference)].start), recs[names.index(n)].start)
-
+    truth = {n: _truth(ref, n) for n in names}
     latest = fleet.latest()
     paths_now = {p.robot: p for p in fleet.paths(latest.version if latest is not None else 0)}
 

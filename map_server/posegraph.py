@@ -800,20 +800,19 @@ class FleetGraph:
             info.append(np.diag(1.0 / sig**2)[None])
         robust_from = sum(len(v) for v in a)
         cons, width = [], []  # (each constraint's kernel width: both robots' maps agree with themselves)
-        graphs = {p.robot: p.graph for p in placed}
-        consistent = {p.robot: p.consistent for p in placed}
+        by_robot = {p.robot: p for p in placed}
         for p in placed:
             for c in self.constraints.get(p.robot, {}).values():
                 if c.other not in start:
                     continue
-                og = graphs[c.other]
+                og = by_robot[c.other].graph
                 ai, bi = int(np.searchsorted(og.ids, c.a_id)), int(np.searchsorted(p.graph.ids, c.b_id))
                 if ai >= len(og.ids) or og.ids[ai] != c.a_id:
                     continue  # (that keyframe left the other robot's graph)
                 if bi >= len(p.graph.ids) or p.graph.ids[bi] != c.b_id:
                     continue
                 cons.append((start[c.other] + ai, start[p.robot] + bi, c.z, c.info))
-                both = consistent[p.robot] and consistent[c.other]
+                both = p.consistent and by_robot[c.other].consistent
                 width.append(cfg.robust_k_consistent if both else cfg.robust_k)
         self.stats["constraints"] = len(cons)
         if cons:
