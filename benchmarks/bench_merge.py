@@ -45,8 +45,11 @@ without processes or network, in simulated time:
 - **the graph's edges against the truth**: each robot's own edges and the constraints tying it to
   the others, their median error and χ (the error in units of the edge's stated uncertainty) — a
   robot's final error is what these leave along the edges between its first keyframe and the
-  reference's. With ``--decompose`` the final graph is solved again with every tie at the truth
-  and with every robot's own edges at the truth: which of the two leaves the error.
+  reference's. Ties held as walls (``graph.line_ties``, the default) are solved as their walls,
+  not as the fit's relative pose: each wall's point against its line where the truth puts their
+  keyframes is printed too. With ``--decompose`` the final graph is solved again with every tie
+  at the truth (held as walls: each line through its point at the truth) and with every robot's
+  own edges at the truth: which of the two leaves the error.
 
 Prints one row per robot (evidence, false verdicts, placed, delay, final error, floor, its own map
 frame against its true start, ATE fleet / own, χ of its own edges / of its ties) and a summary:
@@ -295,7 +298,7 @@ def _edges_against_truth(graphs: dict, constraints: dict, true_kf: dict) -> dict
             row["own_edge_m"], row["own_edge_deg"], row["own_edge_chi"] = stats(
                 g.z, g.info, relative(tk[g.a], tk[g.b])
             )
-        z, info, tz = [], [], []
+        z, info, tz, off, off_chi = [], [], [], [], []
         for c in constraints.get(n, {}).values():
             at = _tie_at(c, n, graphs) if c.other in true_kf else None
             if at is None:
@@ -304,11 +307,24 @@ def _edges_against_truth(graphs: dict, constraints: dict, true_kf: dict) -> dict
             z.append(c.z)
             info.append(c.info)
             tz.append(relative(true_kf[c.other][ai], tk[bi]))
+            if c.lines is not None:  # (held as walls: each point's distance from its line at the truth)
+                mine, theirs, p, normal, d, w, *_ = c.lines
+                og = graphs[c.other]
+                ib = np.minimum(np.searchsorted(g.ids, mine), len(g.ids) - 1)
+                ia = np.minimum(np.searchsorted(og.ids, theirs), len(og.ids) - 1)
+                ok = (g.ids[ib] == mine) & (og.ids[ia] == theirs)
+                q = transform_points(relative(true_kf[c.other][ia[ok]], tk[ib[ok]]), p[ok])
+                r = np.abs(np.sum(normal[ok] * q, axis=1) - d[ok])
+                off.append(r)
+                off_chi.append(r * np.sqrt(w[ok]))
         row["constraints"] = len(z)
         if z:
             row["constraint_m"], row["constraint_deg"], row["constraint_chi"] = stats(
                 np.array(z, float), np.array(info), np.array(tz)
             )
+        if off:
+            row["wall_tie_m"] = float(np.median(np.concatenate(off)))
+            row["wall_tie_chi"] = float(np.median(np.concatenate(off_chi)))
     return out
 
 
@@ -326,7 +342,18 @@ def decompose(graph, items: list, true_kf: dict, ref: str) -> dict:
 
     def true_tie(c, n):
         at = _tie_at(c, n, graphs)
-        return c if at is None else replace(c, z=relative(true_kf[c.other][at[0]], true_kf[n][at[1]]))
+        if at is None:
+            return c
+        c = replace(c, z=relative(true_kf[c.other][at[0]], true_kf[n][at[1]]))
+        if c.lines is None:
+            return c
+        # ties held as walls (GraphConfig.line_ties): each line's offset where the truth puts its point
+        mine, theirs, p, normal, _, *rest = c.lines
+        gb, ga = graphs[n], graphs[c.other]
+        ib = np.minimum(np.searchsorted(gb.ids, mine), len(gb.ids) - 1)
+        ia = np.minimum(np.searchsorted(ga.ids, theirs), len(ga.ids) - 1)
+        q = transform_points(relative(true_kf[c.other][ia], true_kf[n][ib]), p)
+        return replace(c, lines=(mine, theirs, p, normal, np.sum(normal * q, axis=1), *rest))
 
     own = []
     for it in items:
@@ -685,7 +712,7 @@ def main() -> int:
             err, flo, fr = (_m_deg(r, key) for key in ("error", "floor", "frame"))
             at = "-" if "own_ate_m" not in r else f"{r['fleet_ate_m']:.3f}/{r['own_ate_m']:.3f}"
             chi = f"{f(r.get('own_edge_chi'), '{:.2f}')}/{f(r.get('constraint_chi'), '{:.2f}')}"
-            for key in ("own_edge", "constraint"):
+            for key in ("own_edge", "constraint", "wall_tie"):
                 for unit in ("m", "deg", "chi"):
                     if f"{key}_{unit}" in r:
                         edges.setdefault(f"{key}_{unit}", []).append(r[f"{key}_{unit}"])
@@ -795,6 +822,12 @@ def main() -> int:
             f"{summary['constraint_m_median']:.4f} m / "
             f"{summary['constraint_deg_median']:.3f}°, χ {summary['constraint_chi_median']:.2f} "
             "(χ: the error in units of the edge's stated uncertainty)"
+            + (
+                f"; held as walls (graph.line_ties), each wall's point from its line at the truth "
+                f"{summary['wall_tie_m_median']:.4f} m, χ {summary['wall_tie_chi_median']:.2f}"
+                if "wall_tie_m_median" in summary
+                else ""
+            )
         )
     args_out = vars(args) | {
         "cache": str(args.cache),

@@ -2,12 +2,15 @@
 back ends (robot_agent/slam/backend.py) and the server's fleet graph (map_server/posegraph.py)
 share.
 
-Residual of an edge ``(a, b, z)``: ``r = [Rₐᵀ(t_b − t_a) − z_xy, θ_b − θ_a − z_θ]``.
+Residual of an edge ``(a, b, z)``: ``r = [Rₐᵀ(t_b − t_a) − z_xy, θ_b − θ_a − z_θ]``; of a line
+tie ``(a, b, p, n, d)`` (a point ``p`` in node b's frame on the line ``n·q = d`` in node a's frame):
+``r = n·Rₐᵀ(R_b p + t_b − t_a) − d``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -34,6 +37,43 @@ def _residuals_and_jacobians(x: np.ndarray, a: np.ndarray, b: np.ndarray, z: np.
     return r, ja, jb
 
 
+class LineTies(NamedTuple):
+    """Points on lines between nodes: point ``p (L,2)`` in node ``b``'s frame lies on the line
+    ``n·q = d`` (``n (L,2)`` unit, ``d (L,)``) in node ``a``'s frame, with information ``w (L,)``
+    (1 / variance of the point's distance to the line) and a Cauchy kernel of width ``k (L,)``
+    (normalized units; 0: none)."""
+
+    a: np.ndarray
+    b: np.ndarray
+    p: np.ndarray
+    n: np.ndarray
+    d: np.ndarray
+    w: np.ndarray
+    k: np.ndarray
+
+
+def line_residuals(x: np.ndarray, t: LineTies) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each line tie's signed distance ``r (L,)`` at poses ``x``, and its Jacobians with respect to
+    node a's and node b's poses ``(L,3)``."""
+    xa, xb = x[t.a], x[t.b]
+    ca, sa = np.cos(xa[:, 2]), np.sin(xa[:, 2])
+    cb, sb = np.cos(xb[:, 2]), np.sin(xb[:, 2])
+    rp = np.column_stack([cb * t.p[:, 0] - sb * t.p[:, 1], sb * t.p[:, 0] + cb * t.p[:, 1]])  # R_b p
+    u = rp + xb[:, :2] - xa[:, :2]
+    q = np.column_stack([ca * u[:, 0] + sa * u[:, 1], -sa * u[:, 0] + ca * u[:, 1]])  # Rₐᵀ u
+    m = np.column_stack([ca * t.n[:, 0] - sa * t.n[:, 1], sa * t.n[:, 0] + ca * t.n[:, 1]])  # Rₐ n
+    r = np.sum(t.n * q, axis=1) - t.d
+    jb = np.column_stack([m[:, 0], m[:, 1], -m[:, 0] * rp[:, 1] + m[:, 1] * rp[:, 0]])
+    ja = np.column_stack([-m[:, 0], -m[:, 1], t.n[:, 0] * q[:, 1] - t.n[:, 1] * q[:, 0]])
+    return r, ja, jb
+
+
+def line_weights(r: np.ndarray, t: LineTies) -> np.ndarray:
+    """Each line tie's information after its Cauchy kernel at residuals ``r``."""
+    k = np.where(t.k > 0, t.k, np.inf)
+    return t.w / (1.0 + t.w * r**2 / k**2)
+
+
 def optimize(
     x0: np.ndarray,
     a: np.ndarray,
@@ -45,16 +85,20 @@ def optimize(
     robust_from: int | None = None,
     robust_k: float | np.ndarray = 3.0,
     stop: Callable[[], bool] | None = None,
+    lines: LineTies | None = None,
 ) -> np.ndarray:
     """Poses ``(N,3)`` minimizing ``Σ rᵀ Ω r`` over edges ``a, b (E,)`` with measured motions
     ``z (E,3)`` and information ``Ω``: ``info (E,3,3)``, or ``(E,3)`` for a diagonal one, from
     ``x0 (N,3)``; node 0 is held fixed (the map frame). Edges from index ``robust_from`` on get a
     Cauchy kernel of width ``robust_k`` (in normalized residual units; or one per such edge), by iteratively
-    reweighting. No iteration starts once ``stop()`` says so (the caller's clock: the core keeps
-    none; the first iteration always runs)."""
+    reweighting. ``lines``: point-on-line ties between nodes besides (:class:`LineTies`). No
+    iteration starts once ``stop()`` says so (the caller's clock: the core keeps none; the first
+    iteration always runs)."""
     x = np.array(x0, dtype=float, copy=True)
     n = len(x)
-    if n < 2 or len(a) == 0:
+    if lines is not None and not len(lines.a):
+        lines = None
+    if n < 2 or (len(a) == 0 and lines is None):
         return x
     a, b = np.asarray(a, int), np.asarray(b, int)
     omega = full_information(info)
@@ -70,10 +114,19 @@ def optimize(
         wa, wb = w @ ja, w @ jb
         ja_t, jb_t = np.swapaxes(ja, 1, 2), np.swapaxes(jb, 1, 2)
         wr = (w @ r[..., None])[..., 0]
-        h, g = _normal_equations(
-            n - 1, a - 1, b - 1, (ja_t @ wa, ja_t @ wb, jb_t @ wa, jb_t @ wb),
-            (ja_t @ wr[..., None])[..., 0], (jb_t @ wr[..., None])[..., 0],
-        )  # fmt: skip
+        blocks = [ja_t @ wa, ja_t @ wb, jb_t @ wa, jb_t @ wb]
+        ga, gb = (ja_t @ wr[..., None])[..., 0], (jb_t @ wr[..., None])[..., 0]
+        na, nb = a, b
+        if lines is not None:
+            lr, lja, ljb = line_residuals(x, lines)
+            lw = line_weights(lr, lines)
+            wja, wjb = lw[:, None] * lja, lw[:, None] * ljb
+            for i, (p, q) in enumerate(((lja, wja), (lja, wjb), (ljb, wja), (ljb, wjb))):
+                blocks[i] = np.concatenate([blocks[i], p[:, :, None] * q[:, None, :]])
+            ga = np.concatenate([ga, wja * lr[:, None]])
+            gb = np.concatenate([gb, wjb * lr[:, None]])
+            na, nb = np.concatenate([a, lines.a]), np.concatenate([b, lines.b])
+        h, g = _normal_equations(n - 1, na - 1, nb - 1, tuple(blocks), ga, gb)
         # H is symmetric: ordered by minimum degree on its own pattern (H + Hᵀ = 2H), the sparse LU
         # of a pose graph's H is ~5x faster than with the default COLAMD ordering (3,000 keyframes:
         # 57 against 307 ms), the same solution to 1e-11

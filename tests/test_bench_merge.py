@@ -134,10 +134,12 @@ def test_a_robot_placed_well_first_and_elsewhere_later_is_found_at_its_worst_pla
 
 def test_the_graphs_edges_against_the_truth_in_units_of_their_stated_uncertainty():
     """A robot's own edges 1 cm long against a stated 2 cm (χ = 0.5/√3), a tie to another robot's
-    keyframe 0.5° off against a stated 1° (χ = 0.5/√3 too); a tie to a keyframe gone is not counted."""
+    keyframe 0.5° off against a stated 1° (χ = 0.5/√3 too), held as walls two points 1 cm from
+    their line at the truth against a stated 2 cm (χ = 0.5); a tie to a keyframe gone is not
+    counted."""
     from types import SimpleNamespace
 
-    from shared.geometry import relative
+    from shared.geometry import relative, transform_points
 
     true_a = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
     true_b = np.array([[2.0, 1.0, np.pi / 2], [2.0, 2.0, np.pi / 2]])
@@ -158,10 +160,14 @@ def test_the_graphs_edges_against_the_truth_in_units_of_their_stated_uncertainty
         info=np.zeros((0, 3, 3)),
     )
     tie_info = np.diag([1e4, 1e4, 1 / np.radians(1.0) ** 2])
-    tie = SimpleNamespace(
-        b_id=6, other="a", a_id=12, z=relative(true_a[2], true_b[1]) + off_half_deg, info=tie_info
-    )
-    gone = SimpleNamespace(b_id=5, other="a", a_id=99, z=np.zeros(3), info=tie_info)
+    # the walls: robot b's keyframe 6 holds two points 1 cm beyond the line x = 1 of a's keyframe 12
+    on_a12 = np.array([[1.01, 0.3], [1.01, -0.5]])
+    points = transform_points(relative(true_b[1], true_a[2]), on_a12)  # (in keyframe 6's frame)
+    walls = (np.array([6, 6]), np.array([12, 12]), points, np.array([[1.0, 0.0]] * 2), np.ones(2),
+             np.full(2, 1 / 0.02**2), np.zeros(2), np.zeros(2))  # fmt: skip
+    tie_z = relative(true_a[2], true_b[1]) + off_half_deg
+    tie = SimpleNamespace(b_id=6, other="a", a_id=12, z=tie_z, info=tie_info, lines=walls)
+    gone = SimpleNamespace(b_id=5, other="a", a_id=99, z=np.zeros(3), info=tie_info, lines=None)
     with bench_script("bench_merge") as module:
         rows = module._edges_against_truth(
             {"a": a, "b": b}, {"b": {0: tie, 1: gone}}, {"a": true_a, "b": true_b}
@@ -174,15 +180,15 @@ def test_the_graphs_edges_against_the_truth_in_units_of_their_stated_uncertainty
     assert rows["b"]["constraint_m"] == pytest.approx(0.0, abs=1e-9)
     assert rows["b"]["constraint_deg"] == pytest.approx(0.5)
     assert rows["b"]["constraint_chi"] == pytest.approx(0.5 / np.sqrt(3.0))
+    assert rows["b"]["wall_tie_m"] == pytest.approx(0.01) and rows["b"]["wall_tie_chi"] == pytest.approx(0.5)
+    assert "wall_tie_m" not in rows["a"]
 
 
-def test_a_final_error_decomposed_into_what_the_ties_and_the_own_edges_leave():
-    """Two robots side by side, tied once at their last keyframes: the tie 5 cm off and one of the
-    second robot's own edges turned 0.01 rad. Solved again with the tie at the truth only the turn is
-    left (at its first keyframe, 1 m from the turn), with its own edges at the truth only the tie's
-    5 cm, with both nothing; the graph given is left as it was."""
-    from map_server.posegraph import Constraint, FleetGraph, Placed, RobotGraph
-    from shared.geometry import compose, inverse, relative
+def _side_by_side():
+    """Two robots' graphs 2 m apart along x, four keyframes each; the second's own edge 1 -> 2
+    turned 0.01 rad: their truths, graphs and placements (posegraph.Placed)."""
+    from map_server.posegraph import Placed, RobotGraph
+    from shared.geometry import compose, relative
 
     t = np.arange(4.0)
     true_r = np.column_stack([t, np.zeros(4), np.zeros(4)])
@@ -202,6 +208,18 @@ def test_a_final_error_decomposed_into_what_the_ties_and_the_own_edges_leave():
     gr, gs = graph(true_r, 0.0), graph(true_s, 0.01)
     ref = Placed("r", gr, None, np.zeros(3), "reference")
     other = Placed("s", gs, None, relative(true_r[0], true_s[0]), "aligned")
+    return true_r, true_s, gs, ref, other
+
+
+def test_a_final_error_decomposed_into_what_the_ties_and_the_own_edges_leave():
+    """Two robots side by side, tied once at their last keyframes: the tie 5 cm off and one of the
+    second robot's own edges turned 0.01 rad. Solved again with the tie at the truth only the turn is
+    left (at its first keyframe, 1 m from the turn), with its own edges at the truth only the tie's
+    5 cm, with both nothing; the graph given is left as it was."""
+    from map_server.posegraph import Constraint, FleetGraph
+    from shared.geometry import compose, inverse, relative
+
+    true_r, true_s, gs, ref, other = _side_by_side()
     tie_z = relative(true_r[3], true_s[3]) + np.array([0.05, 0.0, 0.0])
     fg = FleetGraph()
     fg.constraints = {"s": {(3, "r"): Constraint(3, "r", 3, tie_z, np.diag([1e4, 1e4, 1e6]))}}
@@ -218,6 +236,30 @@ def test_a_final_error_decomposed_into_what_the_ties_and_the_own_edges_leave():
     # as it is, both: the tie's 5 cm along the robots' way, the turn's 2 cm across it
     assert out["as_is"][0] == pytest.approx(np.hypot(out["true_ties"][0], out["true_own"][0]), rel=0.02)
     assert out["as_is"][1] == pytest.approx(np.degrees(0.01), rel=0.02)
+
+
+def test_a_final_error_decomposed_with_the_ties_held_as_walls():
+    """As above, the tie held as walls (graph.line_ties): three walls of robot r's last keyframe met
+    by points of robot s's, the two facing x 5 cm off at the truth. With every robot's own edges at
+    the truth the 5 cm are left; with the ties at the truth too (each line through its point),
+    nothing."""
+    from map_server.posegraph import Constraint, FleetGraph
+    from shared.geometry import relative, transform_points
+
+    true_r, true_s, _, ref, other = _side_by_side()
+    normal = np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]] * 2)
+    on_r3 = np.array([[1.0, 0.5], [-2.0, 1.5], [0.5, 3.0], [1.0, 2.5], [-2.0, 2.0], [0.0, 3.0]])  # (r3 frame)
+    d = np.sum(normal * on_r3, axis=1) + np.where(normal[:, 0] == 1.0, 0.05, 0.0)  # (x walls 5 cm off)
+    points = transform_points(relative(true_s[3], true_r[3]), on_r3)  # (in s3's frame)
+    walls = (np.full(6, 3), np.full(6, 3), points, normal, d, np.full(6, 1e6), np.zeros(6), np.zeros(6))
+    tie = Constraint(3, "r", 3, relative(true_r[3], true_s[3]), np.diag([1e4, 1e4, 1e6]), lines=walls)
+    fg = FleetGraph()
+    fg.constraints = {"s": {(3, "r"): tie}}
+    with bench_script("bench_merge") as module:
+        out = module.decompose(fg, [ref, other], {"r": true_r, "s": true_s}, "r")["s"]
+    assert fg.constraints["s"][(3, "r")].lines[4] is d  # (solved on copies)
+    assert out["both"][0] == pytest.approx(0.0, abs=1e-4) and out["both"][1] == pytest.approx(0.0, abs=1e-3)
+    assert out["true_own"][0] == pytest.approx(0.05, abs=2e-3)
 
 
 def test_a_fused_map_against_the_true_walls():
