@@ -822,7 +822,7 @@ class FleetGraph:
         tie holds only the walls' shapes, and the solve weighs them where the keyframes are then.
         The two points (the matched samples' mean ± their spread along the row) sum the samples'
         squared distances exactly for any rigid motion; their information is the samples'
-        (``point_sigma_m``, a sample counting ``step / correlation_m``) floored by
+        (``line_sigma_m``, a sample counting ``step / correlation_m``) floored by
         ``line_floor_m`` (a wall's own error, the same for all its samples)."""
         cfg, g = self.cfg, p.graph
         if ok.sum() < 2:
