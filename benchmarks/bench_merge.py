@@ -93,6 +93,7 @@ from shared.config import apply_overrides  # noqa: E402
 from shared.geometry import apply_segments, compose, inverse, relative, transform_points, wrap_angle  # noqa: E402
 from shared.messages import FreeSpace, RobotMap  # noqa: E402
 from shared.metrics import align_se2, ate, nearest_segment, poses_at, sample_segments  # noqa: E402
+from shared.posegraph import LineTies, line_residuals  # noqa: E402
 
 CACHE_FORMAT = 3  # 2: with the free space; 3: the end of the run (corrected, rebuilt maps)
 
@@ -273,6 +274,20 @@ def _tie_at(c, n: str, graphs: dict) -> tuple[int, int] | None:
     return ai, bi
 
 
+def _walls_at_truth(c, n: str, graphs: dict, true_kf: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Constraint ``c`` on robot ``n`` held as walls (``c.lines``, map_server.posegraph.Walls):
+    which of its points have both keyframes in their robots' graphs, and each point's signed
+    distance from its line where the truth puts those keyframes (``shared.posegraph``'s residual)."""
+    t, g, og = c.lines, graphs[n], graphs[c.other]
+    ib = np.minimum(np.searchsorted(g.ids, t.mine), len(g.ids) - 1)
+    ia = np.minimum(np.searchsorted(og.ids, t.theirs), len(og.ids) - 1)
+    ok = (g.ids[ib] == t.mine) & (og.ids[ia] == t.theirs)
+    at = np.arange(len(ok))
+    x = np.concatenate([true_kf[c.other][ia], true_kf[n][ib]])
+    r = line_residuals(x, LineTies(at, len(ok) + at, t.p, t.n, t.d, t.w, np.zeros(len(ok))))[0]
+    return ok, r
+
+
 def _edges_against_truth(graphs: dict, constraints: dict, true_kf: dict) -> dict:
     """The fleet graph's edges against the truth, per robot (``true_kf``: robot -> its true poses
     at its keyframes): its own edges (the relative poses its own solution gives) and the constraints
@@ -308,15 +323,9 @@ def _edges_against_truth(graphs: dict, constraints: dict, true_kf: dict) -> dict
             info.append(c.info)
             tz.append(relative(true_kf[c.other][ai], tk[bi]))
             if c.lines is not None:  # (held as walls: each point's distance from its line at the truth)
-                mine, theirs, p, normal, d, w, *_ = c.lines
-                og = graphs[c.other]
-                ib = np.minimum(np.searchsorted(g.ids, mine), len(g.ids) - 1)
-                ia = np.minimum(np.searchsorted(og.ids, theirs), len(og.ids) - 1)
-                ok = (g.ids[ib] == mine) & (og.ids[ia] == theirs)
-                q = transform_points(relative(true_kf[c.other][ia[ok]], tk[ib[ok]]), p[ok])
-                r = np.abs(np.sum(normal[ok] * q, axis=1) - d[ok])
-                off.append(r)
-                off_chi.append(r * np.sqrt(w[ok]))
+                ok, r = _walls_at_truth(c, n, graphs, true_kf)
+                off.append(np.abs(r[ok]))
+                off_chi.append(np.abs(r[ok]) * np.sqrt(c.lines.w[ok]))
         row["constraints"] = len(z)
         if z:
             row["constraint_m"], row["constraint_deg"], row["constraint_chi"] = stats(
@@ -347,13 +356,9 @@ def decompose(graph, items: list, true_kf: dict, ref: str) -> dict:
         c = replace(c, z=relative(true_kf[c.other][at[0]], true_kf[n][at[1]]))
         if c.lines is None:
             return c
-        # ties held as walls (GraphConfig.line_ties): each line's offset where the truth puts its point
-        mine, theirs, p, normal, _, *rest = c.lines
-        gb, ga = graphs[n], graphs[c.other]
-        ib = np.minimum(np.searchsorted(gb.ids, mine), len(gb.ids) - 1)
-        ia = np.minimum(np.searchsorted(ga.ids, theirs), len(ga.ids) - 1)
-        q = transform_points(relative(true_kf[c.other][ia], true_kf[n][ib]), p)
-        return replace(c, lines=(mine, theirs, p, normal, np.sum(normal * q, axis=1), *rest))
+        # ties held as walls (GraphConfig.line_ties): each line through its point at the truth
+        ok, r = _walls_at_truth(c, n, graphs, true_kf)
+        return replace(c, lines=c.lines._replace(d=np.where(ok, c.lines.d + r, c.lines.d)))
 
     own = []
     for it in items:

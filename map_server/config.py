@@ -195,7 +195,6 @@ class GraphConfig:
     line_ties: bool = True
     line_floor_m: float = 0.01  # a matched wall's own error (each pair of walls met)
     line_sigma_m: float = 0.05  # a matched sample's distance sigma in them (as point_sigma_m)
-    line_share: bool = False  # a pair of walls met by several submaps shares one pair's information
     robust_k: float = 3.0  # Cauchy kernel on constraints (normalized residual units) ...
     # ... and on those between two robots whose maps agree with themselves (Fleet._consistent): their
     # ties state sigmas four times their errors (bench_merge: χ 0.27 at the median), so 3 never acted;

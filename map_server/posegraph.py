@@ -90,6 +90,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -165,10 +166,20 @@ class Constraint:
     z: np.ndarray
     info: np.ndarray
     by_scans: bool = False  # from matching keyframe scans (else a submap's fit)
-    # the fit's matched walls as point-on-line ties (GraphConfig.line_ties): this robot's keyframe
-    # ids (L,), the other's (L,), points (L,2) in the first's frame on lines n (L,2), d (L,) in the
-    # second's, with information w (L,) — what the solve holds instead of ``z`` when given
-    lines: tuple | None = None
+    lines: Walls | None = None  # the fit's matched walls (GraphConfig.line_ties): held instead of z
+
+
+class Walls(NamedTuple):
+    """A fit's matched walls as point-on-line ties: points ``p (L,2)``, each in the frame of this
+    robot's keyframe ``mine (L,)`` (ids), on the line ``n·q = d`` (``n (L,2)``, ``d (L,)``) in
+    the frame of the other robot's keyframe ``theirs (L,)``, with information ``w (L,)``."""
+
+    mine: np.ndarray
+    theirs: np.ndarray
+    p: np.ndarray
+    n: np.ndarray
+    d: np.ndarray
+    w: np.ndarray
 
 
 @dataclass
@@ -212,23 +223,20 @@ def _among(keys: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _wall_ties(
     c: Constraint, g: RobotGraph, og: RobotGraph, start: int, other_start: int, width: float
-) -> tuple[posegraph.LineTies, np.ndarray] | None:
+) -> posegraph.LineTies | None:
     """Constraint ``c``'s walls (``Constraint.lines``) as the solve's line ties, its robot's
     keyframes (graph ``g``) numbered from ``start``, the other's (``og``) from ``other_start``,
-    each with the Cauchy kernel ``width``; and each tie's walls' identities (this robot's element,
-    the other's, the point: 0 or 1). None when none of its keyframes is left in both graphs."""
-    mine_ids, their_ids, pts, normal, d, w, mine_el, their_el = c.lines
-    found_b, at_b = _among(g.ids, mine_ids)
-    found_a, at_a = _among(og.ids, their_ids)
+    each with the Cauchy kernel ``width``. None when none of its keyframes is left in both graphs."""
+    t = c.lines
+    found_b, at_b = _among(g.ids, t.mine)
+    found_a, at_a = _among(og.ids, t.theirs)
     use = found_a & found_b
     if not use.any():
         return None
-    n = int(use.sum())
-    side = np.arange(len(use))[use] * 2 // len(use)  # (the two points of a pair: first half, second)
-    ties = posegraph.LineTies(
-        other_start + at_a[use], start + at_b[use], pts[use], normal[use], d[use], w[use], np.full(n, width)
-    )
-    return ties, np.column_stack([mine_el[use], their_el[use], side])
+    return posegraph.LineTies(
+        other_start + at_a[use], start + at_b[use], t.p[use], t.n[use], t.d[use], t.w[use],
+        np.full(int(use.sum()), width),
+    )  # fmt: skip
 
 
 @dataclass
@@ -693,7 +701,7 @@ class FleetGraph:
             return []
         # the others' rows where the graph puts them, near this robot's
         lo, hi = mine.reshape(-1, 2).min(axis=0) - 2.0, mine.reshape(-1, 2).max(axis=0) + 2.0
-        segs, owner_robot, owner_kf, owner_el = [], [], [], []
+        segs, owner_robot, owner_kf = [], [], []
         for j, o in enumerate(others):
             if not len(o.layer):
                 continue
@@ -702,11 +710,10 @@ class FleetGraph:
             segs.append(rows[near])
             owner_robot.append(np.full(int(near.sum()), j))
             owner_kf.append(o.graph.row_kf[near])
-            owner_el.append(np.asarray(o.layer.element)[near])
         if not segs or not sum(len(s) for s in segs):
             return []
         seg = np.concatenate(segs)
-        own_r, own_k, own_el = np.concatenate(owner_robot), np.concatenate(owner_kf), np.concatenate(owner_el)
+        own_r, own_k = np.concatenate(owner_robot), np.concatenate(owner_kf)
         index = MapIndex(seg, cfg.sample_step_m)
         g = p.graph
         out = []
@@ -752,9 +759,7 @@ class FleetGraph:
             tie = self._tie(p, k, x, near, sub, fit, ok, others[j], a, where)
             if cfg.line_ties:
                 sel = ok & (met == j)
-                tie = self._lines(
-                    tie, p, k, x, near, sub, sel, index.samples, idx, own_k, own_el, others[j], where
-                )
+                tie = self._lines(tie, p, k, x, near, sub, sel, index.samples, idx, own_k, others[j], where)
             out.append((kid, tie))
             if not cfg.each_robot:
                 continue
@@ -763,8 +768,8 @@ class FleetGraph:
                     continue
                 if jj not in alone:
                     mine_j = np.flatnonzero(own_r == jj)
-                    alone[jj] = (MapIndex(seg[mine_j], cfg.sample_step_m), own_k[mine_j], own_el[mine_j])
-                index_j, kf_j, el_j = alone[jj]
+                    alone[jj] = (MapIndex(seg[mine_j], cfg.sample_step_m), own_k[mine_j])
+                index_j, kf_j = alone[jj]
                 fit_j = refine(index_j, sub, fit.pose, cfg.stages, cfg.point_sigma_m, cfg.correlation_m)
                 d = fit_j.pose - x[k]
                 if np.hypot(d[0], d[1]) > shift_m or abs(wrap_angle(d[2])) > turn_rad:
@@ -777,7 +782,7 @@ class FleetGraph:
                 tie = self._tie(p, k, x, near, sub, fit_j, ok_j, others[jj], a_j, where)
                 if cfg.line_ties:
                     tie = self._lines(
-                        tie, p, k, x, near, sub, ok_j, index_j.samples, idx_j, kf_j, el_j, others[jj], where
+                        tie, p, k, x, near, sub, ok_j, index_j.samples, idx_j, kf_j, others[jj], where
                     )
                 out.append((kid, tie))
         return out
@@ -811,8 +816,7 @@ class FleetGraph:
 
     def _lines(
         self, tie: Constraint, p: Placed, k: int, x: np.ndarray, near: np.ndarray, sub: Samples,
-        ok: np.ndarray, theirs: Samples, idx: np.ndarray, their_kf: np.ndarray, their_el: np.ndarray,
-        o: Placed, where: dict,
+        ok: np.ndarray, theirs: Samples, idx: np.ndarray, their_kf: np.ndarray, o: Placed, where: dict,
     ) -> Constraint:  # fmt: skip
         """``tie`` with the fit's matched walls as point-on-line ties (``GraphConfig.line_ties``):
         samples ``ok`` of keyframe ``k``'s submap (rows ``near``) met ``theirs[idx]`` (the other
@@ -851,18 +855,13 @@ class FleetGraph:
         along = np.sum((q - centre[pair]) * e[pair], axis=1)
         spread = np.sqrt(np.bincount(pair, wl * along**2, m) / tot)
         var = cfg.line_sigma_m**2 * cfg.correlation_m / tot + cfg.line_floor_m**2
-        two = np.concatenate
-        lines = (
-            two([g.ids[ba[first]]] * 2),
-            two([o.graph.ids[ab[first]]] * 2),
-            two([centre + spread[:, None] * e, centre - spread[:, None] * e]),
-            two([n[first]] * 2),
-            two([d[first]] * 2),
-            two([0.5 / var] * 2),
-            two([np.asarray(p.layer.element)[near[mine_row[first]]]] * 2),  # (the walls' identities)
-            two([their_el[their_row[first]]] * 2),
-        )
-        return replace(tie, lines=lines)
+        both = np.tile  # (the pair's two points: the first half, then the second)
+        walls = Walls(
+            both(g.ids[ba[first]], 2), both(o.graph.ids[ab[first]], 2),
+            np.concatenate([centre + spread[:, None] * e, centre - spread[:, None] * e]),
+            both(n[first], (2, 1)), both(d[first], 2), both(0.5 / var, 2),
+        )  # fmt: skip
+        return replace(tie, lines=walls)
 
     def _count(self, why: str) -> None:
         self.stats[f"refused_{why}"] = self.stats.get(f"refused_{why}", 0) + 1
@@ -901,8 +900,7 @@ class FleetGraph:
             info.append(np.diag(1.0 / sig**2)[None])
         robust_from = sum(len(v) for v in a)
         cons, width = [], []  # (each constraint's kernel width: both robots' maps agree with themselves)
-        line_parts, groups, walls = [], [], []  # (constraints held as point-on-line ties: line_ties)
-        robot_no = {p.robot: i for i, p in enumerate(placed)}
+        line_parts, groups = [], []  # (constraints held as point-on-line ties: line_ties)
         by_robot = {p.robot: p for p in placed}
         for p in placed:
             for c in self.constraints.get(p.robot, {}).values():
@@ -919,10 +917,8 @@ class FleetGraph:
                 if c.lines is not None and cfg.line_ties:
                     part = _wall_ties(c, p.graph, og, start[p.robot], start[c.other], k)
                     if part is not None:
-                        mine, theirs = np.full(len(part[1]), robot_no[p.robot]), robot_no[c.other]
-                        walls.append(np.column_stack([mine, part[1], np.full(len(mine), theirs)]))
-                        groups.append(np.full(len(part[1]), len(groups)))
-                        line_parts.append(part[0])
+                        groups.append(np.full(len(part.a), len(groups)))
+                        line_parts.append(part)
                     continue
                 cons.append((start[c.other] + ai, start[p.robot] + bi, c.z, c.info))
                 width.append(k)
@@ -931,10 +927,6 @@ class FleetGraph:
         if line_parts:
             lines = posegraph.LineTies(*(np.concatenate(col) for col in zip(*line_parts, strict=True)))
             group = np.concatenate(groups)
-            if cfg.line_share:  # a pair of walls met by several submaps: one piece of evidence
-                pairs = np.concatenate(walls)
-                _, inv, count = np.unique(pairs, axis=0, return_inverse=True, return_counts=True)
-                lines = lines._replace(w=lines.w / count[inv.ravel()])
             line_keep = np.ones(len(groups), bool)
         if cons:
             ca, cb, ci = (

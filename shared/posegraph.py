@@ -90,10 +90,10 @@ def optimize(
     """Poses ``(N,3)`` minimizing ``Σ rᵀ Ω r`` over edges ``a, b (E,)`` with measured motions
     ``z (E,3)`` and information ``Ω``: ``info (E,3,3)``, or ``(E,3)`` for a diagonal one, from
     ``x0 (N,3)``; node 0 is held fixed (the map frame). Edges from index ``robust_from`` on get a
-    Cauchy kernel of width ``robust_k`` (in normalized residual units; or one per such edge), by iteratively
-    reweighting. ``lines``: point-on-line ties between nodes besides (:class:`LineTies`). No
-    iteration starts once ``stop()`` says so (the caller's clock: the core keeps none; the first
-    iteration always runs)."""
+    Cauchy kernel of width ``robust_k`` (in normalized residual units; or one per such edge), by
+    iteratively reweighting. ``lines``: point-on-line ties between nodes besides
+    (:class:`LineTies`). No iteration starts once ``stop()`` says so (the caller's clock: the core
+    keeps none; the first iteration always runs)."""
     x = np.array(x0, dtype=float, copy=True)
     n = len(x)
     if lines is not None and not len(lines.a):

@@ -139,6 +139,7 @@ def test_the_graphs_edges_against_the_truth_in_units_of_their_stated_uncertainty
     counted."""
     from types import SimpleNamespace
 
+    from map_server.posegraph import Walls
     from shared.geometry import relative, transform_points
 
     true_a = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
@@ -163,8 +164,8 @@ def test_the_graphs_edges_against_the_truth_in_units_of_their_stated_uncertainty
     # the walls: robot b's keyframe 6 holds two points 1 cm beyond the line x = 1 of a's keyframe 12
     on_a12 = np.array([[1.01, 0.3], [1.01, -0.5]])
     points = transform_points(relative(true_b[1], true_a[2]), on_a12)  # (in keyframe 6's frame)
-    walls = (np.array([6, 6]), np.array([12, 12]), points, np.array([[1.0, 0.0]] * 2), np.ones(2),
-             np.full(2, 1 / 0.02**2), np.zeros(2), np.zeros(2))  # fmt: skip
+    walls = Walls(np.array([6, 6]), np.array([12, 12]), points, np.array([[1.0, 0.0]] * 2), np.ones(2),
+                  np.full(2, 1 / 0.02**2))  # fmt: skip
     tie_z = relative(true_a[2], true_b[1]) + off_half_deg
     tie = SimpleNamespace(b_id=6, other="a", a_id=12, z=tie_z, info=tie_info, lines=walls)
     gone = SimpleNamespace(b_id=5, other="a", a_id=99, z=np.zeros(3), info=tie_info, lines=None)
@@ -243,7 +244,7 @@ def test_a_final_error_decomposed_with_the_ties_held_as_walls():
     by points of robot s's, the two facing x 5 cm off at the truth. With every robot's own edges at
     the truth the 5 cm are left; with the ties at the truth too (each line through its point),
     nothing."""
-    from map_server.posegraph import Constraint, FleetGraph
+    from map_server.posegraph import Constraint, FleetGraph, Walls
     from shared.geometry import relative, transform_points
 
     true_r, true_s, _, ref, other = _side_by_side()
@@ -251,13 +252,13 @@ def test_a_final_error_decomposed_with_the_ties_held_as_walls():
     on_r3 = np.array([[1.0, 0.5], [-2.0, 1.5], [0.5, 3.0], [1.0, 2.5], [-2.0, 2.0], [0.0, 3.0]])  # (r3 frame)
     d = np.sum(normal * on_r3, axis=1) + np.where(normal[:, 0] == 1.0, 0.05, 0.0)  # (x walls 5 cm off)
     points = transform_points(relative(true_s[3], true_r[3]), on_r3)  # (in s3's frame)
-    walls = (np.full(6, 3), np.full(6, 3), points, normal, d, np.full(6, 1e6), np.zeros(6), np.zeros(6))
+    walls = Walls(np.full(6, 3), np.full(6, 3), points, normal, d, np.full(6, 1e6))
     tie = Constraint(3, "r", 3, relative(true_r[3], true_s[3]), np.diag([1e4, 1e4, 1e6]), lines=walls)
     fg = FleetGraph()
     fg.constraints = {"s": {(3, "r"): tie}}
     with bench_script("bench_merge") as module:
         out = module.decompose(fg, [ref, other], {"r": true_r, "s": true_s}, "r")["s"]
-    assert fg.constraints["s"][(3, "r")].lines[4] is d  # (solved on copies)
+    assert fg.constraints["s"][(3, "r")].lines.d is d  # (solved on copies)
     assert out["both"][0] == pytest.approx(0.0, abs=1e-4) and out["both"][1] == pytest.approx(0.0, abs=1e-3)
     assert out["true_own"][0] == pytest.approx(0.05, abs=2e-3)
 
