@@ -300,12 +300,12 @@ class FastSLAM:
                 pts,
                 init,
             )
-            ps.poses = sample_gaussian(self.rng, prop.mean, prop.cov)
+            ps.poses = sample_gaussian(self.rng, prop.mean, prop.cov * cfg.proposal.sample_scale)
             d = prop.mean - mean
             d[:, 2] = wrap_angle(d[:, 2])
             info = np.linalg.inv(cov)
             prior_term = -0.5 * np.einsum("pi,pij,pj->p", d, info, d)
-            post = prop.cov / cfg.proposal.sample_scale
+            post = prop.cov
             if not scan_driven:  # odometry's systematic error is learned from odometry's motion
                 ps.slip, ps.slip_cov = update_slip(ps.slip, ps.slip_cov, jac, info, post, d, cfg.motion)
         else:

@@ -140,12 +140,39 @@ def test_empty_map_returns_the_prior(mode):
 
 
 @pytest.mark.parametrize("mode", MODES)
-@pytest.mark.parametrize("sample_scale", [0.5, 2.0])
-def test_sample_scale_scales_the_covariance(sample_scale, mode):
-    _, _, base = run(CORNER_ROOM, cfg=ProposalConfig(measurement=mode))
-    _, _, scaled = run(CORNER_ROOM, cfg=ProposalConfig(measurement=mode, sample_scale=sample_scale))
+def test_the_proposal_is_the_posterior_whatever_the_sample_scale(mode):
+    """``sample_scale`` acts where the particles are drawn, not on the proposal itself."""
+    _, _, base = run(CORNER_ROOM, cfg=ProposalConfig(measurement=mode, sample_scale=1.0))
+    _, _, scaled = run(CORNER_ROOM, cfg=ProposalConfig(measurement=mode, sample_scale=0.5))
     np.testing.assert_allclose(scaled.mean, base.mean, atol=1e-12)
-    np.testing.assert_allclose(scaled.cov, sample_scale * base.cov, rtol=1e-9)
+    np.testing.assert_allclose(scaled.cov, base.cov, rtol=1e-12)
+
+
+def test_the_particles_are_drawn_from_the_proposal_scaled():
+    """FastSLAM draws each particle from its proposal's covariance times ``sample_scale``: with the
+    same random stream, each particle's offset from its proposal's mean grows as its square root
+    (the draws at scales 1, 1/4 and 9/16 lie on one line, at 1, 1/2 and 3/4 of the way)."""
+    from pathlib import Path
+
+    from robot_agent.backend import feed
+    from robot_agent.slam.fastslam import FastSLAM, SlamConfig
+    from robot_agent.sources import read_log
+
+    log = read_log(Path(__file__).parents[1] / "data" / "intel_head.clf.gz")
+    poses = {}
+    for scale in (1.0, 0.25, 0.5625):
+        cfg = SlamConfig(particles=8, proposal=ProposalConfig(sample_scale=scale))
+        slam = FastSLAM(cfg, np.random.default_rng(3))
+        for i in range(200):  # up to the first draw: the particles start at one pose, exactly
+            feed(slam, log, i)
+            if np.ptp(slam.particles.poses, axis=0).max() > 0.0:
+                break
+        poses[scale] = (i, slam.particles.poses.copy())
+    assert poses[1.0][0] == poses[0.25][0] == poses[0.5625][0] < 199  # the same scan drew them
+    poses = {scale: p for scale, (_, p) in poses.items()}
+    offset = 2.0 * (poses[1.0] - poses[0.25])  # sqrt(1) - sqrt(1/4) = 1/2 of the offset
+    assert np.abs(offset).max() > 1e-4  # the particles were drawn apart
+    np.testing.assert_allclose(poses[0.5625], poses[1.0] - 0.25 * offset, atol=1e-9)
 
 
 def test_points_behind_an_element_or_beyond_its_extent_are_not_associated():
