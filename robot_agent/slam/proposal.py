@@ -54,10 +54,10 @@ class ProposalConfig:
     # scale on the proposal covariance when the particles are drawn: under 1 the particles are
     # drawn nearer the scan match's pose (fewer, tighter hypotheses: each particle's path carries
     # less of the proposal's own spread into its map). 0.7 against 1.0 (bench_logs.py, seeds 0-5):
-    # Intel 0.0244 -> 0.0231 m, ACES 0.0399 -> 0.0390, MIT-CSAIL 0.0314 -> 0.0314 (12 seeds); the 60
+    # Intel 0.0244 -> 0.0234 m, ACES 0.0399 -> 0.0390, MIT-CSAIL 0.0314 -> 0.0315 (12 seeds); the 60
     # simulated robots of bench_merge: ATE 0.023 -> 0.019 m, own map frames over 0.05 m 5 -> 0. At
     # 0.5 a simulated office robot lost its way (17 deg off); the filter alone drifts more (Intel
-    # 0.53 -> 0.62 m before the back end)
+    # 0.53 -> 0.63 m before the back end)
     sample_scale: float = 0.7
     gate_scale_predicted: float = 2.5  # wider gates for the first association at the predicted pose
     measurement: str = "points"  # "points": every scan point against the map's segments;
