@@ -88,6 +88,7 @@ from map_server.contradiction import Check, own_noise, placed_noise, shrink, shr
 from map_server.fleet import Fleet  # noqa: E402
 from map_server.freespace import FreeSpaces  # noqa: E402
 from map_server.fusion import fuse_particles, merge_segments  # noqa: E402
+from map_server.posegraph import _among  # noqa: E402
 from shared import codec  # noqa: E402
 from shared.config import apply_overrides  # noqa: E402
 from shared.geometry import apply_segments, compose, inverse, relative, transform_points, wrap_angle  # noqa: E402
@@ -278,10 +279,10 @@ def _walls_at_truth(c, n: str, graphs: dict, true_kf: dict) -> tuple[np.ndarray,
     """Constraint ``c`` on robot ``n`` held as walls (``c.lines``, map_server.posegraph.Walls):
     which of its points have both keyframes in their robots' graphs, and each point's signed
     distance from its line where the truth puts those keyframes (``shared.posegraph``'s residual)."""
-    t, g, og = c.lines, graphs[n], graphs[c.other]
-    ib = np.minimum(np.searchsorted(g.ids, t.mine), len(g.ids) - 1)
-    ia = np.minimum(np.searchsorted(og.ids, t.theirs), len(og.ids) - 1)
-    ok = (g.ids[ib] == t.mine) & (og.ids[ia] == t.theirs)
+    t = c.lines
+    found_b, ib = _among(graphs[n].ids, t.mine)
+    found_a, ia = _among(graphs[c.other].ids, t.theirs)
+    ok = found_a & found_b
     at = np.arange(len(ok))
     x = np.concatenate([true_kf[c.other][ia], true_kf[n][ib]])
     r = line_residuals(x, LineTies(at, len(ok) + at, t.p, t.n, t.d, t.w, np.zeros(len(ok))))[0]

@@ -305,9 +305,8 @@ class FastSLAM:
             d[:, 2] = wrap_angle(d[:, 2])
             info = np.linalg.inv(cov)
             prior_term = -0.5 * np.einsum("pi,pij,pj->p", d, info, d)
-            post = prop.cov
             if not scan_driven:  # odometry's systematic error is learned from odometry's motion
-                ps.slip, ps.slip_cov = update_slip(ps.slip, ps.slip_cov, jac, info, post, d, cfg.motion)
+                ps.slip, ps.slip_cov = update_slip(ps.slip, ps.slip_cov, jac, info, prop.cov, d, cfg.motion)
         else:
             ps.poses = sample_gaussian(self.rng, mean, cov)
         if self._last_odo is None:  # the first scan defines the map frame: the start pose, exactly
