@@ -7,7 +7,7 @@ import pytest
 import shapely
 
 from map_server import contradiction as cd
-from map_server.alignment import estimate_alignment
+from map_server.alignment import Alignment, estimate_alignment
 from map_server.config import AlignmentConfig
 from map_server.freespace import place_area
 from shared.geometry import apply_segments, compose, inverse
@@ -498,3 +498,35 @@ def test_a_best_only_prescored_is_scored_strictly_before_it_decides(refine_best)
     else:
         assert a.status == "unaligned" and "ill-conditioned" in a.reason
         assert np.allclose(a.transform, turned)
+
+
+def test_a_held_place_is_not_given_up_for_one_that_only_the_others_have_seen_more_of():
+    """A robot held at its true place, where the placed robots have seen little of its room, and a
+    mirror room elsewhere they have seen whole — but without the robot's box: the mirror matches
+    more of its walls (1.9x), yet its box stands in their free space (by more than ``max_m``, within
+    the refusal's share of the overlap) while the held place is contradicted by nothing. The overlap
+    measures where the others have been; the free space seen keeps the held place (the simulated
+    warehouse's robots were moved to the half-turn image, 34 m away, at 3.3x the score)."""
+    corners = [(0.0, 0.0), (20.0, 0.0), (20.0, 9.0), (17.0, 12.0), (0.0, 12.0)]  # (a corner cut: no
+    room = [[a, b] for a, b in zip(corners, corners[1:] + corners[:1], strict=True)]  # half-turn image)
+    square = [(4.0, 4.0), (4.0, 5.0), (5.0, 5.0), (5.0, 4.0)]
+    box = [[a, b] for a, b in zip(square, square[1:] + square[:1], strict=True)]
+    robot = np.array(room + box)
+    mirror = np.array([30.0, 0.0, 0.0])
+    placed = np.concatenate([np.array(room[:2] + box), apply_segments(mirror, np.array(room))])
+    inside = shapely.Polygon(corners)
+    around = inside.difference(shapely.box(4.0, 4.0, 5.0, 5.0))  # (the room seen, the box not free)
+    robot_free = cd.shrink(around, CC.margin_m)
+    seen = shapely.union(around, place_area(inside, mirror))
+    placed_free = cd.shrink(seen, CC.margin_m)
+    cc = dataclasses.replace(CC, max_share=0.1)  # (its 4 m within a tenth of the 62 m matched)
+    check = cd.Check(robot, robot_free, placed, placed_free, cc)
+    assert check.contradicted_m(mirror) > cc.max_m and check.contradicted_m(np.zeros(3)) == 0.0
+    assert check(mirror, 62.0) is None  # not refused by itself
+    held = Alignment("aligned", np.zeros(3), np.full(3, 0.01), reason="earlier")
+    moved = estimate_alignment(robot, placed, CFG, current=held, veto=lambda pose, m: None)
+    assert moved.reason.startswith("revised"), moved.reason
+    assert transform_error(moved.transform, mirror)[0] < 0.01
+    kept = estimate_alignment(robot, placed, CFG, current=held, veto=check)
+    assert kept.status == "aligned" and kept.reason.startswith("kept and refined"), kept.reason
+    assert "outshone" in kept.reason and transform_error(kept.transform, np.zeros(3))[0] < 0.01
