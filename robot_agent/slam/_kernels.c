@@ -77,8 +77,11 @@ typedef struct {
     const double *fx, *fy; /* (P,C) cos, sin of the element's facing */
     const uint8_t *valid;  /* (P,C) */
     double margin;
+    const double *pa; /* (N,) normal angle of each point's own line (robot frame), NaN: none */
+    double max_sin;   /* a point pairs with an element only if |sin| of their lines' angle <= this */
     /* workspace */
     double *qx, *qy, *wx, *wy;  /* (P,N) */
+    double *heading;            /* (P,) */
     double *lo_x, *hi_x, *lo_y, *hi_y; /* (C,) the candidate boxes */
     double *ref_x, *ref_y;             /* (N,) the points' mean view */
     Py_ssize_t *cand_start; /* (N+1,) */
@@ -89,6 +92,7 @@ typedef struct {
 static void rotate(Assoc *s, const double *x) {
     for (Py_ssize_t p = 0; p < s->P; p++) {
         double c = cos(x[3 * p + 2]), sn = sin(x[3 * p + 2]);
+        s->heading[p] = x[3 * p + 2];
         for (Py_ssize_t i = 0; i < s->N; i++) {
             double px = s->pts[2 * i], py = s->pts[2 * i + 1];
             double qx = c * px - sn * py + 0.0, qy = sn * px + c * py + 0.0;
@@ -178,12 +182,17 @@ static int associate(Assoc *s, const double *wide, double gate_m, int64_t *idx) 
             double qx = s->qx[p * N + i], qy = s->qy[p * N + i];
             double best_cost = INFINITY;
             int64_t best = -1;
+            /* the point's own line, in the map frame (not at the predicted pose: wide gates) */
+            int turned = !wide && !isnan(s->pa[i]);
+            double sa = turned ? sin(s->pa[i] + s->heading[p]) : 0.0;
+            double ca = turned ? cos(s->pa[i] + s->heading[p]) : 0.0;
             for (Py_ssize_t k = s->cand_start[i]; k < s->cand_start[i + 1]; k++) {
                 Py_ssize_t c = s->cand[k], pc = p * C + c;
                 if (!s->valid[pc]) continue;
                 double nx = s->nx[pc], ny = s->ny[pc];
                 double perp = fabs(nx * px + ny * py - s->rho[pc]);
                 if (!(perp < g)) continue;
+                if (turned && !(fabs(sa * nx - ca * ny) <= s->max_sin)) continue;
                 double t_pt = ny * px - nx * py;
                 const double *e = s->seg + 4 * pc;
                 double t0 = ny * e[0] - nx * e[1];
@@ -203,25 +212,28 @@ static int associate(Assoc *s, const double *wide, double gate_m, int64_t *idx) 
 }
 
 static PyObject *gn_points(PyObject *self, PyObject *args) {
-    Py_buffer b_x, b_mean, b_info, b_pts, b_nx, b_ny, b_rho, b_seg, b_fx, b_fy, b_valid, b_gate, b_h, b_idx;
+    Py_buffer b_x, b_mean, b_info, b_pts, b_nx, b_ny, b_rho, b_seg, b_fx, b_fy, b_valid, b_gate, b_h, b_idx,
+        b_pa;
     Py_ssize_t P, N, C;
     int iterations, reassociate_after;
-    double gate_m, margin, robust, sigma;
-    if (!PyArg_ParseTuple(args, "w*y*y*y*y*y*y*y*y*y*y*y*w*w*nnniidddd", &b_x, &b_mean, &b_info, &b_pts,
-                          &b_nx, &b_ny, &b_rho, &b_seg, &b_fx, &b_fy, &b_valid, &b_gate, &b_h, &b_idx, &P,
-                          &N, &C, &iterations, &reassociate_after, &gate_m, &margin, &robust, &sigma))
+    double gate_m, margin, robust, sigma, max_sin;
+    if (!PyArg_ParseTuple(args, "w*y*y*y*y*y*y*y*y*y*y*y*w*w*y*nnniiddddd", &b_x, &b_mean, &b_info, &b_pts,
+                          &b_nx, &b_ny, &b_rho, &b_seg, &b_fx, &b_fy, &b_valid, &b_gate, &b_h, &b_idx, &b_pa,
+                          &P, &N, &C, &iterations, &reassociate_after, &gate_m, &margin, &robust, &sigma,
+                          &max_sin))
         return NULL;
-    Py_buffer *all[] = {&b_x, &b_mean, &b_info, &b_pts, &b_nx, &b_ny, &b_rho,
-                        &b_seg, &b_fx, &b_fy, &b_valid, &b_gate, &b_h, &b_idx};
-    Py_ssize_t need[] = {P * 3 * 8, P * 3 * 8, P * 9 * 8, N * 2 * 8, P * C * 8, P * C * 8, P * C * 8,
-                         P * C * 4 * 8, P * C * 8, P * C * 8, P * C, P * 8, P * 9 * 8, P * N * 8};
+    Py_buffer *all[] = {&b_x, &b_mean, &b_info, &b_pts, &b_nx, &b_ny, &b_rho, &b_seg,
+                        &b_fx, &b_fy, &b_valid, &b_gate, &b_h, &b_idx, &b_pa};
+    Py_ssize_t need[] = {P * 3 * 8, P * 3 * 8, P * 9 * 8, N * 2 * 8, P * C * 8,
+                         P * C * 8, P * C * 8, P * C * 4 * 8, P * C * 8, P * C * 8,
+                         P * C,     P * 8,     P * 9 * 8,     P * N * 8, N * 8};
     const int n_buf = (int)(sizeof(need) / sizeof(need[0]));
     PyObject *result = NULL;
     if (!sizes_ok("gn_points", all, need, n_buf)) goto done;
     Assoc s = {P, N, C, b_pts.buf, b_nx.buf, b_ny.buf, b_rho.buf, b_seg.buf, b_fx.buf, b_fy.buf, b_valid.buf,
-               margin};
+               margin, b_pa.buf, max_sin};
     size_t pn = (size_t)(P * N > 0 ? P * N : 1);
-    double *work = malloc(sizeof(double) * (4 * pn + 4 * (size_t)C + 2 * (size_t)N + 1));
+    double *work = malloc(sizeof(double) * (4 * pn + 4 * (size_t)C + 2 * (size_t)N + (size_t)P + 1));
     Py_ssize_t *starts = malloc(sizeof(Py_ssize_t) * ((size_t)N + 1));
     int ok = work && starts;
     if (ok) {
@@ -235,6 +247,7 @@ static PyObject *gn_points(PyObject *self, PyObject *args) {
         s.hi_y = s.lo_y + C;
         s.ref_x = s.hi_y + C;
         s.ref_y = s.ref_x + N;
+        s.heading = s.ref_y + N;
         s.cand_start = starts;
     }
     double *x = b_x.buf;

@@ -117,6 +117,8 @@ class ScanSegments:
     points: np.ndarray  # (K, 2) every valid reading in scan order (full circle: from a break)
     point_segment: np.ndarray  # (K,) int index of the point's segment, or -1
     point_beam: np.ndarray  # (K,) int index of the point's beam in the input arrays
+    point_alpha: np.ndarray  # (K,) normal angle of the line through the point's piece (kept as a
+    # segment or not: a face too short to keep is still a line), NaN where no line fits it
 
     def __len__(self) -> int:
         return int(self.alpha.shape[0])
@@ -139,6 +141,7 @@ class ScanSegments:
             moments=transform_moments(pose, self.moments),
             endpoints=transform_points(pose, self.endpoints),
             points=transform_points(pose, self.points),
+            point_alpha=self.point_alpha + pose[2],
         )
 
 
@@ -374,6 +377,9 @@ def _assemble(pts: np.ndarray, beam: np.ndarray, starts: np.ndarray, cfg: Extrac
         keep = (n >= cfg.min_points) & (t_max - t_min >= cfg.min_length_m)
         keep &= sigma2 <= cfg.max_rms_m**2
     seg_of_piece = np.where(keep, np.cumsum(keep) - 1, -1)
+    with np.errstate(invalid="ignore"):
+        lined = (n >= 3) & (sigma2 <= cfg.max_rms_m**2)
+    piece_alpha = np.where(lined, alpha, np.nan)
     alpha, rho, sigma2, moments = alpha[keep], rho[keep], sigma2[keep], moments[keep]
     # floor the point noise at the sensor's: a few points can fit by chance too well
     cov = line_covariance(moments, alpha, np.maximum(sigma2, cfg.range_sigma_m**2))
@@ -388,4 +394,5 @@ def _assemble(pts: np.ndarray, beam: np.ndarray, starts: np.ndarray, cfg: Extrac
         points=pts,
         point_segment=seg_of_piece[piece],
         point_beam=beam.astype(int),
+        point_alpha=piece_alpha[piece],
     )

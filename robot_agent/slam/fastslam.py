@@ -299,6 +299,7 @@ class FastSLAM:
                 cfg.proposal,
                 pts,
                 init,
+                segs.point_alpha,
             )
             ps.poses = sample_gaussian(self.rng, prop.mean, prop.cov * cfg.proposal.sample_scale)
             d = prop.mean - mean

@@ -46,6 +46,8 @@ def gn_points(
     margin_m: float,
     robust_scale_m: float,
     point_sigma_m: float,
+    point_alpha: np.ndarray | None = None,
+    max_sin: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """proposal.align_points' Gauss-Newton (association, normal equations, the prior-fused
     step) for poses ``x (P,3)`` from a local map of ``C`` columns (``alpha, rho, facing, valid
@@ -57,6 +59,7 @@ def gn_points(
     h = np.zeros((p, 3, 3))
     idx = np.empty((p, n), dtype=np.int64)
     gate = np.broadcast_to(np.asarray(gate_wide, dtype=np.float64), (p,))
+    pa = np.full(n, np.nan) if point_alpha is None else point_alpha
     lib.gn_points(
         x,
         f64(prior_mean),
@@ -72,6 +75,7 @@ def gn_points(
         f64(gate),
         h,
         idx,
+        f64(pa),
         p,
         n,
         c,
@@ -81,6 +85,7 @@ def gn_points(
         float(margin_m),
         float(robust_scale_m),
         float(point_sigma_m),
+        float(max_sin),
     )
     return x, h, idx
 

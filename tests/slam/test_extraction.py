@@ -101,6 +101,23 @@ def test_segment_arrays_are_consistent():
         )
 
 
+def test_every_point_carries_the_line_of_its_own_piece_kept_or_not():
+    """``point_alpha``: a point of a kept segment has the segment's line; a face too short to be
+    kept (a pillar's side, 0.25 m) still has its own line through its points, at right angles
+    to the wall beside it, not the wall's; a point alone has none (NaN)."""
+    walls = [[[-5.0, 1.0], [5.0, 1.0]], [[1.2, 1.0], [1.2, 0.75]], [[1.2, 0.75], [1.6, 0.75]]]
+    ang = beams(721)
+    seg = extract_segments(cast(walls, ang, noise_m=0.002, seed=4), ang)
+    on_wall = seg.point_segment >= 0
+    np.testing.assert_array_equal(seg.point_alpha[on_wall], seg.alpha[seg.point_segment[on_wall]])
+    pts = seg.points
+    side = (np.abs(pts[:, 0] - 1.2) < 0.01) & (pts[:, 1] > 0.78) & (pts[:, 1] < 0.97)  # the pillar's side
+    assert side.sum() >= 5 and np.all(seg.point_segment[side] == -1)  # too short to keep
+    assert np.all(line_angle_diff(seg.point_alpha[side], 0.0) < 5 * DEG)  # x = 1.2: normal along x
+    lone = extract_segments(np.array([2.0, np.inf, np.inf]), np.array([0.0, 0.5, 1.0]))
+    assert len(lone.points) == 1 and np.isnan(lone.point_alpha).all()
+
+
 def test_door_gap_with_open_space_behind_is_not_bridged():
     wall = [[[3.0, -6.0], [3.0, -0.5]], [[3.0, 0.5], [3.0, 6.0]]]  # x = 3, 1 m door at |y|<0.5
     ang = beams(181)
@@ -260,7 +277,8 @@ def test_transformed_moves_everything_and_round_trips():
     floor = np.maximum(s2, ExtractionConfig().range_sigma_m ** 2)
     np.testing.assert_allclose(moved.cov, line_covariance(moved.moments, a, floor), rtol=1e-6)
     back = moved.transformed(inverse(pose))
-    for name in ("endpoints", "alpha", "rho", "cov", "moments", "points"):
+    np.testing.assert_allclose(wrap_angle(moved.point_alpha - seg.point_alpha - pose[2]), 0.0, atol=1e-12)
+    for name in ("endpoints", "alpha", "rho", "cov", "moments", "points", "point_alpha"):
         np.testing.assert_allclose(getattr(back, name), getattr(seg, name), atol=1e-9)
 
 

@@ -182,17 +182,19 @@ def test_accuracy_on_the_mit_csail_excerpt(mit_csail_head):
     assert len(log) == 400 and log.beam_counts.max() == 361 and len(log.odom_stamps_s) == 0
     res, err = score(log, rel, SlamConfig())
     s = err.summary()
-    assert s["trans_mean_m"] <= 0.035  # measured 0.027 (seed 0; 0.026, 0.024 for seeds 1, 2)
-    assert s["rot_mean_deg"] <= 0.8  # measured 0.60
+    assert s["trans_mean_m"] <= 0.035  # measured 0.024 (seed 0; 0.027 before point_angle_gate_rad)
+    assert s["rot_mean_deg"] <= 0.8  # measured 0.49 (0.60)
     assert res.slam.stats["coarse_turns"] > 50  # the heading search did the work (below)
 
 
 def test_the_heading_search_is_what_holds_mit_csail(mit_csail_head):
     """Without the coarse heading search the alignment starts where odometry's spikes put it and
-    maps walls at wrong angles: measured 0.063 m, 2.13° (seed 0) against 0.027 m, 0.60°."""
+    maps walls at wrong angles: measured 0.032 m, 1.43° (seed 0) against 0.024 m, 0.49° (before
+    the points' own lines were checked, proposal.point_angle_gate_rad: 0.058 m, 2.50° against
+    0.026 m, 0.60°)."""
     log, rel = mit_csail_head
     _, err = score(log, rel, apply_overrides(SlamConfig(), ["coarse.enabled=false"]))
-    assert err.summary()["rot_mean_deg"] >= 1.5
+    assert err.summary()["rot_mean_deg"] >= 1.2
 
 
 def test_accuracy_on_the_aces_excerpt(aces_head):

@@ -75,19 +75,39 @@ def prior_cov(n, sigma_xy=0.1, sigma_th=0.05):
     return np.tile(np.diag([sigma_xy**2, sigma_xy**2, sigma_th**2]), (n, 1, 1))
 
 
+def own_lines(rng, maps, pts, poses) -> np.ndarray:
+    """Each point's own line (robot frame), as extraction gives it: the element it pairs with
+    unchecked, turned by up to 60 degrees (about half beyond a 30 degree gate); NaN for a tenth
+    of the points and for those that pair with nothing."""
+    idx = associate_points(poses, pts, maps, 0.6, 0.2)[0]
+    out = maps.alpha[0, np.maximum(idx, 0)] - poses[0, 2] + rng.uniform(-np.pi / 3, np.pi / 3, len(pts))
+    return np.where((idx >= 0) & (rng.random(len(pts)) > 0.1), out, np.nan)
+
+
 @needs_kernels
 @pytest.mark.parametrize("seed", range(6))
-def test_the_association_is_the_numpy_one_element_for_element(seed):
+@pytest.mark.parametrize("lined", [False, True], ids=["unchecked", "own-lines"])
+def test_the_association_is_the_numpy_one_element_for_element(seed, lined):
     rng = np.random.default_rng(seed)
     maps, pts, poses = random_world(rng, 12, 40)
     gate = rng.uniform(0.1, 0.6, len(poses))
-    expected = associate_points(poses, pts, maps, gate, 0.2)
-    # one iteration: the association at the start poses, with the wide gates
+    if lined:  # the points' own lines count from the re-association on (the pose no longer only
+        # predicted): a second iteration with the normal gate, after a step the prior holds still
+        point_alpha, turn = own_lines(rng, maps, pts, poses), np.radians(30.0)
+        expected = associate_points(poses, pts, maps, 0.3, 0.2, point_alpha, turn)
+        args = (np.tile(1e12 * np.eye(3), (len(poses), 1, 1)), 2, 0.3, point_alpha, np.sin(turn))
+    else:  # one iteration: the association at the start poses, with the wide gates
+        expected = associate_points(poses, pts, maps, gate, 0.2)
+        args = (np.linalg.inv(prior_cov(len(poses))), 1, 0.2, None, 1.0)
+    info, iterations, gate_m, point_alpha, max_sin = args
     _, _, idx = kernels.gn_points(
-        poses, poses, np.linalg.inv(prior_cov(len(poses))), pts, maps.alpha, maps.rho, maps.seg,
-        maps.facing, maps.valid, gate, 1, 1, 0.2, 0.2, 0.1, 0.03,
+        poses, poses, info, pts, maps.alpha, maps.rho, maps.seg, maps.facing, maps.valid, gate,
+        iterations, 1, gate_m, 0.2, 0.1, 0.03, point_alpha, max_sin,
     )  # fmt: skip
     assert (expected >= 0).sum() > 0.3 * expected.size  # a test of matches, not of -1s
+    if lined:  # ... and of refusals
+        unchecked = associate_points(poses, pts, maps, 0.3, 0.2)
+        assert ((unchecked >= 0) & (expected < 0)).sum() > 0.1 * expected.size
     np.testing.assert_array_equal(idx, expected)
 
 
@@ -95,17 +115,19 @@ def test_the_association_is_the_numpy_one_element_for_element(seed):
 @pytest.mark.parametrize("seed", range(6))
 @pytest.mark.parametrize(
     "changes",
-    [{}, {"iterations": 1}, {"iterations": 0}, {"reassociate_after": 9}, {"max_points": 50}],
-    ids=["defaults", "one-iteration", "no-iteration", "no-reassociation", "thinned"],
+    [{}, {"iterations": 1}, {"iterations": 0}, {"reassociate_after": 9}, {"max_points": 50}, "lined"],
+    ids=["defaults", "one-iteration", "no-iteration", "no-reassociation", "thinned", "own-lines"],
 )
 def test_the_alignment_is_the_numpy_one(seed, changes):
     rng = np.random.default_rng(100 + seed)
     maps, pts, poses = random_world(rng, 20, 30)
     cov = prior_cov(len(poses))
     init = poses + rng.normal(0, 0.02, poses.shape) if seed % 2 else None
+    point_alpha = own_lines(rng, maps, pts, poses) if changes == "lined" else None
+    changes = {"max_points": 200} if changes == "lined" else changes  # (thinned with its lines)
     cfg = dataclasses.replace(ProposalConfig(), **changes)
-    ref = align_points(poses, cov, pts, maps, dataclasses.replace(cfg, compiled=False), init)
-    got = align_points(poses, cov, pts, maps, cfg, init)
+    ref = align_points(poses, cov, pts, maps, dataclasses.replace(cfg, compiled=False), init, point_alpha)
+    got = align_points(poses, cov, pts, maps, cfg, init, point_alpha)
     d = got.mean - ref.mean
     d[:, 2] = wrap_angle(d[:, 2])
     np.testing.assert_allclose(d, 0.0, atol=1e-9)
@@ -424,8 +446,8 @@ def test_arrays_of_the_wrong_size_are_refused_by_name():
         kernels._kernels.gn_points(
             poses.copy(), poses, np.zeros((4, 3, 3)), pts[:-1], np.cos(maps.alpha), np.sin(maps.alpha),
             maps.rho, maps.seg, np.cos(maps.facing), np.sin(maps.facing), maps.valid.astype(np.uint8),
-            np.full(4, 0.2), np.zeros((4, 3, 3)), np.zeros((4, len(pts)), np.int64),
-            4, len(pts), 6, 4, 1, 0.2, 0.2, 0.1, 0.03,
+            np.full(4, 0.2), np.zeros((4, 3, 3)), np.zeros((4, len(pts)), np.int64), np.zeros(len(pts)),
+            4, len(pts), 6, 4, 1, 0.2, 0.2, 0.1, 0.03, 1.0,
         )  # fmt: skip
 
 

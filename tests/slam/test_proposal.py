@@ -275,3 +275,31 @@ def test_point_association_in_chunks_of_pairs_is_the_same(monkeypatch, chunk):
     monkeypatch.setattr(proposal, "ASSOCIATION_CHUNK", chunk)
     np.testing.assert_array_equal(associate_points(poses, points, maps, 1.5, 0.2), whole)
     assert (whole >= 0).sum() > 100
+
+
+def test_a_point_pairs_only_with_an_element_along_its_own_line():
+    """A pillar's side, a face too short to be kept as a segment, stands 0.05-0.18 m off the wall
+    it juts from, within the point gate of the wall's line: unchecked, its points pair with the
+    wall and pull the pose one way (the simulated warehouse's robots turned 0.19 deg in 30 s
+    along a wall with pillars). With each point's own line (``point_alpha``: at right angles to
+    the wall here) they pair with nothing; the wall's own points still pair with the wall, and a
+    point with no line of its own (NaN) is not checked."""
+    wall = [(((0.0, 0.0), (6.0, 0.0)), np.pi / 2)]
+    maps = build_maps(wall, 2)
+    cfg = ProposalConfig()
+    side = apply_points(inverse(TRUE_POSE), wall_points((4.0, 0.05), (4.0, 0.18), POINTS_PER_M))
+    on_wall = scan_points(wall, TRUE_POSE)
+    pts = np.vstack([on_wall, side])
+    across = np.full(len(side), 0.0 - TRUE_POSE[2])  # normal along x (map frame), in the robot's
+    along = np.full(len(on_wall), np.pi / 2 - TRUE_POSE[2])
+    poses = np.tile(TRUE_POSE, (2, 1))
+
+    def pairs(point_alpha, gate=cfg.point_angle_gate_rad):
+        return associate_points(poses, pts, maps, cfg.point_gate_m, cfg.extent_margin_m, point_alpha, gate)
+
+    np.testing.assert_array_equal(pairs(None), 0)  # unchecked: the side's points on the wall
+    lines = np.concatenate([along, across])
+    np.testing.assert_array_equal(pairs(lines)[:, : len(on_wall)], 0)
+    np.testing.assert_array_equal(pairs(lines)[:, len(on_wall) :], -1)
+    np.testing.assert_array_equal(pairs(lines, np.pi / 2), 0)  # (no gate)
+    np.testing.assert_array_equal(pairs(np.concatenate([along, np.full(len(side), np.nan)])), 0)
