@@ -430,6 +430,7 @@ def _revise(
         new_problems = _problems(best, total, index, robot, robot_seg, cfg)
         if new_ratio < cfg.min_rival_ratio:
             new_problems.append(f"rival ratio {new_ratio:.3f} < {cfg.min_rival_ratio:g}")
+        times = best.net / max(cur.net, 1e-9)
         beaten = best.net >= cfg.revise_ratio * cur.net
         if beaten and not cur_problems and isinstance(veto, Check):
             # a held place whose walls stand in the free space seen far less densely than the new
@@ -437,10 +438,9 @@ def _revise(
             outshone = veto.outshone(best.pose, cur.pose)
             if outshone is not None:
                 beaten = False
-                times = best.net / max(cur.net, 1e-9)
                 held = f"; a distinct place {times:.2f}x the score outshone ({outshone})"
         if (cur_problems or beaten) and not new_problems:
-            lost = "; ".join(cur_problems) or f"beaten {best.net / max(cur.net, 1e-9):.2f}x"
+            lost = "; ".join(cur_problems) or f"beaten {times:.2f}x"
             why = f"current place lost support ({lost}); new overlap {best.matched_m:.1f} m"
             return _verdict("aligned", best, total, new_ratio, "revised: " + why)
     if contradicted is not None:

@@ -374,12 +374,11 @@ def _assemble(pts: np.ndarray, beam: np.ndarray, starts: np.ndarray, cfg: Extrac
     t0, t1 = np.where(forward, t_min, t_max), np.where(forward, t_max, t_min)
     n = moments[:, 0]
     with np.errstate(invalid="ignore"):
-        keep = (n >= cfg.min_points) & (t_max - t_min >= cfg.min_length_m)
-        keep &= sigma2 <= cfg.max_rms_m**2
+        fits = sigma2 <= cfg.max_rms_m**2
+        keep = (n >= cfg.min_points) & (t_max - t_min >= cfg.min_length_m) & fits
     seg_of_piece = np.where(keep, np.cumsum(keep) - 1, -1)
-    with np.errstate(invalid="ignore"):
-        lined = (n >= 3) & (sigma2 <= cfg.max_rms_m**2)
-    piece_alpha = np.where(lined, alpha, np.nan)
+    # every piece's own line, kept or not (two points always fit one: three are the least evidence)
+    piece_alpha = np.where((n >= 3) & fits, alpha, np.nan)
     alpha, rho, sigma2, moments = alpha[keep], rho[keep], sigma2[keep], moments[keep]
     # floor the point noise at the sensor's: a few points can fit by chance too well
     cov = line_covariance(moments, alpha, np.maximum(sigma2, cfg.range_sigma_m**2))

@@ -86,8 +86,8 @@ def _heading_drift_deg(cfg: SlamConfig, seeds: range, duration_s: float) -> np.n
 def test_a_wall_with_pillars_does_not_turn_the_path():
     """The pillars' sides are faces too short to keep as segments, 0.1-0.3 m off the wall they
     jut from: their points paired with the wall's line (within the point gate) and turned the
-    path one way — 0.14 deg on average over these 8 seeds in 30 s (-0.19 deg over 20 seeds),
-    0.02 without the pillars. Each point pairs only with an element along its own piece's line
+    path one way — -0.14 deg on average over these 8 seeds in 30 s (-0.19 deg over 20 seeds),
+    -0.02 without the pillars. Each point pairs only with an element along its own piece's line
     (``proposal.point_angle_gate_rad``): measured -0.03 deg on average."""
     seeds = range(8)
     gated = _heading_drift_deg(SlamConfig(), seeds, 30.0)
