@@ -283,6 +283,7 @@ class FastSLAM:
         cols = self._local_columns(mean, reach + cfg.filter.local_margin_m)
         local = ps.maps.columns(cols)
         prior_term = np.zeros(ps.n)
+        path = None  # what the path records when not the drawn poses (ProposalConfig.record_mean)
         if pose is not None:
             ps.poses = mean
         elif cfg.proposal.enabled and len(cols) and len(segs):
@@ -302,6 +303,7 @@ class FastSLAM:
                 segs.point_alpha,
             )
             ps.poses = sample_gaussian(self.rng, prop.mean, prop.cov * cfg.proposal.sample_scale)
+            path = prop.mean if cfg.proposal.record_mean else None
             d = prop.mean - mean
             d[:, 2] = wrap_angle(d[:, 2])
             info = np.linalg.inv(cov)
@@ -311,7 +313,7 @@ class FastSLAM:
         else:
             ps.poses = sample_gaussian(self.rng, mean, cov)
         if self._last_odo is None:  # the first scan defines the map frame: the start pose, exactly
-            ps.poses = mean.copy()  # (drawn above all the same: the random stream is unchanged)
+            ps.poses, path = mean.copy(), None  # (drawn above all the same: the random stream is unchanged)
         if pose is None:
             ps.slip_cov = walk_slip(ps.slip_cov, float(np.hypot(u[0], u[1])), cfg.motion)
 
@@ -351,7 +353,7 @@ class FastSLAM:
             rays = reloc_mod.ScanRays(ranges_m, angles_rad, laser_offset, usable, cfg.update)
             self._resolve(segs, facing, k, rays, (ranges_m, angles_rad, laser_offset, range_max_m))
 
-        self.trajectory.record(stamp_s, ps.poses)
+        self.trajectory.record(stamp_s, ps.poses if path is None else path)
         if self.trajectory.open_steps > cfg.filter.max_open_steps:  # particles that do not coalesce
             self.stats["history_closed"] += self.trajectory.close(ps.best(), cfg.filter.max_open_steps // 2)
         if self.trajectory.over:  # a run without end: its oldest path goes
