@@ -85,10 +85,15 @@ def test_a_robot_carried_elsewhere_in_its_map_is_reported_and_the_fused_map_stay
     its online back end and the map rebuilt at the end) on the Intel excerpt carried at scan
     1000 back to where scan 150 was, odometry none the wiser. The agent says the robot was moved
     and where it was found, and exits 0; the fused map's segments lie on the building's walls
-    (the map of the intact excerpt): measured 86 ends, 0.050 m from them on average, 0.73 m at
-    most (3 beyond 0.3 m). Before: 21 m off for good, the corridor mapped over."""
+    (the map of the intact excerpt): measured 84 ends, 0.053 m from them on average, and each
+    end within 0.50 m of them or of the intact excerpt's scan points (one wall's end 1.9 m past
+    the intact map's: a stretch of it seen 151 times in those scans, on its line, which the
+    intact map did not trust yet — the map rebuilt along the corrected path has it). Before: 21
+    m off for good, the corridor mapped over."""
+    from scipy.spatial import cKDTree
+
     from shared.geometry import point_segment_distance
-    from tests.slam.test_kidnap import INTEL, building_map, teleported
+    from tests.slam.test_kidnap import INTEL, building_map, building_points, teleported
 
     log = teleported(tmp_path, 1000, INTEL, 150, 150)
     building = building_map(1000)
@@ -96,9 +101,11 @@ def test_a_robot_carried_elsewhere_in_its_map_is_reported_and_the_fused_map_stay
     assert "warning: from scan 1000 the scans disagree with odometry" in out, out[-3000:]
     assert "warning: the robot was moved: found at scan 10" in out, out[-3000:]
     far = point_segment_distance(ends[:, None, :], building[None, :, :, :]).min(axis=1)
-    assert far.mean() < 0.1 and far.max() < 1.0, (
+    # an end beyond the walls the intact map trusts may still be on the building: on its points
+    off = np.minimum(far, cKDTree(building_points(1000)).query(ends)[0])
+    assert far.mean() < 0.1 and off.max() < 0.8, (
         f"{int((far > 0.3).sum())} of {len(far)} segment ends more than 0.3 m off the building's walls, "
-        f"{far.max():.2f} m at most"
+        f"{far.max():.2f} m at most; {off.max():.2f} m from the walls and the scan points"
     )
 
 

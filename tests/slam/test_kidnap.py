@@ -133,6 +133,22 @@ def building_map(n: int) -> np.ndarray:
     return np.concatenate([m.seg for m in msgs]).astype(float)
 
 
+def building_points(n: int) -> np.ndarray:
+    """Every scan point ``(K,2)`` of the intact excerpt's first ``n`` scans where its run put them:
+    the building as measured, with the walls its published map does not trust yet."""
+    from robot_agent.slam.extraction import scan_points
+    from shared.geometry import apply_points
+
+    cfg, poses = SlamConfig().extraction, _intact_poses(n)
+    out = []
+    for i, s in enumerate(read_log(INTEL).scans()):
+        if i == n:
+            break
+        xy = scan_points(s.ranges_m, s.angles_rad, cfg, s.range_max_m)
+        out.append(apply_points(poses[i], apply_points(s.laser_offset, xy)))
+    return np.concatenate(out)
+
+
 def _intact_poses(n: int) -> np.ndarray:
     slam = FastSLAM(SlamConfig(particles=10), np.random.default_rng(0))
     out = []
