@@ -357,9 +357,12 @@ class Placer:
         tried by the fleet's graph (Fleet.trial) at its place and at its rivals farther than
         ``search_agree_m``: its best distinct rival when within ``trial_rival_ratio`` of its net
         score, and the search's most matched place when within ``trial_rival_ratio`` of its matched
-        length (Placer._matched_rivals). The place stands unless its walls then meet the others' at
-        a rival ``alignment.min_rival_ratio`` times as much as there (the margin a search places
-        by; a rival a metre or two off is bent to the same place, and both meet the same). A bent
+        length (Placer._matched_rivals). The place stands if its walls then meet the others' at
+        least as much there as at the rival (a rival a metre or two off is bent to the same place,
+        and both meet the same); the rival's place is taken (verified) if it meets
+        ``alignment.min_rival_ratio`` times as much (the margin a search places by); between the
+        two the robot waits: ACES's third piece, live, was placed half-turned at 1.48x the rival by
+        the search, tried 66.7 m there against 70.5 m at its truth (20 m off across the pieces). A bent
         piece's rigid scores mislead both ways: ACES's middle piece (of 3) was merged half-turned
         at 1.18x the rival (its truth), 72.6 m matched; tried, 70.5 m there and 98.2 m at the
         truth. Over 13 true best places of pieces on 8 runs' final maps the rival met 0.14-0.95
@@ -381,10 +384,17 @@ class Placer:
         here = met[0]
         k = 1 + int(np.argmax(met[1:]))
         there, which = met[k], f"{places[k][2]} place"
-        if there < self.cfg.alignment.min_rival_ratio * here or there == 0.0:
+        if there <= here or there == 0.0:
             log.info("%s: a trial bend puts %.1f m of its walls on the others' at its place, %.1f m at"
                      " %s: it stands", r.robot, here, there, which)  # fmt: skip
             return v
+        if there < self.cfg.alignment.min_rival_ratio * here:  # the rival ahead, by less than a margin
+            why = (
+                f"rejected: a trial bend puts {here:.1f} m of its walls on the others' at its place"
+                f" ({v.reason.removeprefix('matched: ')}), {there:.1f} m at {which}: not told apart yet"
+            )
+            log.info("%s: %s", r.robot, why)
+            return dataclasses.replace(v, status="unaligned", reason=why)
         why = (
             f"rejected: a trial bend puts {there:.1f} m of its walls on the others' at {which},"
             f" {here:.1f} m at the best ({v.reason.removeprefix('matched: ')})"
