@@ -81,7 +81,8 @@ typedef struct {
     double max_sin;   /* a point pairs with an element only if |sin| of their lines' angle <= this */
     /* workspace */
     double *qx, *qy, *wx, *wy;  /* (P,N) */
-    double *heading;            /* (P,) */
+    double *hc, *hs;            /* (P,) cos, sin of each particle's heading */
+    double *pc, *ps;            /* (N,) cos, sin of each point's own line (NaN: none) */
     double *lo_x, *hi_x, *lo_y, *hi_y; /* (C,) the candidate boxes */
     double *ref_x, *ref_y;             /* (N,) the points' mean view */
     Py_ssize_t *cand_start; /* (N+1,) */
@@ -92,7 +93,8 @@ typedef struct {
 static void rotate(Assoc *s, const double *x) {
     for (Py_ssize_t p = 0; p < s->P; p++) {
         double c = cos(x[3 * p + 2]), sn = sin(x[3 * p + 2]);
-        s->heading[p] = x[3 * p + 2];
+        s->hc[p] = c;
+        s->hs[p] = sn;
         for (Py_ssize_t i = 0; i < s->N; i++) {
             double px = s->pts[2 * i], py = s->pts[2 * i + 1];
             double qx = c * px - sn * py + 0.0, qy = sn * px + c * py + 0.0;
@@ -184,8 +186,8 @@ static int associate(Assoc *s, const double *wide, double gate_m, int64_t *idx) 
             int64_t best = -1;
             /* the point's own line, in the map frame (not at the predicted pose: wide gates) */
             int turned = !wide && !isnan(s->pa[i]);
-            double sa = turned ? sin(s->pa[i] + s->heading[p]) : 0.0;
-            double ca = turned ? cos(s->pa[i] + s->heading[p]) : 0.0;
+            double sa = turned ? s->ps[i] * s->hc[p] + s->pc[i] * s->hs[p] : 0.0;
+            double ca = turned ? s->pc[i] * s->hc[p] - s->ps[i] * s->hs[p] : 0.0;
             for (Py_ssize_t k = s->cand_start[i]; k < s->cand_start[i + 1]; k++) {
                 Py_ssize_t c = s->cand[k], pc = p * C + c;
                 if (!s->valid[pc]) continue;
@@ -233,7 +235,7 @@ static PyObject *gn_points(PyObject *self, PyObject *args) {
     Assoc s = {P, N, C, b_pts.buf, b_nx.buf, b_ny.buf, b_rho.buf, b_seg.buf, b_fx.buf, b_fy.buf, b_valid.buf,
                margin, b_pa.buf, max_sin};
     size_t pn = (size_t)(P * N > 0 ? P * N : 1);
-    double *work = malloc(sizeof(double) * (4 * pn + 4 * (size_t)C + 2 * (size_t)N + (size_t)P + 1));
+    double *work = malloc(sizeof(double) * (4 * pn + 4 * (size_t)C + 4 * (size_t)N + 2 * (size_t)P + 1));
     Py_ssize_t *starts = malloc(sizeof(Py_ssize_t) * ((size_t)N + 1));
     int ok = work && starts;
     if (ok) {
@@ -247,7 +249,14 @@ static PyObject *gn_points(PyObject *self, PyObject *args) {
         s.hi_y = s.lo_y + C;
         s.ref_x = s.hi_y + C;
         s.ref_y = s.ref_x + N;
-        s.heading = s.ref_y + N;
+        s.hc = s.ref_y + N;
+        s.hs = s.hc + P;
+        s.pc = s.hs + P;
+        s.ps = s.pc + N;
+        for (Py_ssize_t i = 0; i < N; i++) { /* the points' lines turn with each particle (rotate) */
+            s.pc[i] = cos(s.pa[i]);
+            s.ps[i] = sin(s.pa[i]);
+        }
         s.cand_start = starts;
     }
     double *x = b_x.buf;

@@ -7,6 +7,7 @@ found, the agent starts a new session), and no map bent by it is published."""
 
 from __future__ import annotations
 
+import functools
 import gzip
 import re
 from pathlib import Path
@@ -121,44 +122,39 @@ def test_a_robot_carried_elsewhere_in_its_map_is_found_there_and_its_map_is_not_
     assert err.max() < 0.1, f"pose error after relocalization up to {err.max():.2f} m"
 
 
-def building_map(n: int) -> np.ndarray:
-    """The map the agent publishes after the intact excerpt's first ``n`` scans (its trusted
-    segments): where the building's walls are."""
+@functools.cache
+def _intact(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The agent on the intact excerpt's first ``n`` scans: the map it publishes (its trusted
+    segments), its poses ``(n,3)``, and every scan point ``(K,2)`` where those put them."""
+    from robot_agent.slam.extraction import scan_points
+    from shared.geometry import apply_points
+
     core = AgentCore("robot1", FastSLAM(SlamConfig(particles=10), np.random.default_rng(0)), AgentConfig())
+    cfg, poses, points = core.slam.cfg.extraction, [], []
     for i, scan in enumerate(read_log(INTEL).scans()):
         if i == n:
             break
-        core.step(scan)
-    msgs = core.map_messages(force=True)
-    return np.concatenate([m.seg for m in msgs]).astype(float)
+        poses.append(core.step(scan).pose)
+        xy = scan_points(scan.ranges_m, scan.angles_rad, cfg, scan.range_max_m)
+        points.append(apply_points(poses[-1], apply_points(scan.laser_offset, xy)))
+    seg = np.concatenate([m.seg for m in core.map_messages(force=True)]).astype(float)
+    return seg, np.array(poses), np.concatenate(points)
+
+
+def building_map(n: int) -> np.ndarray:
+    """The map the agent publishes after the intact excerpt's first ``n`` scans (its trusted
+    segments): where the building's walls are."""
+    return _intact(n)[0]
 
 
 def building_points(n: int) -> np.ndarray:
     """Every scan point ``(K,2)`` of the intact excerpt's first ``n`` scans where its run put them:
     the building as measured, with the walls its published map does not trust yet."""
-    from robot_agent.slam.extraction import scan_points
-    from shared.geometry import apply_points
-
-    cfg, poses = SlamConfig().extraction, _intact_poses(n)
-    out = []
-    for i, s in enumerate(read_log(INTEL).scans()):
-        if i == n:
-            break
-        xy = scan_points(s.ranges_m, s.angles_rad, cfg, s.range_max_m)
-        out.append(apply_points(poses[i], apply_points(s.laser_offset, xy)))
-    return np.concatenate(out)
+    return _intact(n)[2]
 
 
 def _intact_poses(n: int) -> np.ndarray:
-    slam = FastSLAM(SlamConfig(particles=10), np.random.default_rng(0))
-    out = []
-    for i, s in enumerate(read_log(INTEL).scans()):
-        if i == n:
-            break
-        out.append(
-            slam.step(s.stamp_s, s.odometry, s.ranges_m, s.angles_rad, s.laser_offset, s.range_max_m).pose
-        )
-    return np.array(out)
+    return _intact(n)[1]
 
 
 def test_a_robot_carried_where_its_map_does_not_reach_starts_a_new_session(tmp_path, capsys):
