@@ -216,6 +216,7 @@ class Placer:
         rival_tried: bool = False,
         at: str | None = None,
         against: str | None = None,
+        ratio: float | None = None,
     ) -> Alignment | None:
         """The bent maps' best place ``v``, refused by its search, where a trial bend puts
         ``trial_ratio`` times as much of the robot's walls on the others' there (``mine``) as at the
@@ -228,13 +229,14 @@ class Placer:
         rival, a most matched place: Placer._share_trial); ``against``: which place ``other`` was
         met at, when not the rigid maps' (or, ``rival_tried``, its best rival's). ACES's first
         piece (of 3), live at edd65b8: 12 % of its map on the bent maps whole (2.0 m from its
-        truth), 69.4 m once tried against 36.1 m at the rigid maps' place (16.6 m off)."""
+        truth), 69.4 m once tried against 36.1 m at the rigid maps' place (16.6 m off). ``ratio``:
+        the margin the trial must give, when not ``trial_ratio``."""
         c = self.cfg.alignment
         total = float(self._samples[r.robot][1][0].length.sum())
         if (
             v.placed
             or (v.rival_ratio < c.min_rival_ratio and not rival_tried)
-            or mine < self.cfg.trial_ratio * other
+            or mine < (self.cfg.trial_ratio if ratio is None else ratio) * other
             or mine < max(c.min_overlap_m, c.min_share * total)
         ):
             return None
@@ -310,7 +312,21 @@ class Placer:
         """The first of ``places`` (Placer._trial_places) from ``start`` whose trial ``met`` puts
         ``trial_ratio`` times as much of the robot's walls on the others' as at every other place
         tried, verified again there (Placer._settle_unplaced); None if none. A place other than
-        the search's best ``v`` stands with ``v`` as its rival."""
+        the search's best ``v`` stands with ``v`` as its rival. The search's best itself, refused
+        for its rival alone (on a merge's worth of wall and share, its best distinct rival within
+        the search's margin, ``alignment.min_rival_ratio``), stands where the trial puts that
+        margin more there than at every other place: the search and the trial then agree, as
+        a best placed by its search stands where its trial meets at least as much there as at its
+        rival (Placer._rival_trial). ACES's third piece (of 3), live at ec357fd: its search's best
+        at 1.047x its rival, 0.4 m from where another run of the same seed placed it (1.12x there;
+        tried 65.7 m against 57.0 m), tried 64.0 m there against 56.1 m and left unplaced for good;
+        with the rule, placed so (seed 11 at 1.034x, 70.9 m against 60.2 m), 0 wrong."""
+        c = self.cfg.alignment
+        rival_only = (
+            v.score_m >= c.min_overlap_m
+            and v.inlier_share >= c.min_share
+            and v.rival_ratio < c.min_rival_ratio
+        )
         for i in range(start, len(places)):
             q, at, _ = places[i]
             k = max((j for j in range(len(places)) if j != i), key=lambda j: met[j])  # the best other
@@ -321,8 +337,9 @@ class Placer:
                     rival_ratio=1.0 / max(v.rival_ratio, 1e-9),
                 )  # fmt: skip
             settled = self._settle_unplaced(
-                r, place, placed_map, met[i], met[k], rival_tried=True, at=at, against=places[k][2]
-            )
+                r, place, placed_map, met[i], met[k], rival_tried=True, at=at, against=places[k][2],
+                ratio=c.min_rival_ratio if i == 0 and rival_only else None,
+            )  # fmt: skip
             if settled is not None:
                 log.info("%s: %s", r.robot, settled.reason)
                 return settled
