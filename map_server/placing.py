@@ -313,8 +313,8 @@ class Placer:
         ``trial_ratio`` times as much of the robot's walls on the others' as at every other place
         tried, verified again there (Placer._settle_unplaced); None if none. A place other than
         the search's best ``v`` stands with ``v`` as its rival. The search's best itself, refused
-        for its rival alone (on a merge's worth of wall and share, its best distinct rival within
-        the search's margin, ``alignment.min_rival_ratio``), stands where the trial puts that
+        for its rival alone (Alignment.rival_only: every other check held, its best distinct rival
+        within the search's margin, ``alignment.min_rival_ratio``), stands where the trial puts that
         margin more there than at every other place: the search and the trial then agree, as
         a best placed by its search stands where its trial meets at least as much there as at its
         rival (Placer._rival_trial). ACES's third piece (of 3), live at ec357fd: its search's best
@@ -322,11 +322,6 @@ class Placer:
         tried 65.7 m against 57.0 m), tried 64.0 m there against 56.1 m and left unplaced for good;
         with the rule, placed so (seed 11 at 1.034x, 70.9 m against 60.2 m), 0 wrong."""
         c = self.cfg.alignment
-        rival_only = (
-            v.score_m >= c.min_overlap_m
-            and v.inlier_share >= c.min_share
-            and v.rival_ratio < c.min_rival_ratio
-        )
         for i in range(start, len(places)):
             q, at, _ = places[i]
             k = max((j for j in range(len(places)) if j != i), key=lambda j: met[j])  # the best other
@@ -338,12 +333,31 @@ class Placer:
                 )  # fmt: skip
             settled = self._settle_unplaced(
                 r, place, placed_map, met[i], met[k], rival_tried=True, at=at, against=places[k][2],
-                ratio=c.min_rival_ratio if i == 0 and rival_only else None,
+                ratio=c.min_rival_ratio if i == 0 and v.rival_only else None,
             )  # fmt: skip
             if settled is not None:
                 log.info("%s: %s", r.robot, settled.reason)
                 return settled
         return None
+
+    def _kept(self, r: RobotState, current: Alignment, a: Alignment) -> Alignment:
+        """A placed robot searched again (``a``) whose search's best is still its place (within
+        ``search_agree_m`` of ``current``) but refused for its rival alone (Alignment.rival_only:
+        the best distinct rival within the search's margin, every other check held) stays where it
+        is: a place is undone by evidence against it — another place ahead, a check it fails —
+        not by a rival drawing within the margin it was placed by. ACES in 3 pieces, seed 10, live
+        at 66c45bc: its third piece placed at 1.16x (a trial bend 65.9 m there, 63.1 m at the
+        rival), undone at 1.095x ten seconds later and left unplaced for good."""
+        if (
+            a.placed
+            or not a.rival_only
+            or self._moved_m(r, current.transform, a.transform) > self.cfg.search_agree_m
+        ):
+            return a
+        why = f"kept: its search still puts it first, {a.rival_ratio:.3f}x the best rival"
+        if not current.reason.endswith(why):
+            log.info("%s: %s", r.robot, why)
+        return dataclasses.replace(current, reason=f"{current.reason.split('; kept: ')[0]}; {why}")
 
     @staticmethod
     def _awaiting(v: Alignment, why: str) -> Alignment:
@@ -611,6 +625,8 @@ class Placer:
             current = r.alignment if r.alignment.status == "aligned" else None
             sigma = r.map.prior_sigma if prior is not None else None
             a = self.estimate(r, prior, sigma, current, search=current is None or r.grew(self.cfg))
+            if current is not None:
+                a = self._kept(r, current, a)
             r.young_s = now_s if young else None
             if young:  # a young map's match is not evidence yet, unless nothing contradicts it
                 a = policy.young(a, self.cfg)
