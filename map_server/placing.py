@@ -314,13 +314,14 @@ class Placer:
         tried, verified again there (Placer._settle_unplaced); None if none. A place other than
         the search's best ``v`` stands with ``v`` as its rival. The search's best itself, refused
         for its rival alone (Alignment.rival_only: every other check held, its best distinct rival
-        within the search's margin, ``alignment.min_rival_ratio``), stands where the trial puts that
-        margin more there than at every other place: the search and the trial then agree, as
-        a best placed by its search stands where its trial meets at least as much there as at its
-        rival (Placer._rival_trial). ACES's third piece (of 3), live at ec357fd: its search's best
-        at 1.047x its rival, 0.4 m from where another run of the same seed placed it (1.12x there;
-        tried 65.7 m against 57.0 m), tried 64.0 m there against 56.1 m and left unplaced for good;
-        with the rule, placed so (seed 11 at 1.034x, 70.9 m against 60.2 m), 0 wrong."""
+        within the search's margin, ``alignment.min_rival_ratio``), stands where the trial makes up
+        the margin the search fell short by — the two ratios together give it, neither behind: a
+        best placed by its search (at the margin or more) stands where its trial meets at least
+        as much there as at its rival (Placer._rival_trial). ACES's third piece (of 3), live at
+        ec357fd: its search's best at 1.047x its rival (0.4 m from where another run of the same
+        seed placed it: 1.12x, tried 65.7 m against 57.0 m), tried 64.0 m there against 56.1 m,
+        left unplaced for good; with the rule placed so (seed 11 at 1.034x, 70.9 m against
+        60.2 m; seed 13 at 1.037x, 73.0 m against 67.4 m), 0 wrong."""
         c = self.cfg.alignment
         for i in range(start, len(places)):
             q, at, _ = places[i]
@@ -333,7 +334,7 @@ class Placer:
                 )  # fmt: skip
             settled = self._settle_unplaced(
                 r, place, placed_map, met[i], met[k], rival_tried=True, at=at, against=places[k][2],
-                ratio=c.min_rival_ratio if i == 0 and v.rival_only else None,
+                ratio=c.min_rival_ratio / v.rival_ratio if i == 0 and v.rival_only else None,
             )  # fmt: skip
             if settled is not None:
                 log.info("%s: %s", r.robot, settled.reason)

@@ -411,8 +411,9 @@ def test_a_bent_robots_place_refused_for_its_share_stands_where_a_trial_bend_bea
 @pytest.mark.parametrize(
     ("share", "trial", "outcome"),
     [
-        (0.3, (64.0, 56.1), "placed"),  # the trial gives the search's margin (1.1x) and more
-        (0.3, (60.0, 56.1), "refused"),  # less than the margin (1.07x)
+        (0.3, (64.0, 56.1), "placed"),  # the trial makes up the search's margin (1.1 / 1.047x)
+        (0.3, (59.0, 56.1), "placed"),  # ... just (1.052x)
+        (0.3, (58.0, 56.1), "refused"),  # not quite (1.034x)
         (0.3, (56.1, 64.0), "refused"),  # the rival ahead, by less than trial_ratio
         (0.1, (64.0, 56.1), "refused"),  # refused for its share as well: trial_ratio (1.5x) needed
     ],
@@ -422,10 +423,10 @@ def test_a_bent_robots_best_refused_for_its_rival_alone_stands_where_a_trial_giv
 ):
     """A bent piece's search's best refused only because its best distinct rival came within the
     search's margin (``alignment.min_rival_ratio``): the fleet's graph tries it there and at the
-    rival, and the best stands where the trial puts that margin more of its walls on the others'
-    there — the search and the trial agree, as a placed best stands where its trial meets at least
-    as much there as at its rival. ACES's third piece, live at ec357fd: its truth at 1.047x its
-    rival, tried 64.0 m there against 56.1 m, left unplaced for good."""
+    rival, and the best stands where the trial puts enough more of its walls on the others' there
+    to make up the margin the search fell short by (1.1 / 1.047) — as a placed best stands where
+    its trial meets at least as much there as at its rival. ACES's third piece, live at ec357fd:
+    its truth at 1.047x its rival, tried 64.0 m there against 56.1 m, left unplaced for good."""
     import dataclasses
 
     def refused(a):
@@ -439,7 +440,10 @@ def test_a_bent_robots_best_refused_for_its_rival_alone_stands_where_a_trial_giv
     assert len(tried) == 1 and len(tried[0]) == 2  # its best and its rival
     if outcome == "placed":
         assert _at_truth(a, truth) and a.status == "aligned"
-        assert "a trial bend puts 64.0 m" in a.reason and "56.1 m at its best rival's place" in a.reason
+        assert (
+            f"a trial bend puts {trial[0]:.1f} m" in a.reason
+            and "56.1 m at its best rival's place" in a.reason
+        )
     else:
         assert a.status == "unaligned" and a.reason == "rejected: rival ratio 1.047 < 1.1"
 
