@@ -73,7 +73,6 @@ class Alignment:
     # first (K,4): x, y, theta, matched m — a bent map loses net score at its truth to walls near
     # the others' but not on them, and its truth can stand behind nearer rivals by net score
     others: np.ndarray | None = None
-    rival_only: bool = False  # a search's best refused for its rival ratio alone (every other check held)
 
     def __post_init__(self) -> None:
         if self.status not in ALIGNMENT_STATUSES:
@@ -366,7 +365,6 @@ def _accept_best(
     rival = cand.best_rival(best, cands, robot.points, cfg.distinct_m)
     ratio = best.net / max(0.0 if rival is None else rival.net, 1e-9)
     problems = _problems(best, total, index, robot, robot_seg, cfg)
-    rival_only = not problems and ratio < cfg.min_rival_ratio
     if ratio < cfg.min_rival_ratio:
         problems.append(f"rival ratio {ratio:.3f} < {cfg.min_rival_ratio:g}")
     aside = f"; {len(set_aside)} better-scored place(s) contradicted ({set_aside[0][1]})" if set_aside else ""
@@ -378,7 +376,7 @@ def _accept_best(
     others = _most_matched(best, cands, robot.points, cfg.distinct_m)
     if problems:
         a = _verdict("unaligned", best, total, ratio, "rejected: " + "; ".join(problems) + aside)
-        return dataclasses.replace(a, rival=rival_at, others=others, rival_only=rival_only)
+        return dataclasses.replace(a, rival=rival_at, others=others)
     why = (
         f"overlap {best.matched_m:.1f} m ({best.matched_m / total:.0%}), {ratio:.2f}x the best rival" + aside
     )

@@ -216,7 +216,6 @@ class Placer:
         rival_tried: bool = False,
         at: str | None = None,
         against: str | None = None,
-        ratio: float | None = None,
     ) -> Alignment | None:
         """The bent maps' best place ``v``, refused by its search, where a trial bend puts
         ``trial_ratio`` times as much of the robot's walls on the others' there (``mine``) as at the
@@ -229,14 +228,13 @@ class Placer:
         rival, a most matched place: Placer._share_trial); ``against``: which place ``other`` was
         met at, when not the rigid maps' (or, ``rival_tried``, its best rival's). ACES's first
         piece (of 3), live at edd65b8: 12 % of its map on the bent maps whole (2.0 m from its
-        truth), 69.4 m once tried against 36.1 m at the rigid maps' place (16.6 m off). ``ratio``:
-        the margin the trial must give, when not ``trial_ratio``."""
+        truth), 69.4 m once tried against 36.1 m at the rigid maps' place (16.6 m off)."""
         c = self.cfg.alignment
         total = float(self._samples[r.robot][1][0].length.sum())
         if (
             v.placed
             or (v.rival_ratio < c.min_rival_ratio and not rival_tried)
-            or mine < (self.cfg.trial_ratio if ratio is None else ratio) * other
+            or mine < self.cfg.trial_ratio * other
             or mine < max(c.min_overlap_m, c.min_share * total)
         ):
             return None
@@ -312,17 +310,7 @@ class Placer:
         """The first of ``places`` (Placer._trial_places) from ``start`` whose trial ``met`` puts
         ``trial_ratio`` times as much of the robot's walls on the others' as at every other place
         tried, verified again there (Placer._settle_unplaced); None if none. A place other than
-        the search's best ``v`` stands with ``v`` as its rival. The search's best itself, refused
-        for its rival alone (Alignment.rival_only: every other check held, its best distinct rival
-        within the search's margin, ``alignment.min_rival_ratio``), stands where the trial makes up
-        the margin the search fell short by — the two ratios together give it, neither behind: a
-        best placed by its search (at the margin or more) stands where its trial meets at least
-        as much there as at its rival (Placer._rival_trial). ACES's third piece (of 3), live at
-        ec357fd: its search's best at 1.047x its rival (0.4 m from where another run of the same
-        seed placed it: 1.12x, tried 65.7 m against 57.0 m), tried 64.0 m there against 56.1 m,
-        left unplaced for good; with the rule placed so (seed 11 at 1.034x, 70.9 m against
-        60.2 m; seed 13 at 1.037x, 73.0 m against 67.4 m), 0 wrong."""
-        c = self.cfg.alignment
+        the search's best ``v`` stands with ``v`` as its rival."""
         for i in range(start, len(places)):
             q, at, _ = places[i]
             k = max((j for j in range(len(places)) if j != i), key=lambda j: met[j])  # the best other
@@ -333,32 +321,12 @@ class Placer:
                     rival_ratio=1.0 / max(v.rival_ratio, 1e-9),
                 )  # fmt: skip
             settled = self._settle_unplaced(
-                r, place, placed_map, met[i], met[k], rival_tried=True, at=at, against=places[k][2],
-                ratio=c.min_rival_ratio / v.rival_ratio if i == 0 and v.rival_only else None,
-            )  # fmt: skip
+                r, place, placed_map, met[i], met[k], rival_tried=True, at=at, against=places[k][2]
+            )
             if settled is not None:
                 log.info("%s: %s", r.robot, settled.reason)
                 return settled
         return None
-
-    def _kept(self, r: RobotState, current: Alignment, a: Alignment) -> Alignment:
-        """A placed robot searched again (``a``) whose search's best is still its place (within
-        ``search_agree_m`` of ``current``) but refused for its rival alone (Alignment.rival_only:
-        the best distinct rival within the search's margin, every other check held) stays where it
-        is: a place is undone by evidence against it — another place ahead, a check it fails —
-        not by a rival drawing within the margin it was placed by. ACES in 3 pieces, seed 10, live
-        at 66c45bc: its third piece placed at 1.16x (a trial bend 65.9 m there, 63.1 m at the
-        rival), undone at 1.095x ten seconds later and left unplaced for good."""
-        if (
-            a.placed
-            or not a.rival_only
-            or self._moved_m(r, current.transform, a.transform) > self.cfg.search_agree_m
-        ):
-            return a
-        why = f"kept: its search still puts it first, {a.rival_ratio:.3f}x the best rival"
-        if not current.reason.endswith(why):
-            log.info("%s: %s", r.robot, why)
-        return dataclasses.replace(current, reason=f"{current.reason.split('; kept: ')[0]}; {why}")
 
     @staticmethod
     def _awaiting(v: Alignment, why: str) -> Alignment:
@@ -626,8 +594,6 @@ class Placer:
             current = r.alignment if r.alignment.status == "aligned" else None
             sigma = r.map.prior_sigma if prior is not None else None
             a = self.estimate(r, prior, sigma, current, search=current is None or r.grew(self.cfg))
-            if current is not None:
-                a = self._kept(r, current, a)
             r.young_s = now_s if young else None
             if young:  # a young map's match is not evidence yet, unless nothing contradicts it
                 a = policy.young(a, self.cfg)
