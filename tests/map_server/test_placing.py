@@ -408,6 +408,28 @@ def test_a_bent_robots_place_refused_for_its_share_stands_where_a_trial_bend_bea
         assert a.status == "unaligned" and a.reason == "rejected: share"
 
 
+@pytest.mark.parametrize("trial", [(66.8, 54.8), (64.0, 56.1), (73.0, 67.4)])
+def test_a_bent_robots_best_refused_for_its_rival_needs_the_full_trial_margin(monkeypatch, trial):
+    """A bent piece's search's best refused only for its rival ratio (1.044x) is not placed by a
+    trial that puts 1.1-1.3x as much of its walls on the others' there: below ``trial_ratio``
+    (1.5x) a trial favours the wrong place as readily as the truth. ACES in 3 pieces, live
+    (session 56): the middle piece's mirror place at 1.044x, tried 66.8 m there against 54.8 m at
+    its truth, was merged half-turned, 40 m off, by a rule that let a trial make up the search's
+    margin; the same rule placed two pieces rightly (64.0 against 56.1 m, 73.0 against 67.4 m)."""
+    import dataclasses
+
+    def refused(a):
+        return dataclasses.replace(
+            a, status="unaligned", score_m=60.0, inlier_share=0.3, rival_ratio=1.044,
+            reason="rejected: rival ratio 1.044 < 1.1", rival=_moved(a.transform, 15.0),
+            others=np.zeros((0, 4)),
+        )  # fmt: skip
+
+    a, tried, _ = _searched(monkeypatch, trial, 5.0, refused)
+    assert len(tried) == 1 and len(tried[0]) == 2  # tried at its best and its rival
+    assert a.status == "unaligned" and a.reason == "rejected: rival ratio 1.044 < 1.1"
+
+
 @pytest.mark.parametrize(
     ("trial", "outcome"),
     [
