@@ -139,15 +139,10 @@ class MapServer:
             return
         meta, blobs = loaded
         try:  # the checksums hold, but the content must be a state this build reads too
-            frees = {n: b for n, b in blobs.items() if n.startswith(FREE_BLOB)}
-            graph = decode_graph_state(blobs.pop(GRAPH_BLOB, None))
-            blobs = {n: b for n, b in blobs.items() if n not in frees}
-            maps = {name: codec.decode_stored_map(blob) for name, blob in blobs.items()}
-            for name, blob in frees.items():
-                m = codec.decode(blob, expect=FreeSpace)
+            self.fleet, maps, frees = decode_state(meta, blobs, self.fleet_cfg, self.server_id)
+            for name, m in frees.items():
                 self.free.put(m)
-                self._stored_free[name] = (m.seq, blob)
-            self.fleet = Fleet.restore(meta["fleet"], maps, self.fleet_cfg, self.server_id, graph)
+                self._stored_free[name] = (m.seq, blobs[name])
             self.fleet.free_of = self.free.area
             self._time_offset = float(meta.get("now_s", 0.0))
         except (KeyError, TypeError, ValueError) as exc:
@@ -588,6 +583,18 @@ def encode_graph_state(graph: dict[str, tuple[str, int, np.ndarray]]) -> bytes:
         {robot: [session, seq, np.asarray(x, "<f8").tobytes()] for robot, (session, seq, x) in graph.items()},
         use_bin_type=True,
     )
+
+
+def decode_state(
+    meta: dict, blobs: dict[str, bytes], cfg: FleetConfig, server_id: str
+) -> tuple[Fleet, dict[str, RobotMap], dict[str, FreeSpace]]:
+    """A saved state (Store.load: its meta and blobs) as the fleet it holds (Fleet.restore), the
+    maps it was restored from (the robots' and the retired pieces', by blob name) and the robots'
+    free spaces (by blob name). Raises what the decoders raise on content this build cannot read."""
+    frees = {n: codec.decode(b, expect=FreeSpace) for n, b in blobs.items() if n.startswith(FREE_BLOB)}
+    graph = decode_graph_state(blobs.get(GRAPH_BLOB))
+    maps = {n: codec.decode_stored_map(b) for n, b in blobs.items() if n not in frees and n != GRAPH_BLOB}
+    return Fleet.restore(meta["fleet"], maps, cfg, server_id, graph), maps, frees
 
 
 def decode_graph_state(blob: bytes | None) -> dict[str, tuple[str, int, np.ndarray]] | None:
