@@ -10,15 +10,13 @@ the decimetre).
     .venv/bin/python benchmarks/replay_state.py /tmp/bd/aces-split3-seed10/state [--rounds 3]
         [--set alignment.min_share=0.12 ...] [--json benchmarks/results/replay_state.json]
 
-The state directory is read, never written (a copy is restored). Prints one row per verdict
+The state directory is read, never written. Prints one row per verdict
 (round, robot, status, place, why) and writes them as JSON.
 """
 
 from __future__ import annotations
 
 import argparse
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -33,20 +31,11 @@ from shared.config import apply_overrides
 
 def restore(state_dir: str | Path, cfg: FleetConfig):
     """The fleet a server's state directory holds, its robots' free spaces known to it (as a
-    restarted server's); the directory is copied first."""
-    with tempfile.TemporaryDirectory() as tmp:
-        copy = Path(tmp) / "state"
-        shutil.copytree(state_dir, copy, ignore=shutil.ignore_patterns("lock"))
-        loaded = Store(copy).load()
+    restarted server's); the directory is only read."""
+    loaded = Store(state_dir, check=False).load()
     if loaded is None:
         raise SystemExit(f"{state_dir}: no saved state in it")
-    meta, blobs = loaded
-    fleet, _maps, frees = decode_state(meta, blobs, cfg, "replay_state")
-    free = FreeSpaces(FreeFusionConfig())
-    for m in frees.values():
-        free.put(m)
-    fleet.free_of = free.area
-    return fleet
+    return decode_state(*loaded, cfg, "replay_state", FreeSpaces(FreeFusionConfig()))[0]
 
 
 def _row(round_: int, robot: str, a) -> dict:

@@ -139,11 +139,8 @@ class MapServer:
             return
         meta, blobs = loaded
         try:  # the checksums hold, but the content must be a state this build reads too
-            self.fleet, maps, frees = decode_state(meta, blobs, self.fleet_cfg, self.server_id)
-            for name, m in frees.items():
-                self.free.put(m)
-                self._stored_free[name] = (m.seq, blobs[name])
-            self.fleet.free_of = self.free.area
+            self.fleet, maps, frees = decode_state(meta, blobs, self.fleet_cfg, self.server_id, self.free)
+            self._stored_free = {name: (m.seq, blobs[name]) for name, m in frees.items()}
             self._time_offset = float(meta.get("now_s", 0.0))
         except (KeyError, TypeError, ValueError) as exc:
             raise StateError(f"{self.store.index}: cannot be restored ({type(exc).__name__}: {exc})") from exc
@@ -586,15 +583,20 @@ def encode_graph_state(graph: dict[str, tuple[str, int, np.ndarray]]) -> bytes:
 
 
 def decode_state(
-    meta: dict, blobs: dict[str, bytes], cfg: FleetConfig, server_id: str
+    meta: dict, blobs: dict[str, bytes], cfg: FleetConfig, server_id: str, free: FreeSpaces
 ) -> tuple[Fleet, dict[str, RobotMap], dict[str, FreeSpace]]:
-    """A saved state (Store.load: its meta and blobs) as the fleet it holds (Fleet.restore), the
-    maps it was restored from (the robots' and the retired pieces', by blob name) and the robots'
-    free spaces (by blob name). Raises what the decoders raise on content this build cannot read."""
+    """A saved state (Store.load: its meta and blobs) as the fleet it holds (Fleet.restore), its
+    robots' free spaces put into ``free`` and the fleet reading them there; also the maps it was
+    restored from (the robots' and the retired pieces') and the free spaces, each by blob name.
+    Raises what the decoders raise on content this build cannot read."""
     frees = {n: codec.decode(b, expect=FreeSpace) for n, b in blobs.items() if n.startswith(FREE_BLOB)}
+    for m in frees.values():
+        free.put(m)
     graph = decode_graph_state(blobs.get(GRAPH_BLOB))
     maps = {n: codec.decode_stored_map(b) for n, b in blobs.items() if n not in frees and n != GRAPH_BLOB}
-    return Fleet.restore(meta["fleet"], maps, cfg, server_id, graph), maps, frees
+    fleet = Fleet.restore(meta["fleet"], maps, cfg, server_id, graph)
+    fleet.free_of = free.area
+    return fleet, maps, frees
 
 
 def decode_graph_state(blob: bytes | None) -> dict[str, tuple[str, int, np.ndarray]] | None:
