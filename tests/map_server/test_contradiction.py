@@ -530,38 +530,3 @@ def test_a_held_place_is_not_given_up_for_one_that_only_the_others_have_seen_mor
     kept = estimate_alignment(robot, placed, CFG, current=held, veto=check)
     assert kept.status == "aligned" and kept.reason.startswith("kept and refined"), kept.reason
     assert "outshone" in kept.reason and transform_error(kept.transform, np.zeros(3))[0] < 0.01
-
-
-def test_a_map_that_contradicts_itself_is_checked_within_its_views_reach():
-    """A corridor 2 m wide seen 30 m along from one view. A map with a wall across it 25 m out
-    (a door shut later, or the far free space of a turned view) stands in its own free space by
-    more than graph.consistent_self_m: its checks take each view's free space within
-    contradiction.view_reach_m only, and there it agrees with itself; the map without that wall
-    agrees with itself and is checked against all of it."""
-    from types import SimpleNamespace
-
-    from map_server.config import FleetConfig
-    from map_server.fleet import Fleet
-    from map_server.freespace import FreeSpaces
-    from shared.messages import FreeSpace
-
-    corridor = np.array([[0.0, -1.0], [30.0, -1.0], [30.0, 1.0], [0.0, 1.0]])
-    view = FreeSpace(
-        "robot1", "s1", 0, 5.0, np.zeros((1, 3)), np.array([0, 4]), np.array([0]), corridor,
-        np.array([1, 1, 1, 0], bool),
-    )  # fmt: skip
-    free = FreeSpaces()
-    free.put(view)
-    fleet = Fleet(FleetConfig(), "server")
-    fleet.free_of = free.area
-    walls = np.array([[[0.0, -1.0], [30.0, -1.0]], [[0.0, 1.0], [30.0, 1.0]]])
-    across = np.array([[[25.0, -1.0], [25.0, 1.0]]])
-    clean, noisy = SimpleNamespace(seg=walls), SimpleNamespace(seg=np.concatenate([walls, across]))
-    cc, placer = fleet.cfg.contradiction, fleet.placer
-    full, near = free.area("robot1", "s1"), free.area("robot1", "s1", cc.view_reach_m)
-    assert full.area == pytest.approx(60.0) and near.area == pytest.approx(2.0 * cc.view_reach_m, abs=0.1)
-    noise = cd.own_noise(noisy.seg, placer._shrink(full), cc.step_m)[1].sum()
-    assert noise > fleet.cfg.graph.consistent_self_m  # 2 m across, less the margin at each wall
-    assert placer.free("robot1", "s1", noisy) is near
-    assert cd.own_noise(noisy.seg, placer._shrink(near), cc.step_m)[1].sum() == 0.0
-    assert placer.free("robot1", "s1", clean) is full
