@@ -100,8 +100,7 @@ class FreeSpaces:
         hit = self._reach_cache.get(key)
         if hit is None or hit[0] != m.seq or hit[1] != reach_m:
             rings = np.split(view_vertices(m), m.ring_offsets[1:-1])
-            near = union(rings, m.view_pose[m.ring_view, :2], reach_m)
-            hit = self._reach_cache[key] = (m.seq, reach_m, near)
+            hit = self._reach_cache[key] = (m.seq, reach_m, union(rings, m.view_pose[m.ring_view, :2], reach_m))
         return hit[2]
 
     def _own(self, key: tuple[str, str], m: FreeSpace | None = None) -> tuple[object, np.ndarray]:

@@ -441,7 +441,7 @@ class Placer:
         others = [x for x in self.fleet.placed() if x is not r]
         placed = [(x.robot, x.map.session, x.layer, x.alignment.transform) for x in others]
         placed += [(p.robot, p.session, p.layer, p.alignment.transform) for p in self.fleet.pieces()]
-        parts = [(a, lay, t) for rob, ses, lay, t in placed if (a := self.free(rob, ses, lay)) is not None]
+        parts = [(a, lay, t) for robot, ses, lay, t in placed if (a := self.free(robot, ses, lay)) is not None]
         made_of = tuple((id(a), id(lay), *np.round(t, 4)) for a, lay, t in parts)
         if self._placed_free is None or self._placed_free[0] != made_of:
             noise = contradiction.placed_noise(
@@ -472,9 +472,7 @@ class Placer:
         if hit is None or hit[0] is not area or hit[1] is not layer:
             step = self.cfg.contradiction.step_m
             noisy = contradiction.own_noise(layer.seg, self._shrink(area), step)[1].sum()
-            near = area
-            if noisy > self.cfg.graph.consistent_self_m:
-                near = self.fleet.free_of(robot, session, reach)
+            near = self.fleet.free_of(robot, session, reach) if noisy > self.cfg.graph.consistent_self_m else area
             hit = self._near[(robot, session)] = (area, layer, near)
             while len(self._near) > 2 * (len(self.fleet.robots) + len(self.fleet.pieces())) + 8:
                 del self._near[next(iter(self._near))]  # (the oldest first)

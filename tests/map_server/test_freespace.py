@@ -75,8 +75,7 @@ def test_a_views_free_space_is_taken_within_its_reach_only():
     wall = np.array([1, 1, 1, 0], bool)
     pose = np.array([[0.0, 0.0, 0.0], [0.0, 5.0, np.pi / 2]])  # the second: the 2 m square ahead of it
     rings = np.concatenate([corridor, SQUARE])
-    offsets, ring_view = np.array([0, 4, 8]), np.array([0, 1])
-    msg = FreeSpace("robot1", "s1", 0, 5.0, pose, offsets, ring_view, rings, np.tile(wall, 2))
+    msg = FreeSpace("robot1", "s1", 0, 5.0, pose, np.array([0, 4, 8]), np.array([0, 1]), rings, np.tile(wall, 2))
     reach = ContradictionConfig().view_reach_m
     assert reach == 15.0
     fs = FreeSpaces()
