@@ -66,15 +66,6 @@ class ContradictionConfig:
     close_ratio: float = 2.0
     outshone_factor: float = 2.0
     outshone_min_seen_m2: float = 50.0
-    # A map that contradicts itself by more than graph.consistent_self_m (its own walls inside its
-    # own free space: a real log's piece) is checked with each of its views' free space only
-    # within this of the view's pose (placing.Placer.free), the placed maps' alike: a heading error
-    # of a few tenths of a degree moves free space 15 m out by more than a wall's margin, and a
-    # long beam along a corridor at a grazing angle passes the wall. ACES in 3 pieces, the final
-    # maps of 6 live runs: the first and last pieces' walls in their own free space 5-31 m, 0.5-2.2
-    # m of it within 15 m (the middle piece 29-56 m, 5-20 m). The maps that agree with themselves
-    # (the simulated ones: a long aisle's far free space rules its mirror places out) keep all.
-    view_reach_m: float = 15.0
 
     @property
     def grid(self) -> tuple[float, float, int]:

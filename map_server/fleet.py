@@ -109,7 +109,7 @@ class Fleet:
         self._graph_moved = False  # the last bend matched or solved (keyframes may be due again)
         # a robot session's free space in its map frame (shapely, or None): the server gives
         # freespace.FreeSpaces.area; without it no placement is checked for contradiction
-        self.free_of: Callable[..., object] | None = None  # (robot, session[, reach_m]) -> its free space
+        self.free_of: Callable[[str, str], object] | None = None
         self.placer = Placer(self)  # the alignment rounds (placing.py)
         self._stiff: dict[str, tuple] = {}  # robot -> what Fleet._consistent measured
         self.trials = Trials()  # the graph's trials of robots at places (trials.py)

@@ -54,7 +54,6 @@ class FreeSpaces:
         self.cfg = cfg
         self.latest: dict[tuple[str, str], FreeSpace] = {}
         self._own_cache: dict[tuple[str, str], tuple[int, object, np.ndarray]] = {}  # seq, union, walls
-        self._reach_cache: dict[tuple[str, str], tuple[int, float, object]] = {}  # seq, reach, union
         self._fused_with: tuple[frozenset, dict] | None = None  # what the last fusion used
         self.version = 0
         self.changed = False  # a new message since the last fusion
@@ -84,24 +83,11 @@ class FreeSpaces:
             self.changed = True
         for key in [k for k in list(self._own_cache) if k not in self.latest]:  # (a fusion on its
             self._own_cache.pop(key, None)  # thread may have cached a session dropped meanwhile)
-        for key in [k for k in self._reach_cache if k not in self.latest]:
-            del self._reach_cache[key]
 
-    def area(self, robot: str, session: str, reach_m: float = np.inf):
+    def area(self, robot: str, session: str):
         """The free space a robot session's views saw, united, in its map frame (shapely; None
-        when none came); with ``reach_m``, each view's only within that of its pose (the last one
-        asked of each session kept)."""
-        key = (robot, session)
-        if key not in self.latest:
-            return None
-        if not np.isfinite(reach_m):
-            return self._own(key)[0]
-        m = self.latest[key]
-        hit = self._reach_cache.get(key)
-        if hit is None or hit[0] != m.seq or hit[1] != reach_m:
-            rings = np.split(view_vertices(m), m.ring_offsets[1:-1])
-            hit = self._reach_cache[key] = (m.seq, reach_m, union(rings, m.view_pose[m.ring_view, :2], reach_m))
-        return hit[2]
+        when none came)."""
+        return self._own((robot, session))[0] if (robot, session) in self.latest else None
 
     def _own(self, key: tuple[str, str], m: FreeSpace | None = None) -> tuple[object, np.ndarray]:
         """A session's views united and its wall edges ``(E,2,2)``, in its map frame (of its

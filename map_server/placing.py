@@ -45,7 +45,7 @@ class FleetView(Protocol):
     frame: str | None
     reference: str | None
     epoch_s: float | None
-    free_of: Callable[..., object] | None  # (robot, session[, reach_m]) -> its free space (FreeSpaces.area)
+    free_of: Callable[[str, str], object] | None
 
     def placed(self) -> list[RobotState]: ...
 
@@ -69,7 +69,6 @@ class Placer:
         self._placed_free: tuple | None = None  # (what it was made of, area, noise)
         self._noise_cache: dict[tuple[int, int], tuple] = {}  # Placer._own_noise
         self._shrunk: dict[int, tuple] = {}  # Placer._shrink: id(area) -> (area, shrunk)
-        self._near: dict[tuple[str, str], tuple] = {}  # Placer.free: (robot, session) -> (area, layer, its)
         # regroup(): per pair of unplaced robots (names), what its last attempt was made of (the
         # two maps' seqs), when, and the place awaiting confirmation with its count and first time
         self._pairs: dict[tuple[str, str], tuple] = {}
@@ -437,11 +436,12 @@ class Placer:
         cc = self.cfg.contradiction
         if self.fleet.free_of is None or not cc.enabled:
             return None
-        own = self._shrink(self.free(r.robot, r.map.session, r.layer))
+        free_of = self.fleet.free_of
+        own = self._shrink(free_of(r.robot, r.map.session))
         others = [x for x in self.fleet.placed() if x is not r]
         placed = [(x.robot, x.map.session, x.layer, x.alignment.transform) for x in others]
         placed += [(p.robot, p.session, p.layer, p.alignment.transform) for p in self.fleet.pieces()]
-        parts = [(a, lay, t) for robot, ses, lay, t in placed if (a := self.free(robot, ses, lay)) is not None]
+        parts = [(a, lay, t) for robot, ses, lay, t in placed if (a := free_of(robot, ses)) is not None]
         made_of = tuple((id(a), id(lay), *np.round(t, 4)) for a, lay, t in parts)
         if self._placed_free is None or self._placed_free[0] != made_of:
             noise = contradiction.placed_noise(
@@ -457,26 +457,6 @@ class Placer:
         if own is None and theirs is None:
             return None
         return contradiction.Check(r.layer.seg, own, placed_map, theirs, cc, noise)
-
-    def free(self, robot: str, session: str, layer) -> object | None:
-        """The free space a check of a place takes of a robot session whose map is ``layer``: all
-        its views saw, or — where its walls stand in it by more than ``graph.consistent_self_m``
-        (a real log's piece: its path's heading errors, its grazing beams) — each view's within
-        ``contradiction.view_reach_m`` of its pose (kept while the area and the layer are the
-        same objects). None when not known."""
-        area = self.fleet.free_of(robot, session)
-        reach = self.cfg.contradiction.view_reach_m
-        if area is None or not np.isfinite(reach):
-            return area
-        hit = self._near.get((robot, session))
-        if hit is None or hit[0] is not area or hit[1] is not layer:
-            step = self.cfg.contradiction.step_m
-            noisy = contradiction.own_noise(layer.seg, self._shrink(area), step)[1].sum()
-            near = self.fleet.free_of(robot, session, reach) if noisy > self.cfg.graph.consistent_self_m else area
-            hit = self._near[(robot, session)] = (area, layer, near)
-            while len(self._near) > 2 * (len(self.fleet.robots) + len(self.fleet.pieces())) + 8:
-                del self._near[next(iter(self._near))]  # (the oldest first)
-        return hit[2]
 
     def own_noise_m(self, r: RobotState) -> float | None:
         """How much of ``r``'s walls stand in its own free space (contradiction.own_noise), or None
@@ -716,8 +696,8 @@ class Placer:
         c, cc = self.cfg.alignment, self.cfg.contradiction
         veto = None
         if self.fleet.free_of is not None and cc.enabled:
-            own = self._shrink(self.free(b.robot, b.map.session, b.layer))
-            theirs = self._shrink(self.free(a.robot, a.map.session, a.layer))
+            own = self._shrink(self.fleet.free_of(b.robot, b.map.session))
+            theirs = self._shrink(self.fleet.free_of(a.robot, a.map.session))
             if own is not None or theirs is not None:
                 noise = (
                     contradiction.own_noise(a.layer.seg, theirs, cc.step_m) if theirs is not None else None

@@ -78,21 +78,10 @@ def unexplained(walls: np.ndarray, known, spacing_m: float = 0.05) -> np.ndarray
     return seg[np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1) > spacing_m * 1.5]  # a sample or two: noise
 
 
-def union(rings: list[np.ndarray], centres: np.ndarray | None = None, reach_m: float = np.inf):
-    """The union of polygons given as outer rings (a shapely geometry); with ``centres (R,2)``,
-    each ring only within ``reach_m`` of its centre (its view's pose)."""
-    polys = []
-    for i, v in enumerate(rings):
-        if len(v) < 3:
-            continue
-        p = Polygon(v)
-        p = p if p.is_valid else shapely.make_valid(p)
-        if centres is not None and np.isfinite(reach_m):
-            c = centres[i]
-            if np.max(np.hypot(v[:, 0] - c[0], v[:, 1] - c[1])) > reach_m:
-                p = p.intersection(shapely.Point(c[0], c[1]).buffer(reach_m, quad_segs=16))
-        polys.append(p)
-    return shapely.union_all(polys)
+def union(rings: list[np.ndarray]):
+    """The union of polygons given as outer rings (a shapely geometry)."""
+    polys = [Polygon(v) for v in rings if len(v) >= 3]
+    return shapely.union_all([p if p.is_valid else shapely.make_valid(p) for p in polys])
 
 
 def polygons(geom) -> list[Polygon]:

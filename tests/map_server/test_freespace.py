@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from shapely.geometry import Polygon
 
-from map_server.contradiction import ContradictionConfig
 from map_server.freespace import FreeFusionConfig, FreeSpaces
 from map_server.server import MapServer
 from map_server.store import Store
@@ -64,30 +63,6 @@ def test_free_space_is_placed_united_and_refused_when_stale():
     assert len(f.walls) == 1 and np.allclose(np.sort(f.walls[0, :, 1]), [3.0, 3.0])  # the third: y = 3
     fs.keep_only({("robot1", "s1")})
     assert set(fs.latest) == {("robot1", "s1")} and fs.changed
-
-
-def test_a_views_free_space_is_taken_within_its_reach_only():
-    """A corridor 2 m wide seen 30 m along from one view: asked within the contradiction check's
-    reach, only the part within it of the view's pose is free (a heading error of 0.3 deg moves the
-    far end by 15 cm: through the wall); a view whose free space lies within its reach is whole.
-    Asked without: all of it."""
-    corridor = np.array([[0.0, -1.0], [30.0, -1.0], [30.0, 1.0], [0.0, 1.0]])
-    wall = np.array([1, 1, 1, 0], bool)
-    pose = np.array([[0.0, 0.0, 0.0], [0.0, 5.0, np.pi / 2]])  # the second: the 2 m square ahead of it
-    rings = np.concatenate([corridor, SQUARE])
-    msg = FreeSpace("robot1", "s1", 0, 5.0, pose, np.array([0, 4, 8]), np.array([0, 1]), rings, np.tile(wall, 2))
-    reach = ContradictionConfig().view_reach_m
-    assert reach == 15.0
-    fs = FreeSpaces()
-    fs.put(msg)
-    area = fs.area("robot1", "s1", reach)
-    disk_cap = area.difference(Polygon([(-3, 4), (3, 4), (3, 8), (-3, 8)]))  # the corridor's part
-    x0, _, x1, _ = disk_cap.bounds
-    assert x0 == pytest.approx(0.0) and x1 == pytest.approx(reach, abs=0.01)  # cut at 15 m
-    assert disk_cap.area == pytest.approx(2.0 * reach, abs=0.1)
-    assert area.difference(disk_cap).area == pytest.approx(4.0, abs=1e-6)  # the square whole
-    assert fs.area("robot1", "s1", reach) is area  # (kept)
-    assert fs.area("robot1", "s1").area == pytest.approx(60.0 + 4.0, abs=1e-6)  # all of it
 
 
 def test_a_message_that_adds_views_is_put_together_with_the_one_before_or_asks_for_the_whole():
