@@ -10,8 +10,9 @@ the decimetre).
     .venv/bin/python benchmarks/replay_state.py /tmp/bd/aces-split3-seed10/state [--rounds 3]
         [--set alignment.min_share=0.12 ...] [--json benchmarks/results/replay_state.json]
 
-The state directory is read, never written. Prints one row per verdict
-(round, robot, status, place, why) and writes them as JSON.
+The state directory is read, never written. Prints each robot's map length and how much of its walls
+stand in its own free space (what its checks allow for; over ``graph.consistent_self_m`` it is a
+bent piece), then one row per verdict (round, robot, status, place, why), and writes them as JSON.
 """
 
 from __future__ import annotations
@@ -65,6 +66,18 @@ def replay(fleet, rounds: int, now_s: float = 1e6) -> list[dict]:
     return rows
 
 
+def self_contradiction(fleet) -> dict[str, dict]:
+    """Each robot's map length and how much of its walls stand in its own free space (m; None:
+    its free space not known) — what its checks allow for and what makes it a bent piece
+    (Placer.own_noise_m against graph.consistent_self_m). ACES in 3 pieces: the first piece 5-9 m
+    on five live runs' final maps, 16.7 m on the one that left it unplaced (session 57)."""
+    out = {}
+    for name, r in sorted(fleet.robots.items()):
+        if r.layer is not None:
+            out[name] = dict(length_m=float(r.layer.length_m), self_m=fleet.placer.own_noise_m(r))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("state", help="a map server's state directory (its index and blobs)")
@@ -73,12 +86,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default="benchmarks/results/replay_state.json")
     args = ap.parse_args(argv)
     fleet = restore(args.state, apply_overrides(FleetConfig(), args.set))
+    noise = self_contradiction(fleet)
     rows = replay(fleet, args.rounds)
     print(f"reference {fleet.reference}")
+    for name, n in noise.items():
+        own = "its free space not known"
+        if n["self_m"] is not None:
+            own = f"{n['self_m']:.1f} m in its own free space"
+        print(f"{name}: {n['length_m']:.0f} m of walls, {own}")
     for r in rows:
         where = np.array2string(np.round(r["transform"], 3), separator=", ")
         print(f"round {r['round']}  {r['robot']:10s} {r['status']:10s} {where:28s} {r['reason']}")
-    save_results(args.json, "replay_state", dict(state=str(args.state), reference=fleet.reference, rows=rows))
+    out = dict(state=str(args.state), reference=fleet.reference, self_contradiction=noise, rows=rows)
+    save_results(args.json, "replay_state", out)
     return 0
 
 

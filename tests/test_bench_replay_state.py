@@ -35,7 +35,9 @@ def test_a_saved_state_is_replayed_offline_and_left_as_it_was(tmp_path):
     truth = _saved_state(state)
     before = {p.name: p.read_bytes() for p in state.rglob("*") if p.is_file()}
     with bench_script("replay_state") as rs:
-        rows = rs.replay(rs.restore(state, FleetConfig()), rounds=3)
+        fleet = rs.restore(state, FleetConfig())
+        noise = rs.self_contradiction(fleet)
+        rows = rs.replay(fleet, rounds=3)
         assert rs.main([str(state), "--json", str(tmp_path / "out.json")]) == 0
     assert [(r["round"], r["robot"], r["status"]) for r in rows[:2]] == [
         (0, "robot0", "reference"),
@@ -46,5 +48,9 @@ def test_a_saved_state_is_replayed_offline_and_left_as_it_was(tmp_path):
     err_m, err_rad = transform_error(np.array(searched[0]["transform"]), truth)
     assert err_m < 0.05 and err_rad < np.radians(0.5)
     assert all(r["round"] <= 2 for r in rows)  # a round placing nobody ends it
-    assert json.loads((tmp_path / "out.json").read_text())["rows"] == rows
+    # the state holds no free space: how much each map contradicts itself is not known
+    assert set(noise) == {"robot0", "robot1"} and all(n["self_m"] is None for n in noise.values())
+    assert all(n["length_m"] > 50.0 for n in noise.values())
+    out = json.loads((tmp_path / "out.json").read_text())
+    assert out["rows"] == rows and out["self_contradiction"] == noise
     assert {p.name: p.read_bytes() for p in state.rglob("*") if p.is_file()} == before
