@@ -24,7 +24,7 @@ import numpy as np
 from _results import save_results
 
 from map_server.config import FleetConfig
-from map_server.freespace import FreeFusionConfig, FreeSpaces
+from map_server.freespace import FreeSpaces
 from map_server.server import decode_state
 from map_server.store import Store
 from shared.config import apply_overrides
@@ -36,7 +36,7 @@ def restore(state_dir: str | Path, cfg: FleetConfig):
     loaded = Store(state_dir, check=False).load()
     if loaded is None:
         raise SystemExit(f"{state_dir}: no saved state in it")
-    return decode_state(*loaded, cfg, "replay_state", FreeSpaces(FreeFusionConfig()))[0]
+    return decode_state(*loaded, cfg, "replay_state", FreeSpaces())[0]
 
 
 def _row(round_: int, robot: str, a) -> dict:

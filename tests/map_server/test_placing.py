@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -231,7 +233,6 @@ def test_a_place_found_against_the_rigid_maps_stands_where_the_bent_maps_agree(
     bent maps' best that their search refused (a rival, as Placer._rival_trial's); else neither
     stands (ambiguous): each search has placed a piece of ACES wrongly where the other found its
     truth. The bent maps place alone where the rigid maps place nothing."""
-    import dataclasses
 
     def rigid(a):  # as found (or refused)
         return a if rigid_placed else dataclasses.replace(a, status="unaligned", reason="r")
@@ -288,8 +289,6 @@ def test_a_bent_robots_place_stands_only_if_a_trial_bend_meets_more_there_than_a
     as at the rival; the rival ahead by the margin a search places by (``alignment.min_rival_ratio``):
     refused; ahead by less: the robot waits (ACES's third piece, live: 66.7 m at the half-turned
     place its search chose at 1.48x, 70.5 m at its truth)."""
-    import dataclasses
-
     f, truth = _fleet_of_two()
     f.cfg = dataclasses.replace(f.cfg, trial_rival_ratio=ratio_below)
     tried = _trials(monkeypatch, f, trial)
@@ -322,7 +321,6 @@ def test_the_bent_maps_place_refused_for_its_share_stands_where_a_trial_bend_set
     piece: 12 %, under ``min_share``); where the rigid maps place it elsewhere and a trial bend puts
     ``trial_ratio`` times as much of its walls on the others' at the bent maps' place, and a merge's
     worth, that place is verified again there (every check but the share) and stands."""
-    import dataclasses
 
     def rigid(a):  # a place 20 m off
         return dataclasses.replace(a, transform=_moved(a.transform, 20.0))
@@ -359,21 +357,21 @@ def _searched(monkeypatch, trial, noise_m, answer):
 
 
 def _refused_for_share(
-    monkeypatch, trial, noise_m=5.0, score_m=40.0, best_off_m=0.0, rival_off_m=15.0, others=()
+    monkeypatch, trial, noise_m=5.0, score_m=40.0, best_off_m=0.0, rival_off_m=15.0, others=(), **fields
 ):
     """:func:`_searched` with its search's best place (the true one moved ``best_off_m`` along x)
     refused for its share, its best distinct rival the true one moved ``rival_off_m``, its other
     places (Alignment.others) the true one moved ``off`` with ``matched`` m for each
-    ``(off, matched)`` of ``others``."""
-    import dataclasses
+    ``(off, matched)`` of ``others``; ``fields``: the verdict's other fields (another ``reason``)."""
 
     def refused(a):
         rows = [[*_moved(a.transform, off), m] for off, m in others]
-        return dataclasses.replace(
-            a, status="unaligned", transform=_moved(a.transform, best_off_m), score_m=score_m,
+        verdict = dict(
+            status="unaligned", transform=_moved(a.transform, best_off_m), score_m=score_m,
             reason="rejected: share", rival=_moved(a.transform, rival_off_m),
             others=np.array(rows, float).reshape(-1, 4),
         )  # fmt: skip
+        return dataclasses.replace(a, **(verdict | fields))
 
     return _searched(monkeypatch, trial, noise_m, refused)
 
@@ -416,16 +414,10 @@ def test_a_bent_robots_best_refused_for_its_rival_needs_the_full_trial_margin(mo
     (session 56): the middle piece's mirror place at 1.044x, tried 66.8 m there against 54.8 m at
     its truth, was merged half-turned, 40 m off, by a rule that let a trial make up the search's
     margin; the same rule placed two pieces rightly (64.0 against 56.1 m, 73.0 against 67.4 m)."""
-    import dataclasses
-
-    def refused(a):
-        return dataclasses.replace(
-            a, status="unaligned", score_m=60.0, inlier_share=0.3, rival_ratio=1.044,
-            reason="rejected: rival ratio 1.044 < 1.1", rival=_moved(a.transform, 15.0),
-            others=np.zeros((0, 4)),
-        )  # fmt: skip
-
-    a, tried, _ = _searched(monkeypatch, trial, 5.0, refused)
+    why = "rejected: rival ratio 1.044 < 1.1"
+    a, tried, _ = _refused_for_share(
+        monkeypatch, trial, score_m=60.0, inlier_share=0.3, rival_ratio=1.044, reason=why
+    )
     assert len(tried) == 1 and len(tried[0]) == 2  # tried at its best and its rival
     assert a.status == "unaligned" and a.reason == "rejected: rival ratio 1.044 < 1.1"
 
@@ -475,7 +467,6 @@ def test_a_bent_robots_place_is_tried_against_its_searchs_most_matched_far_place
     1 / ``trial_rival_ratio`` of the best's length is tried by the fleet's graph too: the place
     stands unless its walls meet the others' there ``min_rival_ratio`` times as much, and that
     place stands where they meet ``trial_ratio`` times as much (verified again there)."""
-    import dataclasses
 
     def found(a):  # (the true place, decisively: its net rival is not tried)
         other = [*_moved(a.transform, other_off_m), other_share * a.score_m]
@@ -534,8 +525,6 @@ def test_a_bent_robot_whose_place_waits_on_a_trial_stays_unplaced_and_says_so(mo
     says None until one is done): a robot whose place waits on one stays unplaced meanwhile, and
     its reason says so — its place tried against a rival, its place refused for its share, or the
     two searches that placed apart."""
-    import dataclasses
-
     if trial == "rival":
         f, _ = _fleet_of_two()
         f.cfg = dataclasses.replace(f.cfg, trial_rival_ratio=1e9)
@@ -564,7 +553,6 @@ def test_a_placed_robot_placed_again_elsewhere_says_so(monkeypatch, caplog):
     """A revision that moves a placed robot (confirmed: ``confirmations`` attempts in a row) is in
     the log with how far it moved it, as a first placement is: a robot placed well and moved away
     later is a wrong merge nothing else would show."""
-    import dataclasses
     import logging
 
     f, truth = _fleet_of_two()
