@@ -59,7 +59,7 @@ def log_row(name: str, split: int, seed: int, m: dict) -> str:
     merges = " ".join(
         f"{n}@{r['time_to_first_merge_s']:.0f}s"
         if r.get("time_to_first_merge_s") is not None
-        else f"{n}:{r['status']}"  # (never merged: unaligned, or the reference)
+        else f"{n}:{r['status']}"  # (never merged: its status whole)
         for n, r in m["robots"].items()
     )
     return (

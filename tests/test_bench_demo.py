@@ -5,11 +5,12 @@ from tests.benchscripts import bench_script
 
 def test_a_real_log_row_names_each_piece_merged_or_its_status_whole():
     """A piece never merged is named with its status in full ("unaligned", not "una"), one that
-    merged with the time it did; the count of pieces placed and the relations errors lead."""
+    merged (the reference at once) with the time it did; the count of pieces placed and the
+    relations errors lead."""
     m = {
         "robots": {
             "robot1": {"status": "unaligned", "time_to_first_merge_s": None},
-            "robot2": {"status": "reference", "time_to_first_merge_s": None},
+            "robot2": {"status": "reference", "time_to_first_merge_s": 2.0},
             "robot3": {"status": "aligned", "time_to_first_merge_s": 41.6},
         },
         "wrong_merges": [],
@@ -20,4 +21,4 @@ def test_a_real_log_row_names_each_piece_merged_or_its_status_whole():
         line = bd.log_row("aces", 3, 20, m)
     assert line.startswith("aces           3   20  2/3 placed  wrong 0  all 0.039 m 0.41° (n=1279)")
     assert "across 0.065 m 0.73° (n=210)" in line
-    assert line.endswith("robot1:unaligned robot2:reference robot3@42s")
+    assert line.endswith("robot1:unaligned robot2@2s robot3@42s")
