@@ -40,7 +40,7 @@ from robot_agent.slam.motion import (
     walk_slip,
 )
 from robot_agent.slam.particles import ParticleSet, SegmentMaps
-from robot_agent.slam.proposal import ProposalConfig, align, align_points
+from robot_agent.slam.proposal import OdometryNoise, ProposalConfig, align, align_points, draw_covariance
 from robot_agent.slam.resampling import effective_sample_size, systematic_resample
 from robot_agent.slam.trajectory import Trajectory, keyframe_of
 from robot_agent.slam.update import (
@@ -196,6 +196,8 @@ class FastSLAM:
         # back end — its loop search window is too small for the drift a relocalization bridges
         self.loop_hints: list[tuple[int, np.ndarray]] = []
         self.hints_forgotten = 0  # the oldest hints, dropped with the path they refer to
+        # the odometry's translation noise as the scans measure it (ProposalConfig.draw_measured_odometry)
+        self.odometry_noise = OdometryNoise()
 
     # -- the loop ---------------------------------------------------------------------------
 
@@ -302,7 +304,12 @@ class FastSLAM:
                 init,
                 segs.point_alpha,
             )
-            ps.poses = sample_gaussian(self.rng, prop.mean, prop.cov * cfg.proposal.sample_scale)
+            draw = prop.cov
+            if cfg.proposal.draw_measured_odometry:
+                if not scan_driven:  # (a stuck wheel's step predicts by the scans, not odometry)
+                    self.odometry_noise.add(prop.mean - mean, cov, prop.cov, cfg.proposal)
+                draw = draw_covariance(prop.cov, cov, self.odometry_noise.ratio(cfg.proposal))
+            ps.poses = sample_gaussian(self.rng, prop.mean, draw * cfg.proposal.sample_scale)
             path = prop.mean if cfg.proposal.record_mean else None
             d = prop.mean - mean
             d[:, 2] = wrap_angle(d[:, 2])

@@ -303,3 +303,48 @@ def test_a_point_pairs_only_with_an_element_along_its_own_line():
     np.testing.assert_array_equal(pairs(lines)[:, len(on_wall) :], -1)
     np.testing.assert_array_equal(pairs(lines, np.pi / 2), 0)  # (no gate)
     np.testing.assert_array_equal(pairs(np.concatenate([along, np.full(len(side), np.nan)])), 0)
+
+
+def test_the_draws_along_a_blind_wall_take_the_odometry_measured():
+    """One wall: the proposal knows nothing along it (the motion prior's variance there). Drawn at
+    a measured odometry noise of 0.1 of the model's variance, the along-wall variance is a tenth of
+    the prior's, the across-wall and heading variances (the scan's) stay; at 1, the proposal's own."""
+    from robot_agent.slam.proposal import draw_covariance
+
+    _, cov, res = run(ONE_WALL)
+    assert draw_covariance(res.cov, cov, 1.0) is res.cov
+    draw = draw_covariance(res.cov, cov, 0.1)
+    along = np.einsum("i,pij,j->p", DIR_30, res.cov[:, :2, :2], DIR_30)
+    assert np.all(along > 0.8 * PRIOR_SIGMA_XY_M**2)  # (the scan leaves it to the prior)
+    drawn_along = np.einsum("i,pij,j->p", DIR_30, draw[:, :2, :2], DIR_30)
+    np.testing.assert_allclose(drawn_along, 0.1 * along, rtol=0.15)
+    across = np.einsum("i,pij,j->p", NORMAL_30, draw[:, :2, :2], NORMAL_30)
+    np.testing.assert_allclose(
+        across, np.einsum("i,pij,j->p", NORMAL_30, res.cov[:, :2, :2], NORMAL_30), rtol=0.05
+    )
+    np.testing.assert_allclose(draw[:, 2, 2], res.cov[:, 2, 2], rtol=0.05)
+    assert np.all(np.linalg.eigvalsh(draw) > 0)
+
+
+def test_the_odometry_noise_is_measured_where_the_scan_pins_the_pose():
+    """Steps whose scan-matched pose lies off odometry's prediction as N(0, 0.2 Σ): the measure
+    comes to 0.2 of the model's variance; steps the scan does not pin (along a corridor) and
+    odometry worse than the model leave the model's (1); the floor holds."""
+    from robot_agent.slam.proposal import OdometryNoise
+
+    rng = np.random.default_rng(0)
+    cfg = ProposalConfig()
+    motion = np.tile(np.diag([0.02**2, 0.02**2, 0.01**2]), (10, 1, 1))
+    pinned, corridor = motion * 0.1, motion * np.array([1.0, 0.1, 0.1])[:, None]
+    good, blind, bad, floor = OdometryNoise(), OdometryNoise(), OdometryNoise(), OdometryNoise()
+    for _ in range(1000):
+        d = rng.normal(size=(10, 3)) * 0.02 * np.array([1.0, 1.0, 0.5])
+        good.add(d * np.sqrt(0.2), motion, pinned, cfg)
+        blind.add(d * np.sqrt(0.2), motion, corridor, cfg)
+        bad.add(d * 3.0, motion, pinned, cfg)
+        floor.add(d * 1e-3, motion, pinned, cfg)
+    assert good.ratio(cfg) == pytest.approx(0.2, rel=0.1)
+    assert blind.steps == 0 and blind.ratio(cfg) == 1.0
+    assert bad.ratio(cfg) == 1.0
+    assert floor.ratio(cfg) == cfg.min_odometry_ratio
+    assert good.steps < cfg.odometry_horizon_steps  # (older steps forgotten: bounded)
