@@ -40,7 +40,7 @@ from robot_agent.slam.motion import (
     walk_slip,
 )
 from robot_agent.slam.particles import ParticleSet, SegmentMaps
-from robot_agent.slam.proposal import OdometryNoise, ProposalConfig, align, align_points, draw_covariance
+from robot_agent.slam.proposal import MeasuredOdometry, ProposalConfig, align, align_points, draw_covariance
 from robot_agent.slam.resampling import effective_sample_size, systematic_resample
 from robot_agent.slam.trajectory import Trajectory, keyframe_of
 from robot_agent.slam.update import (
@@ -197,7 +197,7 @@ class FastSLAM:
         self.loop_hints: list[tuple[int, np.ndarray]] = []
         self.hints_forgotten = 0  # the oldest hints, dropped with the path they refer to
         # the odometry's translation noise as the scans measure it (ProposalConfig.draw_measured_odometry)
-        self.odometry_noise = OdometryNoise()
+        self.odometry_noise = MeasuredOdometry()
 
     # -- the loop ---------------------------------------------------------------------------
 

@@ -73,10 +73,10 @@ class ProposalConfig:
     # the scans measured it under the motion model's (never over it): a step measures it where its
     # proposal's variances are all under ``pinned_share`` of the motion's (the scan pins the pose),
     # as the scan-matched pose's distance from odometry's prediction, d Σ⁻¹ d / 2 over x and y
-    # (OdometryNoise). Along a blind aisle the draws are the motion prior's, and each particle's
-    # path wanders with them: a simulated robot (odometry at 0.1 of the model's variance) drifted
-    # 4 cm along an aisle with perfect odometry (they measure 0.1 of the model's variance). The 60
-    # simulated robots, two seeds of the filter each (ATE, own map frames against their starts):
+    # (MeasuredOdometry). Along a blind aisle the draws are the motion prior's, and each particle's
+    # path wanders with them: a simulated robot drifted 4 cm along an aisle with perfect odometry
+    # (the simulated robots measure 0.1 of the model's variance). The 60 simulated robots, two
+    # seeds of the filter each, the first form (no forgetting; ATE, own map frames against starts):
     # office 0.0135 / 0.0144 -> 0.0124 / 0.0132 m, 0.0171 / 0.0191 -> 0.0185 / 0.0147 m; warehouse
     # 0.0217 / 0.0247 -> 0.0142 / 0.0148 m, 0.0211 / 0.0274 -> 0.0149 / 0.0152 m; bench_merge (new
     # recordings): final transform errors over 0.05 m 5 -> 3 of 40, mean 0.026 -> 0.021 m, the fused
@@ -158,7 +158,7 @@ class ProposalResult:
 
 
 @dataclass
-class OdometryNoise:
+class MeasuredOdometry:
     """The odometry's translation noise as the scans measure it, in units of the motion model's
     variance (ProposalConfig.draw_measured_odometry): a forgetting average of each measuring step's
     ``d Σ⁻¹ d / 2``, starting at 1 (the model's)."""

@@ -330,13 +330,13 @@ def test_the_odometry_noise_is_measured_where_the_scan_pins_the_pose():
     """Steps whose scan-matched pose lies off odometry's prediction as N(0, 0.2 Σ): the measure
     comes to 0.2 of the model's variance; steps the scan does not pin (along a corridor) and
     odometry worse than the model leave the model's (1); the floor holds."""
-    from robot_agent.slam.proposal import OdometryNoise
+    from robot_agent.slam.proposal import MeasuredOdometry
 
     rng = np.random.default_rng(0)
     cfg = ProposalConfig()
     motion = np.tile(np.diag([0.02**2, 0.02**2, 0.01**2]), (10, 1, 1))
     pinned, corridor = motion * 0.1, motion * np.array([1.0, 0.1, 0.1])[:, None]
-    good, blind, bad, floor = OdometryNoise(), OdometryNoise(), OdometryNoise(), OdometryNoise()
+    good, blind, bad, floor = (MeasuredOdometry() for _ in range(4))
     for _ in range(1000):
         d = rng.normal(size=(10, 3)) * 0.02 * np.array([1.0, 1.0, 0.5])
         good.add(d * np.sqrt(0.2), motion, pinned, cfg)
