@@ -122,7 +122,7 @@ def test_a_tail_too_long_keeps_its_first_and_newest_scans():
     assert c.dropped_tail == len(slam.trajectory) - 10
 
 
-@pytest.mark.parametrize("adopt, tol", [(False, 1e-9), (True, 0.03)])
+@pytest.mark.parametrize("adopt, tol", [(False, 1e-9), (True, 0.05)])
 def test_a_run_without_end_forgets_its_oldest_path_and_publishes_the_same(office_run, adopt, tol):
     """The same 200 s with the filter keeping its path for the newest 200 scans only (as a
     source without end does, for days): the oldest path, relocalization hints and retired
@@ -130,7 +130,9 @@ def test_a_run_without_end_forgets_its_oldest_path_and_publishes_the_same(office
     poses and maps are exactly those of the run that keeps everything — when the filter
     continues from the corrections (``online_adopt``), to rounding: a forgotten keyframe's own
     pose comes from the last correction instead of being recomputed from the moved path
-    (1e-15 m apart), which the filter amplifies as any rounding (measured: 1.1 cm at most)."""
+    (1e-15 m apart), which the filter amplifies as any rounding (measured: 3.5 cm at most, 1.1 cm
+    before the particles were drawn with the odometry noise the scans measure). Without adoption
+    the two runs are the same to 1e-9 (measured: 0)."""
     import dataclasses
 
     cfg = SlamConfig(particles=10)
