@@ -304,16 +304,16 @@ class FastSLAM:
                 init,
                 segs.point_alpha,
             )
+            d = prop.mean - mean  # (the scan match against odometry's prediction)
+            d[:, 2] = wrap_angle(d[:, 2])
+            info = np.linalg.inv(cov)
             draw = prop.cov
             if cfg.proposal.draw_measured_odometry:
                 if not scan_driven:  # (a stuck wheel's step predicts by the scans, not odometry)
-                    self.odometry_noise.add(prop.mean - mean, cov, prop.cov, cfg.proposal)
-                draw = draw_covariance(prop.cov, cov, self.odometry_noise.ratio(cfg.proposal))
+                    self.odometry_noise.add(d, cov, prop.cov, cfg.proposal)
+                draw = draw_covariance(prop.cov, info, self.odometry_noise.ratio(cfg.proposal))
             ps.poses = sample_gaussian(self.rng, prop.mean, draw * cfg.proposal.sample_scale)
             path = prop.mean if cfg.proposal.record_mean else None
-            d = prop.mean - mean
-            d[:, 2] = wrap_angle(d[:, 2])
-            info = np.linalg.inv(cov)
             prior_term = -0.5 * np.einsum("pi,pij,pj->p", d, info, d)
             if not scan_driven:  # odometry's systematic error is learned from odometry's motion
                 ps.slip, ps.slip_cov = update_slip(ps.slip, ps.slip_cov, jac, info, prop.cov, d, cfg.motion)

@@ -188,15 +188,16 @@ class MeasuredOdometry:
         return float(np.clip((n0 + self.total) / (n0 + self.steps), cfg.min_odometry_ratio, 1.0))
 
 
-def draw_covariance(proposal_cov: np.ndarray, motion_cov: np.ndarray, ratio: float) -> np.ndarray:
+def draw_covariance(proposal_cov: np.ndarray, motion_info: np.ndarray, ratio: float) -> np.ndarray:
     """The covariance the particles are drawn from ``(P,3,3)``: the proposal's ``(H + Σ⁻¹)⁻¹``
-    with the motion prior's translation variance times ``ratio`` (``(H + S⁻¹ Σ⁻¹ S⁻¹)⁻¹``,
+    (``motion_info``: the motion prior's ``Σ⁻¹``, as the filter has it for the weights) with the
+    prior's translation variance times ``ratio`` (``(H + S⁻¹ Σ⁻¹ S⁻¹)⁻¹``,
     ``S = diag(√ratio, √ratio, 1)``); the proposal's own at 1."""
     if ratio >= 1.0:
         return proposal_cov
     s = 1.0 / np.sqrt(np.array([ratio, ratio, 1.0]))
-    info = np.linalg.inv(motion_cov)
-    out = np.linalg.inv(np.linalg.inv(proposal_cov) + info * s[None, :, None] * s[None, None, :] - info)
+    scaled = motion_info * s[None, :, None] * s[None, None, :]
+    out = np.linalg.inv(np.linalg.inv(proposal_cov) + scaled - motion_info)
     return 0.5 * (out + np.transpose(out, (0, 2, 1)))
 
 

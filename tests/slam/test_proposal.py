@@ -7,7 +7,14 @@ import pytest
 from robot_agent.slam.association import AssociationConfig
 from robot_agent.slam.lines import fit_lines
 from robot_agent.slam.particles import SegmentMaps
-from robot_agent.slam.proposal import ProposalConfig, _rotate, align, associate_points
+from robot_agent.slam.proposal import (
+    MeasuredOdometry,
+    ProposalConfig,
+    _rotate,
+    align,
+    associate_points,
+    draw_covariance,
+)
 from shared.geometry import apply_points, inverse, wrap_angle
 from tests.maps import put_element, seen_from, wall_points
 
@@ -309,11 +316,10 @@ def test_the_draws_along_a_blind_wall_take_the_odometry_measured():
     """One wall: the proposal knows nothing along it (the motion prior's variance there). Drawn at
     a measured odometry noise of 0.1 of the model's variance, the along-wall variance is a tenth of
     the prior's, the across-wall and heading variances (the scan's) stay; at 1, the proposal's own."""
-    from robot_agent.slam.proposal import draw_covariance
-
     _, cov, res = run(ONE_WALL)
-    assert draw_covariance(res.cov, cov, 1.0) is res.cov
-    draw = draw_covariance(res.cov, cov, 0.1)
+    info = np.linalg.inv(cov)
+    assert draw_covariance(res.cov, info, 1.0) is res.cov
+    draw = draw_covariance(res.cov, info, 0.1)
     along = np.einsum("i,pij,j->p", DIR_30, res.cov[:, :2, :2], DIR_30)
     assert np.all(along > 0.8 * PRIOR_SIGMA_XY_M**2)  # (the scan leaves it to the prior)
     drawn_along = np.einsum("i,pij,j->p", DIR_30, draw[:, :2, :2], DIR_30)
@@ -330,8 +336,6 @@ def test_the_odometry_noise_is_measured_where_the_scan_pins_the_pose():
     """Steps whose scan-matched pose lies off odometry's prediction as N(0, 0.2 Σ): the measure
     comes to 0.2 of the model's variance; steps the scan does not pin (along a corridor) and
     odometry worse than the model leave the model's (1); the floor holds."""
-    from robot_agent.slam.proposal import MeasuredOdometry
-
     rng = np.random.default_rng(0)
     cfg = ProposalConfig()
     motion = np.tile(np.diag([0.02**2, 0.02**2, 0.01**2]), (10, 1, 1))
