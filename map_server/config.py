@@ -194,7 +194,7 @@ class GraphConfig:
     # bent robot: 90th percentile 0.056 -> 0.0068 m. bench_merge (session 50's recordings): final
     # errors over 0.05 m 6 -> 4 of 40, mean 0.028 -> 0.024 m, worst 0.074 -> 0.061 m; with
     # line_floor_m 0.005 / 0.02, robust_k_consistent 0.25 / 1.5: 4 each; consistent_scale 3 / 30:
-    # 6 / 5. Real logs in 3 pieces (their pieces mostly tied by scans): see the README
+    # 6 / 5. Real logs in 3 pieces (their pieces mostly tied by scans): docs/fleet-history.md
     line_ties: bool = True
     line_floor_m: float = 0.01  # a matched wall's own error (each pair of walls met)
     line_sigma_m: float = 0.05  # a matched sample's distance sigma in them (as point_sigma_m)

@@ -20,14 +20,16 @@ the others.
 Matching is conservative at the fleet level too (alignment.py verifies one attempt, placing.py runs the
 rounds of attempts, policy.py says what a verdict means):
 
-- an unplaced robot is only tried once its map and every placed robot's map are *mature* (grown
-  by at most ``mature_growth`` over ``mature_window_s``): partial maps of a symmetric or
-  repetitive building match their mirror image as well as the truth or better (office, 60-90 s:
-  the half-turned placement scored up to 1.7x the truth, with exact maps too);
+- partial maps of a symmetric or repetitive building match their mirror image as well as the
+  truth or better (office, 60-90 s: the half-turned placement scored up to 1.7x the truth, with
+  exact maps too). An unplaced robot's verdict counts once its map and every placed robot's map
+  are *mature* (grown by at most ``mature_growth`` over ``mature_window_s``), or before that
+  when it is *quiet*: none of its walls where the other saw free space, over enough free space
+  both saw (``young_*``; policy.quiet);
 - of the unplaced robots that match in one round only the most decisive (highest rival ratio)
   is taken; the others are tried again against the grown placed map;
 - a new place (a first alignment or a revision) counts after ``confirmations`` attempts in a row
-  agree on it.
+  agree on it (a quiet verdict over ``young_once_seen_m2`` after ``young_confirmations``).
 
 Attempts are repeated only when a robot's map grew enough, the map it is matched against changed,
 or a candidate awaits confirmation; a placed robot (by prior or by matching) is refined where it
