@@ -311,7 +311,7 @@ class FastSLAM:
             if cfg.proposal.draw_measured_odometry:
                 if not scan_driven:  # (a stuck wheel's step predicts by the scans, not odometry)
                     self.odometry_noise.add(d, cov, prop.cov, cfg.proposal)
-                draw = draw_covariance(prop.cov, info, self.odometry_noise.ratio(cfg.proposal))
+                draw = draw_covariance(prop, info, self.odometry_noise.ratio(cfg.proposal))
             ps.poses = sample_gaussian(self.rng, prop.mean, draw * cfg.proposal.sample_scale)
             path = prop.mean if cfg.proposal.record_mean else None
             prior_term = -0.5 * np.einsum("pi,pij,pj->p", d, info, d)

@@ -155,6 +155,7 @@ class ProposalResult:
     mean: np.ndarray  # (P,3) refined poses
     cov: np.ndarray  # (P,3,3) its covariance (the particles are drawn from it times sample_scale)
     n_matched: np.ndarray  # (P,) observations used in the alignment
+    scan_info: np.ndarray  # (P,3,3) the scan's information H at ``mean`` (cov = (H + Σ⁻¹)⁻¹)
 
 
 @dataclass
@@ -188,16 +189,15 @@ class MeasuredOdometry:
         return float(np.clip((n0 + self.total) / (n0 + self.steps), cfg.min_odometry_ratio, 1.0))
 
 
-def draw_covariance(proposal_cov: np.ndarray, motion_info: np.ndarray, ratio: float) -> np.ndarray:
+def draw_covariance(prop: ProposalResult, motion_info: np.ndarray, ratio: float) -> np.ndarray:
     """The covariance the particles are drawn from ``(P,3,3)``: the proposal's ``(H + Σ⁻¹)⁻¹``
     (``motion_info``: the motion prior's ``Σ⁻¹``, as the filter has it for the weights) with the
     prior's translation variance times ``ratio`` (``(H + S⁻¹ Σ⁻¹ S⁻¹)⁻¹``,
     ``S = diag(√ratio, √ratio, 1)``); the proposal's own at 1."""
     if ratio >= 1.0:
-        return proposal_cov
+        return prop.cov
     s = 1.0 / np.sqrt(np.array([ratio, ratio, 1.0]))
-    scaled = motion_info * s[None, :, None] * s[None, None, :]
-    out = np.linalg.inv(np.linalg.inv(proposal_cov) + scaled - motion_info)
+    out = np.linalg.inv(prop.scan_info + motion_info * s[None, :, None] * s[None, None, :])
     return 0.5 * (out + np.transpose(out, (0, 2, 1)))
 
 
@@ -380,7 +380,7 @@ def _result(x: np.ndarray, h: np.ndarray, info_prior: np.ndarray, idx: np.ndarra
     ``h`` and the prior's, the observations matched by the last association ``idx``."""
     cov = np.linalg.inv(h + info_prior)
     cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
-    return ProposalResult(x, cov, np.sum(idx >= 0, axis=1))
+    return ProposalResult(x, cov, np.sum(idx >= 0, axis=1), h)
 
 
 def align(

@@ -318,8 +318,8 @@ def test_the_draws_along_a_blind_wall_take_the_odometry_measured():
     the prior's, the across-wall and heading variances (the scan's) stay; at 1, the proposal's own."""
     _, cov, res = run(ONE_WALL)
     info = np.linalg.inv(cov)
-    assert draw_covariance(res.cov, info, 1.0) is res.cov
-    draw = draw_covariance(res.cov, info, 0.1)
+    assert draw_covariance(res, info, 1.0) is res.cov
+    draw = draw_covariance(res, info, 0.1)
     along = np.einsum("i,pij,j->p", DIR_30, res.cov[:, :2, :2], DIR_30)
     assert np.all(along > 0.8 * PRIOR_SIGMA_XY_M**2)  # (the scan leaves it to the prior)
     drawn_along = np.einsum("i,pij,j->p", DIR_30, draw[:, :2, :2], DIR_30)
