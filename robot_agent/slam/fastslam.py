@@ -306,7 +306,7 @@ class FastSLAM:
             )
             d = prop.mean - mean  # (the scan match against odometry's prediction)
             d[:, 2] = wrap_angle(d[:, 2])
-            info = np.linalg.inv(cov)
+            info = prop.prior_info  # (Σ⁻¹, as the proposal solved with it)
             draw = prop.cov
             if cfg.proposal.draw_measured_odometry:
                 if not scan_driven:  # (a stuck wheel's step predicts by the scans, not odometry)

@@ -156,6 +156,7 @@ class ProposalResult:
     cov: np.ndarray  # (P,3,3) its covariance (the particles are drawn from it times sample_scale)
     n_matched: np.ndarray  # (P,) observations used in the alignment
     scan_info: np.ndarray  # (P,3,3) the scan's information H at ``mean`` (cov = (H + Σ⁻¹)⁻¹)
+    prior_info: np.ndarray  # (P,3,3) the motion prior's information Σ⁻¹ it was solved with
 
 
 @dataclass
@@ -380,7 +381,7 @@ def _result(x: np.ndarray, h: np.ndarray, info_prior: np.ndarray, idx: np.ndarra
     ``h`` and the prior's, the observations matched by the last association ``idx``."""
     cov = np.linalg.inv(h + info_prior)
     cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
-    return ProposalResult(x, cov, np.sum(idx >= 0, axis=1), h)
+    return ProposalResult(x, cov, np.sum(idx >= 0, axis=1), h, info_prior)
 
 
 def align(
