@@ -505,6 +505,9 @@ def _from_prior(
     return _verdict("prior", s, total, 0.0, why)
 
 
+JOIN_REFUTED = "join refuted: "  # verify_join's reason when the free space seen contradicts the claim
+
+
 def verify_join(
     robot_seg: np.ndarray,
     placed_seg: np.ndarray,
@@ -522,7 +525,8 @@ def verify_join(
     after the robot's start, its map is small, and the claim is evidence of its own) and without
     rivals (the robot ruled them out against the whole fused map); ``veto`` as in
     :func:`estimate_alignment`. ``aligned`` there, or ``unaligned`` saying why (the robot is then
-    matched as any robot)."""
+    matched as any robot); the reason starts with :data:`JOIN_REFUTED` when ``veto`` refused it
+    (the claim is not checked again: Placer.round)."""
     robot_seg = np.asarray(robot_seg, float).reshape(-1, 2, 2)
     if robot_samples is None:
         robot_samples = Samples.of(robot_seg, cfg.sample_step_m), Samples.of(robot_seg, cfg.coarse_step_m)
@@ -538,7 +542,8 @@ def verify_join(
     jc = dataclasses.replace(cfg, min_overlap_m=cfg.join_min_overlap_m, min_share=cfg.join_min_share)
     s, maha, problems = _refined_at(robot_seg, index, robot, coarse, claim, sigma, jc)
     if not problems and veto is not None and (why := veto(s.pose, s.matched_m)) is not None:
-        problems.append(why)
+        share = s.matched_m / total  # the free space seen contradicts the claim: refuted
+        return Alignment("unaligned", s.pose, sigma, s.matched_m, share, 0.0, JOIN_REFUTED + why)
     if problems:
         share = s.matched_m / total
         return Alignment("unaligned", s.pose, sigma, s.matched_m, share, 0.0,

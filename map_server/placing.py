@@ -25,7 +25,7 @@ from typing import Protocol
 import numpy as np
 
 from map_server import candidates, contradiction, policy
-from map_server.alignment import Alignment, estimate_alignment, query_reach, verify_join
+from map_server.alignment import JOIN_REFUTED, Alignment, estimate_alignment, query_reach, verify_join
 from map_server.config import FleetConfig
 from map_server.registration import MapIndex, OutsideIndex, Samples
 from map_server.schedule import Around, PlacedKey, global_box
@@ -559,8 +559,11 @@ class Placer:
             if not r.due(self.cfg, placed_m, key, now_s, urgent) and not matured:
                 continue
             key = key()
-            joining = r.map.joined and not r.alignment.placed and placed
-            if joining:  # it found itself in the fused map
+            # it found itself in the fused map: its claim is checked, unless refuted before (a
+            # claim placed, then undone, was verified again and again until the overlap's share
+            # allowance let its contradiction through: bench_join, warehouse 3 -> 0, 2026-12-05)
+            joining = r.map.joined and not r.alignment.placed and placed and not r.claim_refuted()
+            if joining:
                 a = self.estimate(r, r.map.prior, r.map.prior_sigma, None, search=False, join=True)
                 log.info("%s: join at %.1f s: %s (%s)", r.robot, now_s, a.status, a.reason)
                 r.alignment = a
@@ -570,6 +573,8 @@ class Placer:
                     r.mark_placed(now_s - self.fleet.epoch_s)
                     now_placed()
                     continue
+                if a.reason.startswith(JOIN_REFUTED):
+                    r.refute_claim()
                 # not verified: matched as any robot (below)
             if young and (self.cfg.young_max_contradicted_m < 0.0 or (
                 r.young_s is not None and now_s - r.young_s < self.cfg.young_retry_s
@@ -609,6 +614,8 @@ class Placer:
             else:
                 r.pending, r.pending_count = None, 0
             was_placed = r.alignment.placed
+            if was_placed and (not a.placed or (revised and r.pending is None)):
+                r.refute_claim()  # (a joined robot: the place its claim gave is gone)
             if revised and r.pending is None:  # confirmed: the robot moves (say so)
                 d = relative(current.transform, a.transform)
                 log.info(

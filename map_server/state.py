@@ -46,6 +46,10 @@ class RobotState:
     pending_s: float = 0.0  # server time of the first verdict of the pending place
     young_s: float | None = None  # server time of the last attempt made before the maps were
     # mature (policy.quiet), None once one is made on mature maps
+    # the join claim (RobotMap.prior of a joined map) the fleet refuted: the free space seen
+    # contradicted it, or the robot placed by it was undone or placed elsewhere since — it is
+    # not verified again (the robot is matched as any robot); None while none was
+    refuted_claim: list[float] | None = None
     lengths: list[tuple[float, float]] = field(default_factory=list)  # (server time, map length)
     graph: RobotGraph | None = None  # the map's pose graph (posegraph.RobotGraph), with the layer
     bent: RobotLayer | None = None  # the layer's rows in the global frame as the fleet's graph
@@ -62,6 +66,7 @@ class RobotState:
         self.attempt_seq = -1
         self.pending, self.pending_count = None, 0
         self.young_s = None
+        self.refuted_claim = None
         self.lengths = []
 
     def record_length(self, now_s: float, keep_s: float) -> None:
@@ -116,6 +121,16 @@ class RobotState:
     def attempted(self, placed_m: float, placed_key: str, now_s: float) -> None:
         self.attempt_len_m, self.attempt_s, self.attempt_seq = self.layer.length_m, now_s, self.map.seq
         self.attempt_placed_m, self.attempt_placed_key = placed_m, placed_key
+
+    def claim_refuted(self) -> bool:
+        """Whether the map's join claim is one the fleet refuted (``refuted_claim``)."""
+        c, m = self.refuted_claim, self.map
+        return c is not None and m is not None and m.prior is not None and np.allclose(m.prior, c, atol=1e-9)
+
+    def refute_claim(self) -> None:
+        """The map's join claim does not hold: it is not verified again."""
+        if self.map is not None and self.map.joined and self.map.prior is not None:
+            self.refuted_claim = [float(v) for v in self.map.prior]
 
     def mark_placed(self, t_s: float) -> None:
         if self.aligned_at_s is None:
@@ -186,12 +201,13 @@ def retired_blob(robot: str, session: str) -> str:
 _SCALARS = (
     "order", "online", "aligned_at_s", "first_map_s", "attempt_len_m", "attempt_placed_m",
     "attempt_placed_key", "attempt_s", "attempt_seq",
-    "pending_count", "pending_s", "young_s",
+    "pending_count", "pending_s", "young_s", "refuted_claim",
 )  # fmt: skip
 _ADDED = {
     "attempt_seq": -1,
     "pending_s": 0.0,
     "young_s": None,
+    "refuted_claim": None,
 }  # fields newer than some snapshots: their value when missing
 
 

@@ -143,3 +143,37 @@ def test_bench_join_counts_a_true_join_and_the_placement():
     # fed to the end of the run (with both robots' free space): still where the truth says
     assert row["final_status"] == "aligned" and row["final_error_m"] <= 0.1, row
     assert not row["wrong_placed"] and not row["wrong_at_end"] and row["undone_s"] is None
+
+
+def test_a_claim_undone_is_not_verified_again():
+    """Warehouse, robot 3's first 120 s the fused map: robot 0 joins the half-turned image of its
+    start at 5 s; the fleet places it there, the free space seen undoes it at 56 s — and the claim
+    is not checked again (it was, at every fusion, until at 95 s the overlap's share allowance let
+    the same 2.5 m of contradiction through: a wrong merge at the end, 2026-12-05)."""
+    from tests.benchscripts import bench_script
+
+    with bench_script("bench_join") as bench:
+        row = bench.run_pair(("warehouse", 3, 0, 120.0, 120.0))
+    assert row["wrong_join"] and row["wrong_placed"], row  # the scenario: a wrong join, placed
+    assert row["undone_s"] is not None and not row["wrong_at_end"], row
+
+
+def test_a_refuted_claim_is_kept_with_the_robot_and_forgotten_with_its_session():
+    from map_server.state import RobotState
+
+    fleet, _ = office_fleet()
+    _, sent = joined_agent(fleet.latest().seg)
+    m = next(m for _, m in sent if m[0].joined)[0]
+    r = RobotState("robot1", 1, map=m)
+    assert not r.claim_refuted()
+    r.refute_claim()
+    assert r.claim_refuted()
+    back = RobotState.from_dict("robot1", r.to_dict(), m)  # a restarted server keeps it
+    assert back.claim_refuted()
+    other = dataclasses.replace(m, prior=compose(np.array([1.0, 0.0, 0.0]), m.prior))
+    assert not RobotState("robot1", 1, map=other, refuted_claim=r.refuted_claim).claim_refuted()
+    d = r.to_dict()
+    del d["refuted_claim"]  # a snapshot from before the field
+    assert not RobotState.from_dict("robot1", d, m).claim_refuted()
+    r.new_session()
+    assert r.refuted_claim is None
