@@ -50,11 +50,14 @@ def final_correction(core, timeout_s: float) -> tuple:
 def rebuild_along(core, scan_log, first: int, filter_poses, poses, cfg):
     """The map rebuilt along the corrected path ``poses`` from the scans ``scan_log[first:]``, put
     in ``core`` to be published next (with the back end's graph); the path moved by the start
-    gauge — so that the map frame stays the robot's start frame, what a prior gives — is returned."""
+    gauge — so that the map frame stays the robot's start frame, what a prior gives, where the
+    back end's own gauge put it (its first keyframe's scan: BackendConfig.gauge) — is returned."""
     from robot_agent.backend import remap
     from shared.geometry import compose, inverse
 
     start = compose(filter_poses[0], inverse(poses[0]))
+    if core.corrector.correction.gauge is not None:
+        start = compose(core.corrector.correction.gauge, start)
     poses = compose(start, poses)
     graph = (core.corrector.correction, start, core.slam.trajectory.first_scan)
     core.rebuilt(remap(scan_log, first, poses, cfg), poses[-1], graph)

@@ -207,7 +207,10 @@ class Frame:
 
     def adopt(self, slam: FastSLAM, c: Correction) -> None:
         """The filter continues from correction ``c``: its frame moves by what ``c`` adds to
-        the adopted one, piecewise between the keyframes of both."""
+        the adopted one, piecewise between the keyframes of both — but for ``c``'s gauge, which
+        only what is published takes (Correction.ungauged: the filter's frame stays its own
+        start's, and the filter runs as it would without the gauge)."""
+        c = c.ungauged()
         breaks = np.union1d(c.kf_scan, self.adopted.kf_scan).astype(int)
         if len(breaks):
             slam.move_frame(breaks, self.relative_moves(c, breaks))

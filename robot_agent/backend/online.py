@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -39,6 +39,7 @@ from robot_agent.slam.backend import (
     near_old_keyframes,
     optimize,
     path_drift,
+    start_gauge,
 )
 from shared.geometry import compose, inverse, relative, wrap_angle
 from shared.scanmatch import voxel_thin
@@ -116,6 +117,15 @@ class Correction:
     follows: np.ndarray | None = None  # (K,) the scan of the keyframe in the graph each keyframe
     # moves with (itself, or the one it retired onto; default: itself)
     graph: Graph | None = None  # the graph as solved (what the server's fleet graph takes in)
+    gauge: np.ndarray | None = None  # (3,) what ``corrected`` was moved by, on the left, after the
+    # solve (OnlineBackend.gauge: the start where the first keyframe's own scan puts it); None: none
+    solved: np.ndarray | None = None  # (K,3) ``corrected`` as the solve left it (with a gauge)
+
+    def ungauged(self) -> Correction:
+        """This correction without its gauge (``corrected`` as the solve left it)."""
+        if self.gauge is None:
+            return self
+        return replace(self, corrected=self.solved, gauge=None, solved=None)
 
     def anchors(self, scans: np.ndarray) -> np.ndarray:
         """The graph keyframe (its scan) that each of ``scans`` moves with; -1 with no keyframes."""
@@ -175,6 +185,9 @@ class OnlineBackend:
     _waiting: int = 0
     _flushed: bool = False  # the last _admit let waiting surprises in
     _handed: int = -1  # the newest keyframe (scan) whose points a graph handed out
+    gauge: np.ndarray = field(default_factory=lambda: np.zeros(3))  # the published frame moved by
+    # this (on the left): the map held where the first keyframe's own scan puts the start
+    # (BackendConfig.gauge, start_gauge); kept as it last was once that keyframe retires
 
     @property
     def keyframes(self) -> int:
@@ -185,9 +198,15 @@ class OnlineBackend:
         retired to), in scan order."""
         active = np.asarray(self.kf_scan, int)
         graph = self.graph()
+        gauge = self.gauge.copy() if np.any(self.gauge) else None
+
+        def gauged(x: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:  # (published, solved)
+            return (x, None) if gauge is None else (compose(gauge, x), x)
+
         if not len(self._ret_scan):
+            x, solved = gauged(self._x.copy())
             return Correction(
-                active, self._ref.copy(), self._x.copy(), len(self.loops), active, active, graph
+                active, self._ref.copy(), x, len(self.loops), active, active, graph, gauge, solved
             )
         anchor = np.searchsorted(np.asarray(self.kf_id), self._ret_anchor)
         scans = np.concatenate([active, self._ret_scan])
@@ -195,8 +214,9 @@ class OnlineBackend:
         corr = np.vstack([self._x, compose(self._x[anchor], self._ret_rel)])
         follows = np.concatenate([active, active[anchor]])
         order = np.argsort(scans, kind="stable")
+        corr, solved = gauged(corr[order])
         return Correction(
-            scans[order], filt[order], corr[order], len(self.loops), active, follows[order], graph
+            scans[order], filt[order], corr, len(self.loops), active, follows[order], graph, gauge, solved
         )
 
     def update(
@@ -267,6 +287,7 @@ class OnlineBackend:
             if budget < 0 and len(more) < cfg.min_pass_loops:
                 break
         self._ref, self._x = f, est
+        self._gauge_start()
         self._retire()
         if keep is not None:
             self._forget(*keep)
@@ -367,7 +388,7 @@ class OnlineBackend:
         return Graph(
             scan,
             np.asarray(self.kf_stamp, float),
-            self._x.copy(),
+            self._shown(),
             scan[a],
             scan[b],
             z,
@@ -375,6 +396,21 @@ class OnlineBackend:
             scan[new],
             points,
         )
+
+    def _shown(self) -> np.ndarray:
+        """The solved keyframe poses as published: moved by the gauge."""
+        return compose(self.gauge, self._x) if np.any(self.gauge) else self._x.copy()
+
+    def _gauge_start(self) -> None:
+        """The gauge from the first keyframe's own scan on the others' (start_gauge), while that
+        keyframe is in the graph: the frame moved so that it sits where its scan puts it."""
+        if not self.cfg.gauge or not self.kf_id or self.kf_id[0] != 0:
+            return
+        at = start_gauge(self._x, self.kf_points, self.cfg)
+        if at is not None:
+            self.gauge = compose(self._x[0], inverse(at))
+            self.stats["gauge_m"] = float(np.hypot(self.gauge[0], self.gauge[1]))
+            self.stats["gauge_deg"] = float(np.degrees(self.gauge[2]))
 
     def _retire(self) -> None:
         """Keyframes older than the window leave the graph (:meth:`_retire_onto`): those that the

@@ -238,3 +238,22 @@ def test_an_update_past_its_time_budget_leaves_the_remaining_requeries_for_the_n
         out[budget] = online.stats
     assert out[0.0].get("requeried", 0) > 0 and out[0.0].get("requeries_deferred", 0) == 0
     assert out[1e-9].get("requeried", 0) == 0 and out[1e-9]["requeries_deferred"] > 0
+
+
+def test_the_published_frame_is_gauged_by_the_first_scan_and_the_graph_within_it_unchanged(drifted_office):
+    """The correction and the graph handed out are the solution moved rigidly by the gauge
+    (BackendConfig.gauge: where the first keyframe's own scan puts the start on the map the
+    others make); the relative poses, what the chain and the loops measure, are the solution's."""
+    _, log, drifted, points = drifted_office
+    track = Track.whole(log.stamps_s[:300], drifted[:300], log.odometry[:300])
+    on, off = OnlineBackend(be.BackendConfig()), OnlineBackend(be.BackendConfig(gauge=False))
+    c_on, c_off = on.update(track, points), off.update(track, points)
+    assert np.any(on.gauge) and not np.any(off.gauge)
+    assert abs(np.degrees(on.gauge[2])) < 1.5 and np.hypot(on.gauge[0], on.gauge[1]) < 0.3
+    np.testing.assert_allclose(c_on.corrected, compose(on.gauge, c_off.corrected), atol=1e-9)
+    np.testing.assert_allclose(c_on.graph.pose, c_on.corrected, atol=1e-12)
+    np.testing.assert_allclose(c_off.corrected, off._x, atol=1e-12)
+    a, b = c_on.corrected, c_off.corrected
+    np.testing.assert_allclose(relative(a[:-1], a[1:]), relative(b[:-1], b[1:]), atol=1e-9)
+    # the filter takes the correction without the gauge, bit for bit the solve's
+    assert np.array_equal(c_on.ungauged().corrected, c_off.corrected) and c_on.ungauged().gauge is None

@@ -259,3 +259,46 @@ def test_the_first_pass_searches_as_wide_as_the_path_may_have_drifted():
     wide, wide_loops = corrected(be.BackendConfig())
     assert before > 0.8 and narrow_loops == 0 and narrow == pytest.approx(before)  # measured 0.89
     assert wide_loops >= 20 and wide < 0.3  # measured 40 loops, 0.19 m
+
+
+@pytest.fixture(scope="module")
+def office_keyframes():
+    """Robot 0's first 40 s in the simulated office: its keyframes' true poses in its start frame
+    (``(K,3)``, the first at the origin) and their thinned scan points (robot frame)."""
+    from robot_agent.backend import scan_points_robot
+    from robot_agent.sim import SimConfig, builtin_world, simulate_robot
+    from robot_agent.slam.fastslam import SlamConfig
+    from shared.scanmatch import voxel_thin
+
+    sim = simulate_robot(builtin_world("office"), 0, 40.0, 0, SimConfig())
+    log, cfg = sim.to_log(), SlamConfig()
+    kf = be.select_keyframes(sim.truth, cfg.backend)
+    x = relative(sim.truth[kf[0]], sim.truth[kf])
+    return x, [voxel_thin(scan_points_robot(log, int(i), cfg), cfg.backend.voxel_m) for i in kf]
+
+
+def test_the_first_keyframes_own_scan_gauges_a_map_turned_against_it(office_keyframes):
+    x, points = office_keyframes
+    cfg = be.BackendConfig()
+    # a map right about its first keyframe: the gauge leaves it where it is
+    at = be.start_gauge(x, points, cfg)
+    assert at is not None
+    assert np.hypot(at[0], at[1]) < 0.005 and abs(np.degrees(at[2])) < 0.02  # measured 3.4 mm, 0.014°
+    # every keyframe but the first turned 0.3° about it and shifted 2 cm (the filter's heading
+    # drifted in the first keyframes): the first scan says where the start is on that map
+    turn = np.array([0.02, -0.01, np.radians(0.3)])
+    turned = np.vstack([x[:1], compose(turn, x[1:])])
+    at = be.start_gauge(turned, points, cfg)
+    assert at is not None
+    e = relative(turn, at)  # (where the turned map puts the start)
+    assert np.hypot(e[0], e[1]) < 0.012 and abs(np.degrees(e[2])) < 0.01  # measured 8.6 mm, 0.002°
+    gauge = compose(turned[0], inverse(at))  # the map moved by it comes back to the truth
+    back = compose(gauge, turned[1:])
+    assert np.max(np.hypot(*(back[:, :2] - x[1:, :2]).T)) < 0.012
+    assert np.max(np.abs(np.degrees(back[:, 2] - x[1:, 2]))) < 0.01
+    # a start the map does not hold (its scan 2 m off and half turned): none
+    far = np.vstack([compose(np.array([2.0, 0.0, np.pi]), x[:1]), x[1:]])
+    assert be.start_gauge(far, points, cfg) is None
+    # turned beyond what the gauge takes: none
+    big = np.vstack([x[:1], compose(np.array([0.0, 0.0, np.radians(3.0)]), x[1:])])
+    assert be.start_gauge(big, points, cfg) is None
