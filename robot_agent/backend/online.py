@@ -409,8 +409,7 @@ class OnlineBackend:
         at = start_gauge(self._x, self.kf_points, self.cfg)
         if at is not None:
             self.gauge = compose(self._x[0], inverse(at))
-            self.stats["gauge_m"] = float(np.hypot(self.gauge[0], self.gauge[1]))
-            self.stats["gauge_deg"] = float(np.degrees(self.gauge[2]))
+            self.stats["gauge"] = [float(v) for v in self.gauge]  # (m, m, rad)
 
     def _retire(self) -> None:
         """Keyframes older than the window leave the graph (:meth:`_retire_onto`): those that the

@@ -148,10 +148,12 @@ def test_known_starts_merge_accurately(demo):
 
 def test_each_agent_ends_with_its_back_end_and_publishes_the_rebuilt_map(demo):
     """At the end of its run an agent's online back end makes its last update (the first pose
-    stays the filter's: the map frame is the start frame), the agent publishes the map its
+    stays the filter's but for the start gauge — the map frame is the start frame, where the
+    first keyframe's own scan puts it: BackendConfig.gauge), the agent publishes the map its
     correction moves, then the map rebuilt along the corrected path, last."""
     import numpy as np
 
+    from shared.geometry import compose
     from shared.metrics import read_poses
 
     out, *_ = demo
@@ -166,7 +168,9 @@ def test_each_agent_ends_with_its_back_end_and_publishes_the_rebuilt_map(demo):
         _, poses = read_poses(out / "agents" / f"{robot}.poses.txt")
         _, filt = read_poses(out / "agents" / f"{robot}.filter.poses.txt")
         assert poses.shape == filt.shape and summary["scans"] == len(poses)
-        np.testing.assert_allclose(poses[0], filt[0], atol=1e-6)
+        gauge = summary["backend"].get("gauge")  # (what the published frame was moved by)
+        assert gauge is not None and np.hypot(gauge[0], gauge[1]) < 0.3 and abs(gauge[2]) < np.radians(1.5)
+        np.testing.assert_allclose(poses[0], compose(np.array(gauge), filt[0]), atol=1e-6)
 
 
 def test_no_process_left_behind(demo):
