@@ -541,11 +541,11 @@ def verify_join(
         return Alignment("unaligned", claim, sigma, reason="join not verified: " + why)
     jc = dataclasses.replace(cfg, min_overlap_m=cfg.join_min_overlap_m, min_share=cfg.join_min_share)
     s, maha, problems = _refined_at(robot_seg, index, robot, coarse, claim, sigma, jc)
+    share = s.matched_m / total
     if not problems and veto is not None and (why := veto(s.pose, s.matched_m)) is not None:
-        share = s.matched_m / total  # the free space seen contradicts the claim: refuted
+        # the free space seen contradicts the claim: refuted
         return Alignment("unaligned", s.pose, sigma, s.matched_m, share, 0.0, JOIN_REFUTED + why)
     if problems:
-        share = s.matched_m / total
         return Alignment("unaligned", s.pose, sigma, s.matched_m, share, 0.0,
                          "join not verified: " + "; ".join(problems))  # fmt: skip
     why = f"joined: its place in the fused map verified (overlap {s.matched_m:.1f} m, moved {maha:.1f} sigma)"

@@ -199,25 +199,24 @@ class OnlineBackend:
         active = np.asarray(self.kf_scan, int)
         graph = self.graph()
         gauge = self.gauge.copy() if np.any(self.gauge) else None
-
-        def gauged(x: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:  # (published, solved)
-            return (x, None) if gauge is None else (compose(gauge, x), x)
-
         if not len(self._ret_scan):
-            x, solved = gauged(self._x.copy())
+            x = self._x.copy()
+            solved = None if gauge is None else x
             return Correction(
-                active, self._ref.copy(), x, len(self.loops), active, active, graph, gauge, solved
-            )
+                active, self._ref.copy(), self._published(x), len(self.loops), active, active, graph, gauge,
+                solved,
+            )  # fmt: skip
         anchor = np.searchsorted(np.asarray(self.kf_id), self._ret_anchor)
         scans = np.concatenate([active, self._ret_scan])
         filt = np.vstack([self._ref, self._ret_filter])
-        corr = np.vstack([self._x, compose(self._x[anchor], self._ret_rel)])
-        follows = np.concatenate([active, active[anchor]])
         order = np.argsort(scans, kind="stable")
-        corr, solved = gauged(corr[order])
+        corr = np.vstack([self._x, compose(self._x[anchor], self._ret_rel)])[order]
+        follows = np.concatenate([active, active[anchor]])
+        solved = None if gauge is None else corr
         return Correction(
-            scans[order], filt[order], corr, len(self.loops), active, follows[order], graph, gauge, solved
-        )
+            scans[order], filt[order], self._published(corr), len(self.loops), active, follows[order], graph,
+            gauge, solved,
+        )  # fmt: skip
 
     def update(
         self,
@@ -388,7 +387,7 @@ class OnlineBackend:
         return Graph(
             scan,
             np.asarray(self.kf_stamp, float),
-            self._shown(),
+            self._published(self._x.copy()),
             scan[a],
             scan[b],
             z,
@@ -397,9 +396,9 @@ class OnlineBackend:
             points,
         )
 
-    def _shown(self) -> np.ndarray:
-        """The solved keyframe poses as published: moved by the gauge."""
-        return compose(self.gauge, self._x) if np.any(self.gauge) else self._x.copy()
+    def _published(self, x: np.ndarray) -> np.ndarray:
+        """Solved keyframe poses ``x (K,3)`` as published: moved by the gauge (``x`` itself without one)."""
+        return compose(self.gauge, x) if np.any(self.gauge) else x
 
     def _gauge_start(self) -> None:
         """The gauge from the first keyframe's own scan on the others' (start_gauge), while that
