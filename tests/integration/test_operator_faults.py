@@ -113,14 +113,20 @@ def test_a_robot_carried_where_its_map_does_not_reach_gets_a_new_session_and_its
     """The Intel excerpt's first 700 scans, then ACES's (the robot carried into another
     building), as an operator runs it: the agent says it lost the robot and begins a new
     session, exits 0, writes the ended session's path beside the new one's; the fused map keeps
-    the ended session's map where it was — the Intel walls, nothing of ACES bent onto them.
-    Measured: 66 ends, 0.014 m from the intact excerpt's walls on average, 0.038 m at most; while
-    the agent still published during the doubt, the back end's corrections (its keyframes followed
-    the robot into ACES) had moved one segment 3.4 m."""
+    the ended session's map where it was — the Intel walls, nothing of ACES bent onto them: each
+    end on the intact excerpt's walls or on its scan points (a wall the intact map does not trust
+    yet; the online back end's timing decides whether the last map before the teleport trusts it).
+    Measured on 39 runs, 4-6 at once (2026-12-05): 0.031 m from them on average at most, 0.091 m
+    at most. In 3 of 55 runs the map published at scan 695 trusted a wall 3.4 m from the intact
+    map's walls and 0.01-0.05 m from its scan points (CI failed on one: the check counted only the
+    walls). While the agent still published during the doubt, the back end's corrections (its
+    keyframes followed the robot into ACES) had moved one segment 3.4 m."""
     import json
 
+    from scipy.spatial import cKDTree
+
     from shared.geometry import point_segment_distance
-    from tests.slam.test_kidnap import ACES, building_map, teleported
+    from tests.slam.test_kidnap import ACES, building_map, building_points, teleported
 
     log = teleported(tmp_path, 700, ACES, 0, 250)
     building = building_map(700)
@@ -133,7 +139,8 @@ def test_a_robot_carried_where_its_map_does_not_reach_gets_a_new_session_and_its
     new = (out_dir / "robot1.poses.txt").read_text().splitlines()
     assert len(old) == ended["last_scan"] + 1 and len(new) == 950 - len(old)
     far = point_segment_distance(ends[:, None, :], building[None, :, :, :]).min(axis=1)
-    assert far.mean() < 0.1 and far.max() < 1.0, (
-        f"{int((far > 0.3).sum())} of {len(far)} fused segment ends more than 0.3 m off the Intel walls, "
-        f"{far.max():.2f} m at most"
+    off = np.minimum(far, cKDTree(building_points(700)).query(ends)[0])
+    assert off.mean() < 0.06 and off.max() < 0.3, (
+        f"{int((off > 0.3).sum())} of {len(off)} fused segment ends more than 0.3 m off the Intel walls "
+        f"and scan points, {off.max():.2f} m at most ({far.max():.2f} m from the walls)"
     )
