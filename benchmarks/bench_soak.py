@@ -70,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         explore=args.explore,
     )  # fmt: skip
     sim = SimSource(src_args, slam)
+    sim.core = core  # (the explorer reads the filter's map, as the agent's service sets it)
     rows: list[dict] = []
     latest: list[bytes] = []  # what the publisher keeps: the last map's payloads
     every_s = 60.0 * args.every_min
