@@ -6,6 +6,8 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
+from shared.entry import run_command
+
 Command = Callable[[argparse.Namespace], int]
 
 
@@ -146,8 +148,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _add_fleet_commands(sub) -> None:
-    from map_server.service import add_arguments as server_args
-    from robot_agent.service import add_arguments as agent_args
+    from map_server import service as server
+    from robot_agent import service as agent
 
     d = sub.add_parser(
         "demo",
@@ -174,11 +176,11 @@ def _add_fleet_commands(sub) -> None:
     )  # fmt: skip
     d.set_defaults(func=_cmd_demo)
 
-    a = sub.add_parser("agent", help="one robot agent: FastSLAM on a simulated robot or a log, on the bus")
-    agent_args(a)
+    a = sub.add_parser("agent", help=agent.SUMMARY)
+    agent.add_arguments(a)
     a.set_defaults(func=_cmd_agent)
-    sv = sub.add_parser("server", help="the map server: fuse robots' maps, publish and serve the fused map")
-    server_args(sv)
+    sv = sub.add_parser("server", help=server.SUMMARY)
+    server.add_arguments(sv)
     sv.set_defaults(func=_cmd_server)
     ro = sub.add_parser("router", help="a zenoh router process (loopback by default)")
     ro.add_argument("--listen", action="append", default=None, help="endpoint (default tcp/127.0.0.1:7447)")
@@ -300,21 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except KeyboardInterrupt:
-        return 130
-    except (ValueError, OSError) as exc:  # domain errors derive from ValueError
-        print(f"fleet-slam {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except RuntimeError as exc:
-        from shared.bus import BusError  # here, not at the top: --help stays instant (no zenoh import)
-
-        if not isinstance(exc, BusError):
-            raise
-        # no router in time, or a signal while waiting for it: a message, not a traceback
-        print(f"fleet-slam {args.command}: {exc}", file=sys.stderr)
-        return 130 if "cancelled" in str(exc) else 2
+    return run_command(args.command, args.func, args)
 
 
 if __name__ == "__main__":

@@ -1,10 +1,12 @@
-"""``python -m map_server`` = ``fleet-slam server`` (what the container runs): the same parser and the same
-error handling (a message and exit 2 or 130, never a traceback, for bad input, a missing router
-or a signal while waiting for it)."""
+"""``python -m map_server`` = ``fleet-slam server`` (what the container runs): the same arguments and the
+same error handling (a message and exit 2 or 130, never a traceback, for bad input, a missing router
+or a signal while waiting for it: shared.entry), without the ``fleet-slam`` command line that
+holds the other side too."""
 
 import sys
 
-from fleet_slam.cli import main
+from map_server.service import SUMMARY, add_arguments, run
+from shared.entry import service_main
 
 if __name__ == "__main__":
-    sys.exit(main(["server", *sys.argv[1:]]))
+    sys.exit(service_main("server", SUMMARY, add_arguments, run))

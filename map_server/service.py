@@ -9,6 +9,10 @@ import threading
 DEFAULT_FLEET = "default"  # = shared.keys.DEFAULT_FLEET (not imported: instant --help)
 
 
+# what `fleet-slam --help` says of the command, and `python -m` of the service run alone
+SUMMARY = "the map server: fuse robots' maps, publish and serve the fused map"
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", action="append", default=None, help="router endpoint (tcp/127.0.0.1:7447)")
     p.add_argument("--bus-config", default=None, metavar="FILE", help="zenoh config file (TLS; deploy/)")

@@ -91,6 +91,10 @@ def parse_pose(text: str, what: str = "pose") -> np.ndarray:
     return v
 
 
+# what `fleet-slam --help` says of the command, and `python -m` of the service run alone
+SUMMARY = "one robot agent: FastSLAM on a simulated robot or a log, on the bus"
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot", required=True, help="robot id ([A-Za-z0-9_-], at most 64)")
     src = p.add_mutually_exclusive_group(required=True)

@@ -35,6 +35,7 @@ IO_MODULES = {
     "shared.viz",  # draws with matplotlib, writes SVG / PNG / GeoJSON files
     "shared.metrics",  # reads and writes relations, pose and TUM files (open, np.loadtxt/savetxt)
     "shared.memory",  # reads /proc, calls the C library's malloc_trim (ctypes)
+    "shared.entry",  # a command's errors printed to standard error (print, sys)
 }
 # Read and found pure: shared.chunks (splits and reassembles messages in memory; its threading.Lock
 # only guards the Assembler's state — no bytes, no file, no clock), shared.messages, shared.keys,
@@ -59,31 +60,11 @@ PURE = [
     "map_server.schedule",
     "map_server.state",
 ]
+
+
 # `python -m robot_agent` / `python -m map_server` are `fleet-slam agent` / `fleet-slam server`:
 # they call fleet_slam.cli.main for its parser and error handling, and building that parser imports
 # both services (cli._add_fleet_commands), so each entry point reaches the other side.
-ENTRY_VIA_CLI = (
-    "known violation: {chain} — the entry point reuses fleet_slam.cli.main (one parser, one error "
-    "handling); fixing it means a parser and error handling of each service's own, not a small change"
-)
-
-
-def side_modules(package: str, other: str, known: str) -> list:
-    """Every module of ``package``; ``known`` (reaching ``other`` through fleet_slam.cli) as xfail."""
-    out = []
-    for name in sorted(n for n in GRAPH.modules if n.split(".")[0] == package):
-        if name == known:  # strict: once fixed, the XPASS fails and asks to drop the mark
-            chains = [
-                c for c in GRAPH.forbidden(name, (other,)) if not GRAPH.modules[c.split()[-1]].is_package
-            ]
-            chain = min(chains, key=lambda c: c.count("->"), default="(none left)")
-            reason = ENTRY_VIA_CLI.format(chain=chain)
-            out.append(pytest.param(name, marks=pytest.mark.xfail(strict=True, reason=reason)))
-        else:
-            out.append(name)
-    return out
-
-
 def assert_pure(graph: ImportGraph, name: str) -> None:
     problems = graph.io_violations(name, IO_LIBRARIES, IO_CALLS, IO_MODULES)
     for dep in graph.reach(name):  # randomness is passed in, at any depth too
@@ -117,13 +98,13 @@ def test_shared_imports_no_side(name):
     assert not GRAPH.forbidden(name, ("robot_agent", "map_server", "fleet_slam"))
 
 
-@pytest.mark.parametrize("name", side_modules("map_server", "robot_agent", known="map_server.__main__"))
+@pytest.mark.parametrize("name", sorted(n for n in GRAPH.modules if n.split(".")[0] == "map_server"))
 def test_map_server_never_imports_robot_agent(name):
     chains = GRAPH.forbidden(name, ("robot_agent",))
     assert not chains, "\n".join(chains)
 
 
-@pytest.mark.parametrize("name", side_modules("robot_agent", "map_server", known="robot_agent.__main__"))
+@pytest.mark.parametrize("name", sorted(n for n in GRAPH.modules if n.split(".")[0] == "robot_agent"))
 def test_robot_agent_never_imports_map_server(name):
     chains = GRAPH.forbidden(name, ("map_server",))
     assert not chains, "\n".join(chains)
