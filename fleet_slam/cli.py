@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 from shared.entry import run_command
-
-Command = Callable[[argparse.Namespace], int]
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:

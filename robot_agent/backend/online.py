@@ -199,14 +199,7 @@ class OnlineBackend:
         active = np.asarray(self.kf_scan, int)
         graph = self.graph()
         gauge = self.gauge.copy() if np.any(self.gauge) else None
-        if not len(self._ret_scan):
-            x = self._x.copy()
-            solved = None if gauge is None else x
-            return Correction(
-                active, self._ref.copy(), self._published(x), len(self.loops), active, active, graph, gauge,
-                solved,
-            )  # fmt: skip
-        anchor = np.searchsorted(np.asarray(self.kf_id), self._ret_anchor)
+        anchor = np.searchsorted(np.asarray(self.kf_id, np.int64), self._ret_anchor)
         scans = np.concatenate([active, self._ret_scan])
         filt = np.vstack([self._ref, self._ret_filter])
         order = np.argsort(scans, kind="stable")

@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from robot_agent.slam import posegraph
-from shared.geometry import apply_points, compose, relative, relative_one, wrap_angle
+from shared.geometry import apply_points, compose, relative, relative_one, transform_points, wrap_angle
 from shared.scanmatch import (
     Field,
     MatchConfig,
@@ -148,10 +148,12 @@ def start_gauge(kf_poses: np.ndarray, kf_points: list[np.ndarray], cfg: BackendC
     d = np.hypot(*(kf_poses[1:, :2] - kf_poses[0, :2]).T)
     near = 1 + np.argsort(d, kind="stable")[: cfg.gauge_keyframes]
     near = near[d[near - 1] <= cfg.gauge_radius_m]
-    parts = [apply_points(kf_poses[k], kf_points[k]) for k in near if kf_points[k] is not None]
-    if not parts:
+    near = [k for k in near if kf_points[k] is not None]
+    if not near:
         return None
-    cloud = voxel_thin(np.concatenate(parts), cfg.voxel_m)
+    counts = [len(kf_points[k]) for k in near]  # every point by its keyframe's pose, in one go
+    pts = np.concatenate([kf_points[k] for k in near])
+    cloud = voxel_thin(transform_points(np.repeat(kf_poses[near], counts, axis=0), pts), cfg.voxel_m)
     if len(cloud) < 30:
         return None
     tree = cKDTree(cloud)
